@@ -1,0 +1,62 @@
+"""Atomic file writing: nothing a user saved is ever half-overwritten.
+
+Every file the project writes goes through here: a temporary file in the destination
+folder, flushed and fsync'ed, then renamed over the destination (atomic on POSIX), and
+finally the folder itself is fsync'ed so the rename survives a power cut. A crash at any
+moment leaves either the old file or the new one, never a mix.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import BinaryIO, Callable, Iterator
+
+
+@contextmanager
+def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
+    """Open a temporary binary file next to ``path``; on clean exit it replaces ``path``.
+
+    On an exception the temporary file is removed and ``path`` is left as it was.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    handle = tempfile.NamedTemporaryFile(mode="wb", dir=folder, prefix=f".{path.name}.", suffix=".tmp", delete=False)
+    temp_path = Path(handle.name)
+    try:
+        with handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temp_path, path)
+    except BaseException:
+        temp_path.unlink(missing_ok=True)
+        raise
+    _fsync_folder(folder)
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically."""
+    with atomic_open(path) as handle:
+        handle.write(data)
+
+
+def atomic_write_with(path: str | Path, writer: Callable[[BinaryIO], None]) -> None:
+    """Call ``writer(file)`` on a temporary file that atomically becomes ``path``."""
+    with atomic_open(path) as handle:
+        writer(handle)
+
+
+def _fsync_folder(folder: Path) -> None:
+    try:
+        descriptor = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return  # some file systems do not allow opening folders; the rename is still atomic
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)

@@ -1,0 +1,263 @@
+"""Sparse kernels and the ConvBKI filters built from them (paper Eqs. 5-7).
+
+The sparse kernel of Melkumyan and Ramos, with signal variance sigma_0 = 1 so that the
+BKI requirements k(x, x) = 1 and 0 <= k <= 1 hold:
+
+    k(d; l) = 1/3 (2 + cos(2 pi d / l)) (1 - d / l) + 1/(2 pi) sin(2 pi d / l)   for d < l
+    k(d; l) = 0                                                                  otherwise
+
+Three variants share one module, ``ConvBKIKernel``:
+
+* ``single``    one length for every class (S-BKI when untrained),
+* ``per_class`` one spherical length per class,
+* ``compound``  per class, the product of a horizontal kernel k_h(|dxy|; l_h) and a
+  vertical kernel k_v(|dz|; l_z), which lets poles stretch up and roads stretch sideways.
+
+Lengths are torch Parameters so mapping and training run the same code. They are kept
+positive by clamping at ``MIN_ELL`` when the filter is built (and by the trainer after
+each optimiser step). A length at or below one voxel leaves only the centre tap non-zero,
+which is the identity filter: that class is counted in its own voxel and never spread.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import torch
+import yaml
+
+KERNEL_KINDS = ("single", "per_class", "compound")
+
+# Lengths are clamped here before use: keeps d / l finite and the kernel well defined.
+MIN_ELL = 1e-4
+SUPPORT_TOLERANCE = 1e-6
+
+
+def sparse_kernel(distance: torch.Tensor, ell: torch.Tensor) -> torch.Tensor:
+    """Sparse kernel k(d; l), elementwise with broadcasting. Differentiable in ``ell``.
+
+    ``distance`` and ``ell`` in metres; returns values in [0, 1], exactly 1 at d = 0 and
+    exactly 0 for d >= l.
+    """
+    ell = ell.clamp_min(MIN_ELL)
+    # The support ends a hair (1e-6 relative) before l so that a float32 length equal to a
+    # tap distance (l = 0.2 m at 0.2 m voxels) counts as "at" it: k is ~1e-18 there anyway.
+    inside = distance < ell * (1.0 - SUPPORT_TOLERANCE)
+    # Clamp the ratio so that taps outside the support produce finite values (and zero
+    # gradients) instead of NaN when they are masked out below.
+    ratio = torch.where(inside, distance / ell, torch.ones_like(distance / ell))
+    two_pi_r = 2.0 * math.pi * ratio
+    value = (2.0 + torch.cos(two_pi_r)) * (1.0 - ratio) / 3.0 + torch.sin(two_pi_r) / (2.0 * math.pi)
+    # Rounding can leave a value of order 1e-8 below zero just inside the support.
+    return torch.where(inside, value.clamp(0.0, 1.0), torch.zeros_like(value))
+
+
+def tap_offsets(filter_size: int, resolution: float, dtype=torch.float32, device=None):
+    """Metric offsets of every tap from the filter centre, each of shape (f, f, f).
+
+    Returns (dx, dy, dz); index order [i, j, m] matches conv3d's (D, H, W) = (x, y, z).
+    """
+    if filter_size < 1 or filter_size % 2 == 0:
+        raise ValueError(f"filter_size must be a positive odd integer, got {filter_size}")
+    half = filter_size // 2
+    steps = torch.arange(-half, half + 1, dtype=dtype, device=device) * resolution
+    return torch.meshgrid(steps, steps, steps, indexing="ij")
+
+
+@dataclass
+class KernelConfig:
+    """The contents of a kernel file (INTERFACE.md section 3): the unit of trained weights."""
+
+    kernel: str = "compound"
+    resolution: float = 0.2
+    filter_size: int = 5
+    num_classes: int = 20
+    ell: list[float] = field(default_factory=list)  # single: [l]; per_class: one per class
+    ell_h: list[float] = field(default_factory=list)  # compound only
+    ell_z: list[float] = field(default_factory=list)  # compound only
+
+    def validate(self) -> "KernelConfig":
+        """Raise ``KernelFileError`` with a readable reason when the config is inconsistent."""
+        if self.kernel not in KERNEL_KINDS:
+            raise KernelFileError(f"kernel must be one of {', '.join(KERNEL_KINDS)}, got {self.kernel!r}")
+        if not (isinstance(self.filter_size, int) and self.filter_size >= 1 and self.filter_size % 2 == 1):
+            raise KernelFileError(f"filter_size must be a positive odd integer, got {self.filter_size!r}")
+        if not (isinstance(self.num_classes, int) and self.num_classes >= 1):
+            raise KernelFileError(f"num_classes must be a positive integer, got {self.num_classes!r}")
+        if not (_is_number(self.resolution) and self.resolution > 0 and math.isfinite(self.resolution)):
+            raise KernelFileError(f"resolution must be a positive number of metres, got {self.resolution!r}")
+        expected = {"single": {"ell": 1}, "per_class": {"ell": self.num_classes},
+                    "compound": {"ell_h": self.num_classes, "ell_z": self.num_classes}}[self.kernel]
+        for name, count in expected.items():
+            values = getattr(self, name)
+            if len(values) != count:
+                raise KernelFileError(f"{self.kernel} kernel needs {count} value(s) in {name}, got {len(values)}")
+            for value in values:
+                if not (_is_number(value) and math.isfinite(value) and value > 0):
+                    raise KernelFileError(f"{name} lengths must be positive finite metres, got {value!r}")
+        return self
+
+
+class KernelFileError(ValueError):
+    """A kernel file that cannot be used; the message names the problem."""
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def load_kernel_file(path: str | Path) -> KernelConfig:
+    """Read and validate a kernel YAML file. Raises ``KernelFileError`` naming the file."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as error:
+        raise KernelFileError(f"{path}: cannot read kernel file ({error.strerror or error})") from error
+    except yaml.YAMLError as error:
+        raise KernelFileError(f"{path}: not valid YAML ({error.__class__.__name__})") from error
+    if not isinstance(data, dict):
+        raise KernelFileError(f"{path}: a kernel file is a YAML mapping, found {type(data).__name__}")
+    try:
+        return kernel_config_from_dict(data)
+    except KernelFileError as error:
+        raise KernelFileError(f"{path}: {error}") from None
+
+
+def kernel_config_from_dict(data: dict) -> KernelConfig:
+    """Build a validated ``KernelConfig`` from a kernel-file mapping."""
+    known = {"kernel", "resolution", "filter_size", "num_classes", "ell", "ell_h", "ell_z"}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise KernelFileError(f"unknown key(s) {', '.join(map(str, unknown))}")
+    for key in ("kernel", "resolution", "filter_size", "num_classes"):
+        if key not in data:
+            raise KernelFileError(f"missing key {key!r}")
+
+    def as_list(name: str) -> list:
+        value = data.get(name, [])
+        if value is None:
+            return []
+        return list(value) if isinstance(value, (list, tuple)) else [value]
+
+    config = KernelConfig(kernel=data["kernel"], resolution=data["resolution"],
+                          filter_size=data["filter_size"], num_classes=data["num_classes"],
+                          ell=as_list("ell"), ell_h=as_list("ell_h"), ell_z=as_list("ell_z"))
+    if _is_number(config.resolution):
+        config.resolution = float(config.resolution)
+    return config.validate()
+
+
+def kernel_config_to_dict(config: KernelConfig) -> dict:
+    """The mapping written to a kernel file (only the keys the variant uses)."""
+    data = {"kernel": config.kernel, "resolution": float(config.resolution),
+            "filter_size": int(config.filter_size), "num_classes": int(config.num_classes)}
+    if config.kernel == "single":
+        data["ell"] = float(config.ell[0])
+    elif config.kernel == "per_class":
+        data["ell"] = [round(float(v), 6) for v in config.ell]
+    else:
+        data["ell_h"] = [round(float(v), 6) for v in config.ell_h]
+        data["ell_z"] = [round(float(v), 6) for v in config.ell_z]
+    return data
+
+
+def save_kernel_file(config: KernelConfig, path: str | Path) -> None:
+    """Write a kernel file atomically (temp file in the same folder, fsync, rename)."""
+    from convbki_core.fileio import atomic_write_bytes
+
+    config.validate()
+    text = "# ConvBKI kernel file (convbki_ros). Lengths in metres.\n"
+    text += yaml.safe_dump(kernel_config_to_dict(config), sort_keys=False, default_flow_style=None, width=100)
+    atomic_write_bytes(Path(path), text.encode())
+
+
+class ConvBKIKernel(torch.nn.Module):
+    """Learnable sparse-kernel filters K[C, 1, f, f, f] for the depthwise ConvBKI update."""
+
+    def __init__(self, kind: str = "compound", num_classes: int = 20, filter_size: int = 5,
+                 resolution: float = 0.2, ell: float | Sequence[float] = 0.5,
+                 ell_h: float | Sequence[float] | None = None, ell_z: float | Sequence[float] | None = None):
+        super().__init__()
+        if kind not in KERNEL_KINDS:
+            raise ValueError(f"kernel kind must be one of {KERNEL_KINDS}, got {kind!r}")
+        if filter_size < 1 or filter_size % 2 == 0:
+            raise ValueError(f"filter_size must be a positive odd integer, got {filter_size}")
+        self.kind = kind
+        self.num_classes = int(num_classes)
+        self.filter_size = int(filter_size)
+        self.resolution = float(resolution)
+
+        def lengths(value, count: int) -> torch.nn.Parameter:
+            tensor = torch.as_tensor(value, dtype=torch.float32).flatten()
+            if tensor.numel() == 1:
+                tensor = tensor.expand(count)
+            if tensor.numel() != count:
+                raise ValueError(f"expected {count} kernel lengths, got {tensor.numel()}")
+            return torch.nn.Parameter(tensor.clone())
+
+        if kind == "single":
+            self.ell = lengths(ell, 1)
+        elif kind == "per_class":
+            self.ell = lengths(ell, self.num_classes)
+        else:
+            self.ell_h = lengths(ell if ell_h is None else ell_h, self.num_classes)
+            self.ell_z = lengths(ell if ell_z is None else ell_z, self.num_classes)
+
+    @classmethod
+    def from_config(cls, config: KernelConfig) -> "ConvBKIKernel":
+        config.validate()
+        if config.kernel == "compound":
+            return cls("compound", config.num_classes, config.filter_size, config.resolution,
+                       ell_h=config.ell_h, ell_z=config.ell_z)
+        return cls(config.kernel, config.num_classes, config.filter_size, config.resolution, ell=config.ell)
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> "ConvBKIKernel":
+        return cls.from_config(load_kernel_file(path))
+
+    def to_config(self) -> KernelConfig:
+        def values(parameter: torch.Tensor) -> list[float]:
+            return [float(v) for v in parameter.detach().clamp_min(MIN_ELL).cpu()]
+
+        config = KernelConfig(self.kind, self.resolution, self.filter_size, self.num_classes)
+        if self.kind == "compound":
+            config.ell_h, config.ell_z = values(self.ell_h), values(self.ell_z)
+        else:
+            config.ell = values(self.ell)
+        return config
+
+    @torch.no_grad()
+    def clamp_lengths_(self) -> None:
+        """Keep every length positive in place (the trainer calls this after each step)."""
+        for parameter in self.parameters():
+            parameter.clamp_(min=MIN_ELL)
+
+    def filters(self) -> torch.Tensor:
+        """The depthwise filters K[C, 1, f, f, f] (paper Eq. 6), differentiable in the lengths.
+
+        Evaluated in float64 and returned in the parameters' dtype: near the end of its
+        support the kernel is a difference of two nearly equal terms, and float32 would
+        lose about three digits there. Tap distances come from integer offsets, so the
+        filters are exactly symmetric.
+        """
+        parameter = next(self.parameters())
+        half = self.filter_size // 2
+        steps = torch.arange(-half, half + 1, dtype=torch.float64, device=parameter.device)
+        i, j, m = torch.meshgrid(steps, steps, steps, indexing="ij")
+        shape = (-1, 1, 1, 1)
+        if self.kind == "compound":
+            horizontal = sparse_kernel(self.resolution * torch.sqrt(i * i + j * j), self.ell_h.double().view(shape))
+            vertical = sparse_kernel(self.resolution * m.abs(), self.ell_z.double().view(shape))
+            weights = horizontal * vertical
+        else:
+            distance = self.resolution * torch.sqrt(i * i + j * j + m * m)
+            weights = sparse_kernel(distance, self.ell.double().view(shape))
+            if self.kind == "single":
+                weights = weights.expand(self.num_classes, -1, -1, -1)
+        return weights.unsqueeze(1).to(parameter.dtype).contiguous()
+
+    def extra_repr(self) -> str:
+        return f"kind={self.kind}, num_classes={self.num_classes}, filter_size={self.filter_size}, resolution={self.resolution}"

@@ -1,0 +1,73 @@
+"""Dataset label maps: raw ids <-> learning classes, class names and colours.
+
+Label maps live as YAML in the package's config folder (``config/<name>.yaml``), so a new
+dataset is a new file, not new code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from convbki_core.paths import config_dir
+
+
+@dataclass(frozen=True)
+class LabelMap:
+    """Learning-class facts of one dataset. Arrays are indexed by id."""
+
+    name: str
+    learning_map: np.ndarray  # (65536,) uint16: raw semantic id -> learning class (0 for unknown)
+    learning_map_inv: np.ndarray  # (C,) uint32: learning class -> raw id written back
+    class_names: tuple[str, ...]
+    colors: np.ndarray  # (C, 3) uint8 RGB
+    ignore_classes: tuple[int, ...]
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.class_names)
+
+    def to_learning(self, raw_labels: np.ndarray) -> np.ndarray:
+        """Raw label words (uint32, instance in the high 16 bits) -> learning ids (int64)."""
+        raw = np.asarray(raw_labels)
+        if raw.dtype.kind not in "iu":
+            raise TypeError(f"labels must be integers, got {raw.dtype}")
+        semantic = raw.astype(np.int64) & 0xFFFF
+        return self.learning_map[semantic].astype(np.int64)
+
+    def to_raw(self, learning_labels: np.ndarray) -> np.ndarray:
+        """Learning ids -> raw ids (uint32) as written in submission files."""
+        return self.learning_map_inv[np.asarray(learning_labels, dtype=np.int64)]
+
+
+def load_label_map_file(path: str | Path) -> LabelMap:
+    """Read a label-map YAML (see config/semantic_kitti.yaml for the layout)."""
+    path = Path(path)
+    data = yaml.safe_load(path.read_text())
+    classes = data["classes"]
+    num_classes = len(classes)
+    if sorted(int(k) for k in classes) != list(range(num_classes)):
+        raise ValueError(f"{path}: classes must be numbered 0..{num_classes - 1}")
+    names, inverse, colors = [], np.zeros(num_classes, np.uint32), np.zeros((num_classes, 3), np.uint8)
+    for class_id in range(num_classes):
+        name, raw_id, rgb = classes[class_id]
+        names.append(str(name))
+        inverse[class_id] = int(raw_id)
+        colors[class_id] = rgb
+    forward = np.zeros(0x10000, np.uint16)
+    for raw_id, class_id in data["learning_map"].items():
+        if not 0 <= int(class_id) < num_classes:
+            raise ValueError(f"{path}: learning_map sends {raw_id} to unknown class {class_id}")
+        forward[int(raw_id)] = int(class_id)
+    return LabelMap(str(data.get("name", path.stem)), forward, inverse, tuple(names), colors,
+                    tuple(int(c) for c in data.get("ignore_classes", [0])))
+
+
+@lru_cache(maxsize=None)
+def load_label_map(name: str = "semantic_kitti") -> LabelMap:
+    """The label map shipped as ``config/<name>.yaml``."""
+    return load_label_map_file(config_dir() / f"{name}.yaml")

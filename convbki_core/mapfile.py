@@ -1,0 +1,108 @@
+"""The map file: one self-describing, versioned file holding a whole ConvBKI map.
+
+Layout: an uncompressed NumPy ``.npz`` archive (readable from any language with a zip
+reader and the .npy spec) with three members:
+
+* ``metadata``: UTF-8 JSON bytes: format name and version, resolution (m), num_classes,
+  frame_id, prior, local_bounds, the kernel (kernel-file mapping), class names if known;
+* ``voxel_index``: (N, 3) int32 global voxel indices (centre = (index + 0.5) * resolution);
+* ``alpha``: (N, C) float32 Dirichlet concentrations.
+
+Saves are atomic (temp file in the same folder, fsync, rename).
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from convbki_core.fileio import atomic_write_with
+from convbki_core.kernels import kernel_config_to_dict
+
+if TYPE_CHECKING:
+    from convbki_core.mapper import ConvBKIMapper
+
+MAP_FORMAT = "convbki_map"
+MAP_VERSION = 1
+
+
+class MapFileError(ValueError):
+    """A map file that cannot be loaded; the message names the file and the problem."""
+
+
+def save_map(mapper: "ConvBKIMapper", path: str | Path) -> None:
+    indices, alpha = mapper.store.items()
+    if indices.size and (np.abs(indices) > np.iinfo(np.int32).max).any():
+        raise ValueError("voxel indices exceed the int32 range of the map file")
+    metadata = {
+        "format": MAP_FORMAT,
+        "version": MAP_VERSION,
+        "resolution": mapper.resolution,
+        "num_classes": mapper.num_classes,
+        "num_voxels": int(indices.shape[0]),
+        "frame_id": mapper.frame_id,
+        "prior": mapper.prior,
+        "local_bounds": [list(mapper.geometry.bounds_min), list(mapper.geometry.bounds_max)],
+        "kernel": kernel_config_to_dict(mapper.kernel.to_config()),
+        "scans_integrated": mapper.scans_integrated,
+    }
+    arrays = {
+        "metadata": np.frombuffer(json.dumps(metadata).encode(), dtype=np.uint8),
+        "voxel_index": indices.astype(np.int32),
+        "alpha": alpha.astype(np.float32),
+    }
+    atomic_write_with(path, lambda handle: np.savez(handle, **arrays))
+
+
+def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Read and check a map file: (metadata, voxel_index (N, 3) int64, alpha (N, C) float32)."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            members = set(archive.files)
+            missing = {"metadata", "voxel_index", "alpha"} - members
+            if missing:
+                raise MapFileError(f"{path}: not a ConvBKI map file (missing {', '.join(sorted(missing))})")
+            metadata = json.loads(archive["metadata"].tobytes().decode())
+            indices = archive["voxel_index"]
+            alpha = archive["alpha"]
+    except MapFileError:
+        raise
+    except FileNotFoundError:
+        raise MapFileError(f"{path}: no such map file") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise MapFileError(f"{path}: not a readable ConvBKI map file ({error.__class__.__name__}: {error})") from None
+    if not isinstance(metadata, dict) or metadata.get("format") != MAP_FORMAT:
+        raise MapFileError(f"{path}: not a ConvBKI map file (format is {metadata.get('format')!r})"
+                           if isinstance(metadata, dict) else f"{path}: not a ConvBKI map file")
+    if metadata.get("version") != MAP_VERSION:
+        raise MapFileError(f"{path}: map format version {metadata.get('version')} is not supported "
+                           f"(this build reads version {MAP_VERSION})")
+    num_classes = metadata.get("num_classes")
+    if indices.ndim != 2 or indices.shape[1] != 3 or alpha.ndim != 2 or alpha.shape != (indices.shape[0], num_classes):
+        raise MapFileError(f"{path}: inconsistent arrays (voxel_index {indices.shape}, alpha {alpha.shape}, "
+                           f"num_classes {num_classes})")
+    if indices.dtype.kind != "i" or alpha.dtype.kind != "f":
+        raise MapFileError(f"{path}: unexpected array types ({indices.dtype}, {alpha.dtype})")
+    if not np.isfinite(alpha).all() or (alpha < 0).any():
+        raise MapFileError(f"{path}: concentrations must be finite and non-negative")
+    if len(np.unique(indices, axis=0)) != indices.shape[0]:
+        raise MapFileError(f"{path}: duplicate voxel indices")
+    return metadata, indices.astype(np.int64), alpha.astype(np.float32)
+
+
+def load_map_into(mapper: "ConvBKIMapper", path: str | Path) -> None:
+    """Replace ``mapper``'s voxels with the file's; the map is untouched if the file is unusable."""
+    metadata, indices, alpha = read_map(path)
+    if metadata["num_classes"] != mapper.num_classes:
+        raise MapFileError(f"{path}: map has {metadata['num_classes']} classes, the mapper {mapper.num_classes}")
+    if not np.isclose(float(metadata["resolution"]), mapper.resolution):
+        raise MapFileError(f"{path}: map resolution {metadata['resolution']} m differs from the mapper's "
+                           f"{mapper.resolution} m")
+    mapper.reset()
+    mapper.store.write(indices, alpha)
+    mapper.scans_integrated = int(metadata.get("scans_integrated", 0))

@@ -1,0 +1,62 @@
+"""PLY export of map voxels for CloudCompare, Open3D or MeshLab.
+
+Binary little-endian PLY, one vertex per voxel centre with properties
+x, y, z (float32, m), red, green, blue (uint8 class colour), label (uint32 learning id),
+variance (float32). Written atomically.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from convbki_core.fileio import atomic_write_with
+from convbki_core.labels import load_label_map
+
+if TYPE_CHECKING:
+    from convbki_core.mapper import VoxelSet
+
+PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+                      ("blue", "u1"), ("label", "<u4"), ("variance", "<f4")])
+_PLY_TYPES = {np.dtype("<f4"): "float", np.dtype("u1"): "uchar", np.dtype("<u4"): "uint"}
+
+
+def class_colours(labels: np.ndarray, colours: np.ndarray | None = None) -> np.ndarray:
+    """RGB (N, 3) uint8 for learning labels; labels beyond the palette are grey."""
+    if colours is None:
+        colours = load_label_map().colors
+    labels = np.asarray(labels, dtype=np.int64)
+    result = np.full((labels.shape[0], 3), 128, np.uint8)
+    known = (labels >= 0) & (labels < colours.shape[0])
+    result[known] = colours[labels[known]]
+    return result
+
+
+def write_voxels_ply(voxels: "VoxelSet", path: str | Path, max_variance: float | None = None,
+                     colours: np.ndarray | None = None) -> int:
+    """Write ``voxels`` (optionally only those with variance <= ``max_variance``); returns the count."""
+    keep = np.ones(len(voxels), bool) if not max_variance else voxels.variance <= max_variance
+    vertices = np.zeros(int(keep.sum()), PLY_DTYPE)
+    vertices["x"], vertices["y"], vertices["z"] = voxels.centres[keep].T
+    rgb = class_colours(voxels.label[keep], colours)
+    vertices["red"], vertices["green"], vertices["blue"] = rgb.T
+    vertices["label"] = voxels.label[keep]
+    vertices["variance"] = voxels.variance[keep]
+    header = ["ply", "format binary_little_endian 1.0", "comment convbki_ros semantic map (voxel centres)",
+              f"element vertex {vertices.shape[0]}"]
+    header += [f"property {_PLY_TYPES[PLY_DTYPE[name]]} {name}" for name in PLY_DTYPE.names]
+    header.append("end_header")
+    blob = ("\n".join(header) + "\n").encode("ascii") + vertices.tobytes()
+    atomic_write_with(path, lambda handle: handle.write(blob))
+    return int(vertices.shape[0])
+
+
+def read_ply(path: str | Path) -> np.ndarray:
+    """Read a PLY written by ``write_voxels_ply`` back into a structured array."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode("ascii").splitlines()
+    count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
+    return np.frombuffer(data, dtype=PLY_DTYPE, count=count, offset=end)

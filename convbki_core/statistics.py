@@ -1,0 +1,40 @@
+"""Dirichlet statistics of a voxel's concentration parameters (paper Eq. 2).
+
+For alpha (..., C) with eta = sum_c alpha_c: the expected class probability is
+p_c = alpha_c / eta and its variance p_c (1 - p_c) / (1 + eta).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class DirichletStats:
+    """Per voxel: expected class, its expected probability and the variance of that probability."""
+
+    label: np.ndarray  # (N,) int64 arg-max class
+    confidence: np.ndarray  # (N,) float32 E[theta_label]
+    variance: np.ndarray  # (N,) float32 V[theta_label]
+
+
+def dirichlet_statistics(alpha: np.ndarray) -> DirichletStats:
+    """Statistics of concentration rows ``alpha`` (N, C)."""
+    alpha = np.asarray(alpha, dtype=np.float64)
+    if alpha.ndim != 2:
+        raise ValueError(f"alpha must be (N, C), got shape {alpha.shape}")
+    total = alpha.sum(axis=1)
+    label = alpha.argmax(axis=1) if alpha.shape[0] else np.zeros(0, np.int64)
+    top = np.take_along_axis(alpha, label[:, None], axis=1)[:, 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        expected = np.where(total > 0, top / total, 0.0)
+    variance = expected * (1.0 - expected) / (1.0 + total)
+    return DirichletStats(label.astype(np.int64), expected.astype(np.float32), variance.astype(np.float32))
+
+
+def expected_probabilities(alpha: np.ndarray) -> np.ndarray:
+    """E[theta] = alpha / sum(alpha) row-wise, (N, C)."""
+    alpha = np.asarray(alpha, dtype=np.float64)
+    return alpha / alpha.sum(axis=1, keepdims=True)

@@ -1,0 +1,194 @@
+"""The local window and the input volume F (paper Eq. 3).
+
+Geometry: the global map is an axis-aligned grid in the map frame with voxel index
+``floor(x / resolution)`` on each axis, so voxel (i, j, k) has its centre at
+``(i + 0.5, j + 0.5, k + 0.5) * resolution``. The local window is a box of that grid
+around the sensor: ``dims`` voxels per axis starting at global index ``origin``. Inside a
+window a voxel is addressed by its linear index ``(x * DY + y) * DZ + z``, the memory
+order of a C-contiguous (X, Y, Z) volume.
+
+F[c, v] is the sum over the points inside voxel v of their class evidence y_c: a one-hot
+label, or a probability vector.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class WindowGeometry:
+    """The local window's shape around the sensor, in voxels of ``resolution`` metres.
+
+    ``bounds_min``/``bounds_max`` are metres relative to the sensor position along the
+    map axes (the paper: [-40, -40, -2.6] .. [40, 40, 2.6]). They are rounded outwards to
+    whole voxels.
+    """
+
+    resolution: float
+    bounds_min: tuple[float, float, float] = (-40.0, -40.0, -2.6)
+    bounds_max: tuple[float, float, float] = (40.0, 40.0, 2.6)
+
+    def __post_init__(self):
+        if not (self.resolution > 0 and math.isfinite(self.resolution)):
+            raise ValueError(f"resolution must be positive metres, got {self.resolution}")
+        if len(self.bounds_min) != 3 or len(self.bounds_max) != 3:
+            raise ValueError("local bounds need three values each (x, y, z)")
+        if any(not lo < hi for lo, hi in zip(self.bounds_min, self.bounds_max)):
+            raise ValueError(f"local bounds must satisfy min < max, got {self.bounds_min} .. {self.bounds_max}")
+
+    @property
+    def offset(self) -> np.ndarray:
+        """Index of the window's first voxel relative to the sensor's voxel, (3,) int64."""
+        return np.floor(np.asarray(self.bounds_min) / self.resolution + 1e-6).astype(np.int64)
+
+    @property
+    def dims(self) -> np.ndarray:
+        """Voxels per axis, (3,) int64 (the paper's set-up: 400, 400, 26)."""
+        end = np.ceil(np.asarray(self.bounds_max) / self.resolution - 1e-6).astype(np.int64)
+        return end - self.offset
+
+    @property
+    def num_voxels(self) -> int:
+        return int(np.prod(self.dims))
+
+    def origin_for(self, sensor_position: np.ndarray) -> np.ndarray:
+        """Global index of the window's first voxel when the sensor is at ``sensor_position`` (map frame, m)."""
+        sensor_voxel = np.floor(np.asarray(sensor_position, dtype=np.float64) / self.resolution).astype(np.int64)
+        return sensor_voxel + self.offset
+
+
+def voxel_indices(points: np.ndarray, resolution: float) -> np.ndarray:
+    """Global voxel index (N, 3) int64 of map-frame points (N, 3) in metres."""
+    return np.floor(np.asarray(points, dtype=np.float64) / resolution).astype(np.int64)
+
+
+def voxel_centres(indices: np.ndarray, resolution: float) -> np.ndarray:
+    """Map-frame centres (N, 3) float64 of global voxel indices (N, 3)."""
+    return (np.asarray(indices, dtype=np.float64) + 0.5) * resolution
+
+
+def linear_index(local: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """(N, 3) window-local indices -> (N,) linear indices (x-major, z fastest)."""
+    return (local[:, 0] * dims[1] + local[:, 1]) * dims[2] + local[:, 2]
+
+
+def unravel_linear(linear: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """(N,) linear indices -> (N, 3) window-local indices."""
+    z = linear % dims[2]
+    rest = linear // dims[2]
+    return np.stack([rest // dims[1], rest % dims[1], z], axis=1)
+
+
+@dataclass
+class VoxelizeStats:
+    """What happened to the points of one scan."""
+
+    points_in: int = 0
+    used: int = 0
+    non_finite: int = 0  # NaN or inf coordinates (or probabilities)
+    outside_window: int = 0
+    ignored_class: int = 0  # labels in the ignore set (e.g. 0, unlabeled)
+    unknown_label: int = 0  # labels outside 0 .. C-1
+
+    @property
+    def dropped(self) -> int:
+        return self.points_in - self.used
+
+
+@dataclass
+class SparseVolume:
+    """The input volume F in sparse form: occupied voxels of one window.
+
+    ``linear`` (M,) int64 sorted unique window-linear indices; ``features`` (M, C) float32
+    per-class evidence sums; ``point_linear`` (N,) int64 the voxel of every input point,
+    -1 for points that were dropped.
+    """
+
+    origin: np.ndarray
+    dims: np.ndarray
+    linear: np.ndarray
+    features: np.ndarray
+    point_linear: np.ndarray
+    stats: VoxelizeStats = field(default_factory=VoxelizeStats)
+
+    @property
+    def num_voxels(self) -> int:
+        return int(self.linear.shape[0])
+
+    def to_dense(self, device: torch.device | str = "cpu", dtype=torch.float32) -> torch.Tensor:
+        """Dense F as a (C, X, Y, Z) tensor."""
+        num_classes = self.features.shape[1]
+        dense = torch.zeros(num_classes, int(np.prod(self.dims)), dtype=dtype, device=device)
+        if self.num_voxels:
+            index = torch.from_numpy(self.linear).to(device)
+            dense[:, index] = torch.from_numpy(self.features).to(device=device, dtype=dtype).T
+        return dense.view(num_classes, *(int(d) for d in self.dims))
+
+
+def voxelize(points: np.ndarray, values: np.ndarray, origin: np.ndarray, dims: np.ndarray,
+             resolution: float, num_classes: int, ignore_classes: tuple[int, ...] = (0,)) -> SparseVolume:
+    """Build the input volume F of a window from map-frame points (paper Eq. 3).
+
+    ``values`` is either (N,) integer learning labels or (N, C) class probabilities.
+    Points with non-finite coordinates, points outside the window, labels in
+    ``ignore_classes`` and labels outside 0..C-1 are dropped and counted. With
+    probabilities, the columns of ``ignore_classes`` are zeroed (they carry no evidence)
+    and rows that are non-finite are dropped.
+    """
+    points = np.asarray(points)
+    values = np.asarray(values)
+    origin = np.asarray(origin, dtype=np.int64)
+    dims = np.asarray(dims, dtype=np.int64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    count = points.shape[0]
+    if values.shape[0] != count:
+        raise ValueError(f"got {count} points but {values.shape[0]} labels/probabilities")
+    with_probabilities = values.ndim == 2
+    if with_probabilities and values.shape[1] != num_classes:
+        raise ValueError(f"probabilities must have {num_classes} columns, got {values.shape[1]}")
+    if not with_probabilities and values.ndim != 1:
+        raise ValueError(f"labels must have shape (N,), got {values.shape}")
+    if not with_probabilities and values.dtype.kind not in "iu":
+        raise ValueError(f"labels must be integers, got dtype {values.dtype}")
+
+    stats = VoxelizeStats(points_in=count)
+    keep = np.isfinite(points).all(axis=1)
+    if with_probabilities:
+        keep &= np.isfinite(values).all(axis=1)
+    stats.non_finite = int(count - keep.sum())
+
+    if not with_probabilities:
+        labels = values.astype(np.int64, copy=False)
+        known = (labels >= 0) & (labels < num_classes)
+        stats.unknown_label = int((keep & ~known).sum())
+        keep &= known
+        ignored = np.isin(labels, np.asarray(ignore_classes, dtype=np.int64))
+        stats.ignored_class = int((keep & ignored).sum())
+        keep &= ~ignored
+
+    local = np.zeros((count, 3), np.int64)
+    local[keep] = voxel_indices(points[keep], resolution) - origin
+    inside = keep & (local >= 0).all(axis=1) & (local < dims).all(axis=1)
+    stats.outside_window = int((keep & ~inside).sum())
+    stats.used = int(inside.sum())
+
+    point_linear = np.full(count, -1, np.int64)
+    point_linear[inside] = linear_index(local[inside], dims)
+    used_linear = point_linear[inside]
+    linear, inverse = np.unique(used_linear, return_inverse=True)
+    if with_probabilities:
+        evidence = values[inside].astype(np.float32, copy=True)
+        evidence[:, list(ignore_classes)] = 0.0
+        features = np.zeros((linear.shape[0], num_classes), np.float32)
+        np.add.at(features, inverse, evidence)
+    else:
+        pairs = inverse * num_classes + labels[inside]
+        features = np.bincount(pairs, minlength=linear.shape[0] * num_classes)
+        features = features.reshape(linear.shape[0], num_classes).astype(np.float32)
+    return SparseVolume(origin, dims, linear, features, point_linear, stats)
