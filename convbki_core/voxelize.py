@@ -185,8 +185,10 @@ def voxelize(points: np.ndarray, values: np.ndarray, origin: np.ndarray, dims: n
     if with_probabilities:
         evidence = values[inside].astype(np.float32, copy=True)
         evidence[:, list(ignore_classes)] = 0.0
-        features = np.zeros((linear.shape[0], num_classes), np.float32)
-        np.add.at(features, inverse, evidence)
+        # Group the points of each voxel together and sum each group (much faster than np.add.at).
+        order = np.argsort(inverse, kind="stable")
+        starts = np.searchsorted(inverse[order], np.arange(linear.shape[0]))
+        features = np.add.reduceat(evidence[order], starts, axis=0) if linear.size else evidence[:0]
     else:
         pairs = inverse * num_classes + labels[inside]
         features = np.bincount(pairs, minlength=linear.shape[0] * num_classes)

@@ -1,0 +1,29 @@
+# convbki_ros: set-up, tests and demo. See README.md.
+SHELL := /bin/bash
+PYTHON := .venv/bin/python
+# -q: one line per module; -ra: say why tests were skipped or failed.
+PYTEST_FLAGS ?= -q -ra
+
+.PHONY: setup test demo clean distclean
+
+## setup: .venv/ with every dependency, then colcon build into install/ (idempotent)
+setup:
+	@scripts/setup.sh
+
+## test: set-up, then the test suite under test/
+test: setup
+	@scripts/venv_exec.sh $(PYTHON) -m pytest $(PYTEST_FLAGS) test
+
+## demo: set-up, then the end-to-end demo
+demo: setup
+	@echo "demo: set-up is done. The end-to-end demo (synthetic drive -> rosbag2 -> mapper node"
+	@echo "      -> /semantic_map) comes with the ROS node issue (issue 4); not available yet."
+
+## clean: remove colcon output, caches and out/ (keeps .venv/)
+clean:
+	rm -rf build install log out .pytest_cache .hypothesis
+	find . -path ./.venv -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +
+
+## distclean: clean, and remove .venv/ too
+distclean: clean
+	rm -rf .venv

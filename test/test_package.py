@@ -1,0 +1,265 @@
+"""Packaging: the package builds with colcon as ``ros.ament_python`` and every executable
+runs the way ``ros2 run convbki_ros <exe>`` runs it (through the ament index), and as
+``python -m <module>``.
+
+The package is copied into a temporary colcon workspace and built there with the colcon
+next to this interpreter (the venv's), so the repo's own build/ and install/ are untouched.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+import yaml
+
+pytestmark = pytest.mark.package
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = "convbki_ros"
+
+# INTERFACE.md section 2: exe -> (module, flags its --help must explain).
+EXECUTABLES: dict[str, tuple[str, tuple[str, ...]]] = {
+    "mapper": ("convbki_ros.mapper", ("--ros-args", "--params-file")),
+    "kitti_to_bag": ("convbki_ros.kitti_to_bag", (
+        "--dataset", "--sequence", "--out", "--predictions-dir", "--probabilities-dir",
+        "--frames", "--storage", "mcap", "sqlite3")),
+    "play_bag": ("convbki_ros.play_bag", ("BAG", "--rate", "--clock", "--remap")),
+    "evaluate": ("convbki_core.evaluate", (
+        "--dataset", "--sequence", "--predictions-dir", "--probabilities-dir", "--kernel",
+        "--frames", "--report", "--write-labels")),
+    "train": ("convbki_core.train", (
+        "--dataset", "--sequences", "--kernel", "--out", "--frames-per-sample", "--epochs",
+        "--lr")),
+    "synth": ("convbki_core.synthetic", ("--out", "--sequence", "--frames", "--seed")),
+    "bench": ("convbki_core.bench", ("--config", "--repeat", "--json")),
+}
+
+# INTERFACE.md section 4: parameters of the mapper node, with the paper's defaults.
+MAPPER_DEFAULTS = {
+    "kernel_file": "", "num_classes": 20, "resolution": 0.2, "filter_size": 5,
+    "local_bounds": [-40.0, -40.0, -2.6, 40.0, 40.0, 2.6], "prior": 0.001,
+    "label_space": "raw", "map_frame": "map", "max_variance": 0.0, "publish_period": 1.0,
+    "device": "auto", "input_qos": "reliable", "map_file": "", "autosave_period": 0.0,
+}
+
+# Arguments that parse, for running a not-yet-implemented executable plainly.
+VALID_ARGS = {
+    "mapper": ["--ros-args", "--params-file", str(REPO / "config" / "mapper.yaml")],
+    "kitti_to_bag": ["--dataset", "ds", "--sequence", "0", "--out", "bag"],
+    "play_bag": ["bag"],
+    "evaluate": ["--dataset", "ds", "--sequence", "8", "--report", "r.json"],
+    "train": ["--dataset", "ds", "--sequences", "0", "--out", "k.yaml"],
+    "synth": ["--out", "ds"],
+    "bench": ["--repeat", "1"],
+}
+
+# Top-level entries of the repo that are not part of the package source.
+NOT_PACKAGE = {".venv", "build", "install", "log", ".git", "out", ".pytest_cache",
+               ".hypothesis", "tmp"}
+
+TIMEOUT = 120
+
+
+def _colcon() -> str:
+    """The colcon next to this interpreter (so scripts get this python's shebang)."""
+    local = Path(sys.executable).parent / "colcon"
+    found = str(local) if local.exists() else shutil.which("colcon")
+    if found is None:
+        pytest.skip("colcon is not installed (run `make setup`)")
+    return found
+
+
+def _ignore(directory: str, names: list[str]) -> set[str]:
+    ignored = {n for n in names if n == "__pycache__" or n.endswith((".pyc", ".egg-info"))}
+    if Path(directory).resolve() == REPO:
+        ignored |= NOT_PACKAGE.intersection(names)
+    return ignored
+
+
+def _not_implemented(module: str) -> bool:
+    source = REPO.joinpath(*module.split(".")).with_suffix(".py").read_text()
+    return "not implemented yet" in source
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A colcon workspace tmp/src/convbki_ros holding a copy of the package, built."""
+    ws = tmp_path_factory.mktemp("ws")
+    shutil.copytree(REPO, ws / "src" / PACKAGE, ignore=_ignore, symlinks=True)
+    env = dict(os.environ, COLCON_HOME=str(ws / ".colcon"))
+    build = subprocess.run(
+        [_colcon(), "build", "--base-paths", "src"], cwd=ws, env=env,
+        stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=TIMEOUT,
+    )
+    assert build.returncode == 0, f"colcon build failed:\n{build.stdout}\n{build.stderr}"
+    return ws
+
+
+@pytest.fixture(scope="module")
+def ros_env(workspace: Path) -> dict[str, str]:
+    """The environment `source install/setup.bash` gives: ament index and PYTHONPATH."""
+    prefix = workspace / "install" / PACKAGE
+    site = sysconfig.get_path("purelib", vars={"base": str(prefix), "platbase": str(prefix)})
+    env = dict(os.environ)
+    env["AMENT_PREFIX_PATH"] = os.pathsep.join(
+        [str(prefix)] + [p for p in [os.environ.get("AMENT_PREFIX_PATH", "")] if p])
+    env["PYTHONPATH"] = os.pathsep.join(
+        [site] + [p for p in [os.environ.get("PYTHONPATH", "")] if p])
+    return env
+
+
+def _ros_run(env: dict[str, str], cwd: Path, exe: str, *args: str) -> subprocess.CompletedProcess:
+    """What `ros2 run convbki_ros <exe>` does: look the package up on the ament index."""
+    from ament_index_python.packages import get_package_prefix
+
+    old = os.environ.get("AMENT_PREFIX_PATH")
+    os.environ["AMENT_PREFIX_PATH"] = env["AMENT_PREFIX_PATH"]
+    try:
+        prefix = Path(get_package_prefix(PACKAGE))
+    finally:
+        if old is None:
+            del os.environ["AMENT_PREFIX_PATH"]
+        else:
+            os.environ["AMENT_PREFIX_PATH"] = old
+    return subprocess.run(
+        [str(prefix / "lib" / PACKAGE / exe), *args], cwd=cwd, env=env,
+        stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=TIMEOUT,
+    )
+
+
+def test_colcon_identifies_ament_python(tmp_path: Path) -> None:
+    out = subprocess.run(
+        [_colcon(), "--log-base", os.devnull, "list", "--base-paths", str(REPO)],
+        cwd=tmp_path, env=dict(os.environ, COLCON_HOME=str(tmp_path)),
+        capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=TIMEOUT,
+    )
+    assert out.returncode == 0, out.stderr
+    name, _, kind = out.stdout.split("\t")[:3] if "\t" in out.stdout else ("", "", "")
+    assert (name, kind.strip()) == (PACKAGE, "(ros.ament_python)"), out.stdout
+
+
+def test_ament_index_finds_installed_package(
+    workspace: Path, ros_env: dict[str, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from ament_index_python.packages import get_package_prefix, get_package_share_directory
+
+    prefix = workspace / "install" / PACKAGE
+    assert (prefix / "share/ament_index/resource_index/packages" / PACKAGE).is_file()
+    monkeypatch.setenv("AMENT_PREFIX_PATH", ros_env["AMENT_PREFIX_PATH"])
+    assert Path(get_package_prefix(PACKAGE)) == prefix
+    share = Path(get_package_share_directory(PACKAGE))
+    assert share == prefix / "share" / PACKAGE
+    assert (share / "package.xml").read_text() == (REPO / "package.xml").read_text()
+    for pattern in ("config/*.yaml", "config/kernels/*.yaml"):
+        shipped = sorted(p.name for p in REPO.glob(pattern))
+        installed = sorted(p.name for p in share.glob(pattern))
+        assert installed == shipped, pattern
+    assert "mapper.yaml" in [p.name for p in share.glob("config/*.yaml")]
+
+    # With the install sourced, the installed copy of the code is what imports.
+    where = subprocess.run(
+        [sys.executable, "-c", "import convbki_ros, convbki_core; "
+         "print(convbki_ros.__file__); print(convbki_core.__file__)"],
+        cwd=workspace, env=ros_env, capture_output=True, text=True, timeout=TIMEOUT,
+    )
+    assert where.returncode == 0, where.stderr
+    for line in where.stdout.split():
+        assert Path(line).is_relative_to(prefix), where.stdout
+
+
+def test_every_executable_installed(workspace: Path) -> None:
+    libexec = workspace / "install" / PACKAGE / "lib" / PACKAGE
+    for exe in EXECUTABLES:
+        path = libexec / exe
+        assert path.is_file(), f"{path} missing"
+        assert os.access(path, os.X_OK), f"{path} is not executable"
+
+
+@pytest.mark.parametrize("exe", sorted(EXECUTABLES))
+def test_installed_executable_help(exe: str, ros_env: dict[str, str], tmp_path: Path) -> None:
+    result = _ros_run(ros_env, tmp_path, exe, "--help")
+    assert result.returncode == 0, result.stderr
+    for flag in EXECUTABLES[exe][1]:
+        assert flag in result.stdout, f"{exe} --help does not mention {flag}"
+    if exe == "mapper":
+        for name in MAPPER_DEFAULTS:
+            assert name in result.stdout, f"mapper --help does not explain parameter {name}"
+
+
+@pytest.mark.parametrize("exe", sorted(EXECUTABLES))
+def test_installed_executable_rejects_bad_flag(
+    exe: str, ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    result = _ros_run(ros_env, tmp_path, exe, "--no-such-flag", *VALID_ARGS[exe])
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert "--no-such-flag" in result.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("exe", sorted(EXECUTABLES))
+def test_not_yet_implemented_executable_says_so(
+    exe: str, ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    if not _not_implemented(EXECUTABLES[exe][0]):
+        pytest.skip(f"{exe} is implemented")
+    result = _ros_run(ros_env, tmp_path, exe, *VALID_ARGS[exe])
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1].startswith(f"{exe}: not implemented yet")
+
+
+@pytest.mark.parametrize("exe", sorted(EXECUTABLES))
+def test_module_help(exe: str, tmp_path: Path) -> None:
+    module, flags = EXECUTABLES[exe]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in [env.get("PYTHONPATH")] if p])
+    result = subprocess.run(
+        [sys.executable, "-m", module, "--help"], cwd=tmp_path, env=env,
+        stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=TIMEOUT,
+    )
+    assert result.returncode == 0, result.stderr
+    for flag in flags:
+        assert flag in result.stdout, f"python -m {module} --help does not mention {flag}"
+
+
+def test_venv_runs_modules_from_any_directory(tmp_path: Path) -> None:
+    """`make setup` puts the repo on the venv's import path (a .pth file)."""
+    if Path(sys.prefix).resolve() != (REPO / ".venv").resolve():
+        pytest.skip("not running in the repo's .venv")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    result = subprocess.run(
+        [sys.executable, "-m", "convbki_ros.mapper", "--help"], cwd=tmp_path, env=env,
+        stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=TIMEOUT,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "usage: mapper" in result.stdout
+
+
+def test_mapper_params_file_has_paper_defaults() -> None:
+    path = REPO / "config" / "mapper.yaml"
+    params = yaml.safe_load(path.read_text())["/**"]["ros__parameters"]
+    for name, default in MAPPER_DEFAULTS.items():
+        assert name in params, f"config/mapper.yaml lacks {name}"
+        value = params[name]
+        # Same YAML type as the default: a ROS parameter declared as double rejects an int.
+        assert type(value) is type(default), f"{name}: {value!r} is not a {type(default)}"
+        if isinstance(default, str):
+            assert value == default, name
+        else:
+            assert value == pytest.approx(default), name
+        if isinstance(default, list):
+            assert all(type(v) is float for v in value), name
+    # rclpy's own parser (the one --params-file uses) accepts it for the node.
+    from rclpy.parameter import parameter_dict_from_yaml_file
+
+    parsed = parameter_dict_from_yaml_file(str(path), use_wildcard=True,
+                                           target_nodes=["/convbki_mapper"])
+    assert set(MAPPER_DEFAULTS) <= set(parsed)
+    assert parsed["resolution"].value.double_value == pytest.approx(0.2)
+    assert list(parsed["local_bounds"].value.double_array_value) == pytest.approx(
+        MAPPER_DEFAULTS["local_bounds"])
