@@ -1,83 +1,240 @@
 """``evaluate``: offline ConvBKI mapping and scoring of a SemanticKITTI-format sequence.
 
-Protocol (the paper's): frames in order; update the map with each frame, then label every
-point of that frame by the arg-max class of its voxel (points outside the window or in
-voxels with no evidence keep the input label); one confusion matrix over all frames,
-ground-truth class 0 ignored; the input segmentation is scored the same way.
+Protocol (the paper's, INTERFACE.md section 6): frames in order; update the map with each
+frame, then label every point of that frame by the arg-max class of its voxel (points
+outside the window or in voxels with no evidence beyond the prior keep the input label);
+one confusion matrix over all frames, ground-truth class 0 ignored; IoU per class, mIoU over
+the classes present in the ground truth; the input segmentation is scored the same way.
+Several ``--kernel`` files are evaluated one after another on the same frames (ablations).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
-from collections.abc import Sequence
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from convbki_core.cli import UserError, frames_arg, progress, run, sequence_arg
+from convbki_core.datasets import DatasetError, parse_frames
+from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.fileio import atomic_write_bytes
+from convbki_core.kernels import load_kernel_file
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.metrics import ConfusionMatrix
+from convbki_core.paths import kernel_path
 
 PROG = "evaluate"
-ISSUE = 3
+DEFAULT_KERNEL = "semantic_kitti_compound"
+DEFAULT_PRIOR = 1e-3
+PAPER_BOUNDS = ((-40.0, -40.0, -2.6), (40.0, 40.0, 2.6))
 
 
-def sequence_arg(text: str) -> str:
-    """Sequence id as the two-digit folder name: ``8`` -> ``08``."""
-    if not text.isdigit():
-        raise argparse.ArgumentTypeError(f"sequence must be a number such as 08, got {text!r}")
-    return f"{int(text):02d}"
+@dataclass
+class KernelRun:
+    """The outcome of mapping one sequence with one kernel."""
+
+    kernel_file: str
+    kernel: str
+    map_scores: ConfusionMatrix
+    update_ms: list[float] = field(default_factory=list)
+    query_ms: list[float] = field(default_factory=list)
+    mapper: ConvBKIMapper | None = None
 
 
-def frames_arg(text: str) -> tuple[int | None, int | None]:
-    """``A:B`` -> (A, B): frames A (inclusive) to B (exclusive); either may be empty."""
-    start, sep, stop = text.partition(":")
-    try:
-        if not sep:
-            raise ValueError
-        a = int(start) if start else None
-        b = int(stop) if stop else None
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"frames must be A:B, e.g. 0:200, got {text!r}") from None
-    if (a is not None and a < 0) or (a is not None and b is not None and b <= a):
-        raise argparse.ArgumentTypeError(f"frames must satisfy 0 <= A < B, got {text!r}")
-    return a, b
+def map_frame_labels(mapper: ConvBKIMapper, points: np.ndarray, pose: np.ndarray,
+                     input_labels: np.ndarray) -> np.ndarray:
+    """The protocol's per-point labels after the frame was integrated: map label, else input label."""
+    points_map = points.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    map_labels, has_evidence = mapper.labels_at(points_map)
+    return np.where(has_evidence, map_labels, input_labels)
+
+
+def write_label_file(path: Path, learning_labels: np.ndarray, label_map) -> None:
+    """One submission file: uint32 raw ids (learning_map_inv), file order kept."""
+    atomic_write_bytes(path, label_map.to_raw(learning_labels).astype("<u4").tobytes())
+
+
+def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], kernel_file: str | Path, device: str,
+                    prior: float, input_scores: ConfusionMatrix | None, write_labels: Path | None,
+                    show_progress: bool = True, local_bounds=PAPER_BOUNDS) -> KernelRun:
+    """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
+
+    ``input_scores`` (when given) also receives the input segmentation's confusion counts.
+    """
+    config = load_kernel_file(kernel_file)
+    label_map = dataset.label_map
+    if config.num_classes != label_map.num_classes:
+        raise UserError(f"{kernel_file}: kernel has {config.num_classes} classes, the dataset {label_map.num_classes}")
+    mapper = ConvBKIMapper(config, local_bounds=local_bounds, prior=prior, device=device,
+                           ignore_classes=label_map.ignore_classes)
+    run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
+                                                                             label_map.ignore_classes), mapper=mapper)
+    out_folder = None
+    if write_labels is not None:
+        out_folder = write_labels / "sequences" / dataset.sequence / "predictions"
+        out_folder.mkdir(parents=True, exist_ok=True)
+    frames = (dataset[position] for position in positions)
+    if show_progress:
+        frames = progress(frames, total=len(positions), description=f"{Path(kernel_file).stem}")
+    for frame in frames:
+        if frame.ground_truth is None:
+            raise DatasetError(f"{dataset.folder}: no labels/ folder, so there is no ground truth to score against")
+        input_labels = frame.input_labels if frame.input_labels is not None else frame.probabilities.argmax(axis=1)
+        result = mapper.integrate(frame.points, frame.input_values, frame.pose)
+        started = time.perf_counter()
+        predicted = map_frame_labels(mapper, frame.points, frame.pose, input_labels)
+        labelling_ms = 1e3 * (time.perf_counter() - started)
+        timing = result.timing_ms
+        run_result.update_ms.append(timing["voxelize"] + timing["update"])
+        run_result.query_ms.append(timing["query"] + timing["write"] + labelling_ms)
+        run_result.map_scores.add(frame.ground_truth, predicted)
+        if input_scores is not None:
+            input_scores.add(frame.ground_truth, input_labels)
+        if out_folder is not None:
+            write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
+    return run_result
+
+
+def format_table(class_names: Sequence[str], input_scores: ConfusionMatrix, runs: Sequence[KernelRun]) -> str:
+    """Per-class IoU (%) table: one row per class present in the ground truth, one column per input/kernel."""
+    headers = ["class", "input"] + [Path(r.kernel_file).stem.replace("semantic_kitti_", "") for r in runs]
+    width = max(12, *(len(h) for h in headers[1:]))
+    lines = [f"{headers[0]:<14}" + "".join(f"{h:>{width + 1}}" for h in headers[1:])]
+    ious = [input_scores.iou()] + [r.map_scores.iou() for r in runs]
+    for class_id in np.flatnonzero(input_scores.present):
+        lines.append(f"{class_names[class_id]:<14}" + "".join(f"{100 * iou[class_id]:>{width + 1}.1f}" for iou in ious))
+    scores = [input_scores] + [r.map_scores for r in runs]
+    lines.append(f"{'mIoU':<14}" + "".join(f"{100 * s.miou():>{width + 1}.1f}" for s in scores))
+    lines.append(f"{'accuracy':<14}" + "".join(f"{100 * s.accuracy():>{width + 1}.1f}" for s in scores))
+    return "\n".join(lines)
+
+
+def build_report(sequence: str, frame_count: int, class_names: Sequence[str], input_scores: ConfusionMatrix,
+                 runs: Sequence[KernelRun]) -> dict:
+    """report.json (INTERFACE.md section 6): the first kernel at the top level, every kernel under "runs"."""
+
+    def run_entry(run_result: KernelRun) -> dict:
+        return {"kernel": run_result.kernel, "kernel_file": run_result.kernel_file,
+                "map": run_result.map_scores.summary(class_names),
+                "timing_ms": {"update_median": float(np.median(run_result.update_ms)),
+                              "query_median": float(np.median(run_result.query_ms))}}
+
+    entries = [run_entry(r) for r in runs]
+    report = {"sequence": sequence, "frames": frame_count, "kernel": entries[0]["kernel"],
+              "kernel_file": entries[0]["kernel_file"], "input": input_scores.summary(class_names),
+              "map": entries[0]["map"], "timing_ms": entries[0]["timing_ms"]}
+    if len(entries) > 1:
+        report["runs"] = entries
+    return report
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command-line parser."""
     p = argparse.ArgumentParser(
         prog=PROG,
-        description="Map a SemanticKITTI-format sequence offline with ConvBKI and score the "
-        "map's labels and the input segmentation against the ground truth (IoU per "
-        "class, mIoU over classes present in the ground truth, accuracy).",
-    )
+        description="Map a SemanticKITTI-format sequence offline with ConvBKI and score the map's labels and the "
+        "input segmentation against the ground truth (IoU per class, mIoU over classes present in the ground "
+        "truth, accuracy). Prints a per-class table, writes report.json and a bird's-eye PNG of each map.")
     p.add_argument("--dataset", required=True, metavar="ROOT",
-                   help="dataset root holding sequences/SS/{velodyne,labels,...}, "
-                   "poses.txt and calib.txt")
-    p.add_argument("--sequence", required=True, metavar="SS", type=sequence_arg,
-                   help="sequence id, e.g. 08")
+                   help="dataset root holding sequences/SS/{velodyne,labels,...}, poses.txt and calib.txt")
+    p.add_argument("--sequence", required=True, metavar="SS", type=sequence_arg, help="sequence id, e.g. 08")
     p.add_argument("--predictions-dir", default="predictions", metavar="DIR",
-                   help="folder under sequences/SS with the input segmentation "
-                   "NNNNNN.label (uint32 raw ids) (default: %(default)s)")
+                   help="folder under sequences/SS with the input segmentation NNNNNN.label (uint32 raw ids) "
+                   "(default: %(default)s)")
     p.add_argument("--probabilities-dir", default=None, metavar="DIR",
-                   help="folder under sequences/SS with per-point class probabilities "
-                   "NNNNNN.npy (N x C float16/float32); when given, the map is updated "
-                   "with these instead of the one-hot input labels")
-    p.add_argument("--kernel", default=None, metavar="FILE",
-                   help="kernel file (YAML), e.g. config/kernels/semantic_kitti_compound.yaml; "
-                   "default: the shipped compound kernel")
+                   help="folder under sequences/SS with per-point class probabilities NNNNNN.npy (N x C "
+                   "float16/float32); when given, the map is updated with these instead of one-hot labels")
+    p.add_argument("--kernel", nargs="+", default=None, metavar="FILE",
+                   help="one or more kernel files (YAML); each is evaluated on the same frames and reported "
+                   "(ablations). Default: config/kernels/semantic_kitti_compound.yaml")
     p.add_argument("--frames", default=None, metavar="A:B", type=frames_arg,
                    help="only frames A (inclusive) to B (exclusive); default: all")
     p.add_argument("--report", required=True, metavar="JSON",
-                   help="write the report (sequence, frames, kernel, input and map mIoU, IoU "
-                   "per class, accuracy, median update and query times in ms) to this file")
+                   help="write the report (sequence, frames, kernel, input and map mIoU, IoU per class, accuracy, "
+                   "median update and query times in ms) to this file; with several kernels, all are under 'runs'")
     p.add_argument("--write-labels", default=None, metavar="OUTROOT",
-                   help="also write the map's labels as "
-                   "OUTROOT/sequences/SS/predictions/NNNNNN.label (uint32 raw ids, one per "
-                   "input point), the format the semantic-kitti-api evaluator reads")
+                   help="also write the map's labels as OUTROOT/sequences/SS/predictions/NNNNNN.label (uint32 raw "
+                   "ids, one per input point), the format the semantic-kitti-api evaluator reads (first kernel)")
+    p.add_argument("--picture", default=None, metavar="PNG",
+                   help="bird's-eye picture of the final map (classes and variance side by side); default: next "
+                   "to the report, REPORT_map.png (REPORT_<kernel>_map.png with several kernels)")
+    p.add_argument("--local-bounds", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX",
+                   "YMAX", "ZMAX"), help="local window around the sensor in metres (default: the paper's "
+                   "-40 -40 -2.6 40 40 2.6)")
+    p.add_argument("--device", default="auto", help="torch device: auto (CUDA when present), cpu, cuda "
+                   "(default: %(default)s)")
+    p.add_argument("--prior", default=DEFAULT_PRIOR, type=float,
+                   help="initial concentration of every class in a new voxel (default: %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    kernels = args.kernel or [str(kernel_path(DEFAULT_KERNEL))]
+    for kernel_file in kernels:
+        load_kernel_file(kernel_file)  # fail before any work on a bad kernel file
+    if not args.prior > 0:
+        raise UserError(f"--prior must be positive, got {args.prior}")
+    bounds = PAPER_BOUNDS
+    if args.local_bounds:
+        bounds = (tuple(args.local_bounds[:3]), tuple(args.local_bounds[3:]))
+        if any(not low < high for low, high in zip(*bounds)):
+            raise UserError(f"--local-bounds must have each minimum below its maximum, got {args.local_bounds}")
+    dataset = SemanticKittiSequence(args.dataset, args.sequence, args.predictions_dir, args.probabilities_dir)
+    if dataset.predictions_folder is None and dataset.probabilities_folder is None:
+        raise UserError("no input segmentation: give --predictions-dir or --probabilities-dir")
+    try:
+        positions = parse_frames(args.frames, len(dataset))
+    except ValueError as error:
+        raise UserError(str(error)) from None
+    label_map = dataset.label_map
+    input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
+    runs = []
+    for number, kernel_file in enumerate(kernels):
+        runs.append(evaluate_kernel(dataset, positions, kernel_file, args.device, args.prior,
+                                    input_scores if number == 0 else None,
+                                    Path(args.write_labels) if args.write_labels and number == 0 else None,
+                                    show_progress=not args.quiet, local_bounds=bounds))
+    report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs)
+    report_path = Path(args.report)
+    atomic_write_bytes(report_path, (json.dumps(report, indent=2) + "\n").encode())
+
+    from convbki_core.plots import save_map_picture
+
+    pictures = []
+    for run_result in runs:
+        if args.picture and len(runs) == 1:
+            picture = Path(args.picture)
+        else:
+            suffix = "" if len(runs) == 1 else "_" + Path(run_result.kernel_file).stem
+            picture = report_path.with_name(f"{report_path.stem}{suffix}_map.png")
+        voxels = run_result.mapper.voxels()
+        title = (f"sequence {dataset.sequence}, {len(positions)} frames, {Path(run_result.kernel_file).stem}: "
+                 f"map mIoU {run_result.map_scores.miou():.3f} (input {input_scores.miou():.3f})")
+        save_map_picture(voxels, label_map, run_result.mapper.resolution, picture, title)
+        pictures.append(picture)
+
+    print(f"sequence {dataset.sequence}, {len(positions)} frames: IoU per class (%)")
+    print(format_table(label_map.class_names, input_scores, runs))
+    for run_result in runs:
+        print(f"{Path(run_result.kernel_file).stem}: map mIoU {run_result.map_scores.miou():.4f} vs input "
+              f"{input_scores.miou():.4f} ({run_result.map_scores.miou() - input_scores.miou():+.4f}); "
+              f"update {np.median(run_result.update_ms):.1f} ms, query {np.median(run_result.query_ms):.1f} ms "
+              f"(median), {len(run_result.mapper)} voxels")
+    print(f"report: {report_path}; pictures: {', '.join(map(str, pictures))}")
+    if args.write_labels:
+        print(f"labels: {Path(args.write_labels) / 'sequences' / dataset.sequence / 'predictions'}")
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    build_parser().parse_args(argv)
-    print(f"{PROG}: not implemented yet (see issue {ISSUE})", file=sys.stderr)
-    return 2
+    return run(PROG, _evaluate, build_parser(), argv)
 
 
 if __name__ == "__main__":

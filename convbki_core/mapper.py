@@ -147,21 +147,26 @@ class ConvBKIMapper:
         origin = self.geometry.origin_for(pose[:3, 3])
         volume = voxelize(points_map, values, origin, self.geometry.dims, self.resolution,
                           self.num_classes, self.ignore_classes)
-        voxelized = time.perf_counter()
         result = IntegrationResult(volume.stats, origin, occupied_voxels=volume.num_voxels)
+        result.timing_ms = {"voxelize": 1e3 * (time.perf_counter() - started), "query": 0.0, "update": 0.0,
+                            "write": 0.0}
         if volume.num_voxels:
-            result.updated_voxels, result.new_voxels = self._update_window(volume)
+            result.updated_voxels, result.new_voxels = self._update_window(volume, result.timing_ms)
         self.last_origin = origin
         self.scans_integrated += 1
-        finished = time.perf_counter()
-        result.timing_ms = {"voxelize": 1e3 * (voxelized - started), "update": 1e3 * (finished - voxelized),
-                            "total": 1e3 * (finished - started)}
+        result.timing_ms["total"] = 1e3 * (time.perf_counter() - started)
         return result
 
-    def _update_window(self, volume: SparseVolume) -> tuple[int, int]:
-        """Dense ConvBKI update of one window; returns (updated voxels, new voxels)."""
+    def _update_window(self, volume: SparseVolume, timing_ms: dict[str, float]) -> tuple[int, int]:
+        """Dense ConvBKI update of one window; returns (updated voxels, new voxels).
+
+        ``timing_ms`` receives "query" (fetch from the store), "update" (convolution and
+        sum) and "write" (write back), in milliseconds.
+        """
         dims = volume.dims
+        started = time.perf_counter()
         stored_linear, stored_alpha = self.store.query_window(volume.origin, dims)
+        fetched = time.perf_counter()
         with torch.no_grad():
             increment = self.layer.increment(volume.to_dense(self.device))
             increment = increment.reshape(self.num_classes, -1)
@@ -175,7 +180,10 @@ class ConvBKIMapper:
             position = np.minimum(np.searchsorted(stored_linear, touched), stored_linear.size - 1)
             known = stored_linear[position] == touched
             base[known] = stored_alpha[position[known]]
+        updated = time.perf_counter()
         self.store.write_window(volume.origin, dims, touched, base + added)
+        timing_ms.update(query=1e3 * (fetched - started), update=1e3 * (updated - fetched),
+                         write=1e3 * (time.perf_counter() - updated))
         return int(touched.size), int(touched.size - known.sum())
 
     # -- reading the map -------------------------------------------------------------------

@@ -114,3 +114,30 @@ def test_soft_probabilities_spread_fractional_evidence():
     assert len(voxels) == 1
     np.testing.assert_allclose(voxels.alpha[0], [0.01 + 0.3, 0.01 + 0.6, 0.01 + 1.1], rtol=1e-6)
     assert voxels.label[0] == 2
+
+
+@pytest.mark.parametrize("kind", ["single", "per_class", "compound"])
+@pytest.mark.parametrize("filter_size", [3, 5, 7])
+def test_sparse_plan_equals_dense_layer_and_is_differentiable(kind, filter_size):
+    """The training path (increment at chosen voxels) equals the dense convolution there."""
+    from convbki_core.sparse import SparsePlan
+    from convbki_core.voxelize import unravel_linear
+
+    rng = np.random.default_rng(filter_size * 7 + len(kind))
+    kernel = make_kernel(kind, filter_size, rng)
+    dims = np.array([9, 8, 7])
+    origin = np.array([-4, 3, -2])
+    occupied = np.unique(rng.integers(0, int(np.prod(dims)), 60))
+    features = (rng.random((occupied.size, NUM_CLASSES)) < 0.3) * rng.integers(1, 4, (occupied.size, NUM_CLASSES))
+    dense = torch.zeros(NUM_CLASSES, int(np.prod(dims)), dtype=torch.float64)
+    dense[:, occupied] = torch.from_numpy(features.T.astype(np.float64))
+    expected = ConvBKILayer(kernel).double().increment(dense.view(NUM_CLASSES, *dims)).reshape(NUM_CLASSES, -1)
+    queries = rng.choice(int(np.prod(dims)), 40, replace=False)
+    source_indices = unravel_linear(occupied, dims) + origin
+    plan = SparsePlan.build(unravel_linear(queries, dims) + origin, source_indices, features, filter_size,
+                            window=(origin, dims))
+    filters = kernel.double().filters()
+    got = plan.increment(filters)
+    np.testing.assert_allclose(got.detach().numpy(), expected[:, queries].T.detach().numpy(), rtol=1e-10, atol=1e-12)
+    got.sum().backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in kernel.parameters())

@@ -1,0 +1,118 @@
+"""Pictures of maps and kernels (matplotlib, written to PNG files atomically)."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+
+from convbki_core.fileio import atomic_write_bytes
+from convbki_core.labels import LabelMap
+
+if TYPE_CHECKING:
+    from convbki_core.kernels import ConvBKIKernel
+    from convbki_core.mapper import VoxelSet
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, no display needed
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(figure, path: str | Path) -> None:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
+    _pyplot().close(figure)
+    atomic_write_bytes(Path(path), buffer.getvalue())
+
+
+def birds_eye_rasters(voxels: "VoxelSet", colours: np.ndarray, resolution: float, max_pixels: int = 2500):
+    """Top-down rasters of the highest voxel in every (x, y) column.
+
+    Returns (rgb (H, W, 3) float in [0, 1] with white background, variance (H, W) with NaN
+    where empty, extent [x_min, x_max, y_min, y_max] in metres). Large maps are shown at a
+    coarser cell so the image stays under ``max_pixels`` on a side.
+    """
+    if len(voxels) == 0:
+        return np.ones((1, 1, 3)), np.full((1, 1), np.nan), [0, 1, 0, 1]
+    indices = voxels.indices
+    low, high = indices[:, :2].min(axis=0), indices[:, :2].max(axis=0)
+    step = max(1, int(np.ceil((high - low + 1).max() / max_pixels)))
+    cell = (indices[:, :2] - low) // step
+    width, height = (high - low) // step + 1
+    # Sort by height so that, per cell, the last write is the highest voxel.
+    order = np.argsort(indices[:, 2], kind="stable")
+    flat = cell[order, 1] * width + cell[order, 0]
+    rgb = np.ones((height * width, 3))
+    variance = np.full(height * width, np.nan)
+    rgb[flat] = colours[np.clip(voxels.label[order], 0, len(colours) - 1)] / 255.0
+    variance[flat] = voxels.variance[order]
+    extent = [low[0] * resolution, (high[0] + 1) * resolution, low[1] * resolution, (high[1] + 1) * resolution]
+    return rgb.reshape(height, width, 3), variance.reshape(height, width), extent
+
+
+def save_map_picture(voxels: "VoxelSet", label_map: LabelMap, resolution: float, path: str | Path,
+                     title: str = "") -> None:
+    """A bird's-eye PNG: the map in class colours next to its variance."""
+    plt = _pyplot()
+    from matplotlib.patches import Patch
+
+    rgb, variance, extent = birds_eye_rasters(voxels, label_map.colors, resolution)
+    aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-6)
+    figure, (left, right) = plt.subplots(1, 2, figsize=(15, max(4.0, min(12.0, 7.0 * aspect)) + 1.0))
+    left.imshow(rgb, origin="lower", extent=extent, interpolation="nearest")
+    left.set_title("expected class (top voxel per column)")
+    present = np.unique(voxels.label) if len(voxels) else []
+    handles = [Patch(color=label_map.colors[c] / 255.0, label=label_map.class_names[c]) for c in present]
+    if handles:
+        left.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
+    image = right.imshow(variance, origin="lower", extent=extent, interpolation="nearest", cmap="viridis")
+    right.set_title("variance of the expected class")
+    figure.colorbar(image, ax=right, fraction=0.046, pad=0.02)
+    for axis in (left, right):
+        axis.set_xlabel("x [m]")
+        axis.set_ylabel("y [m]")
+    if title:
+        figure.suptitle(title)
+    _save(figure, path)
+
+
+def save_loss_curve(losses: Sequence[float], path: str | Path, title: str = "training loss") -> None:
+    """Loss per step and its running mean."""
+    plt = _pyplot()
+    figure, axis = plt.subplots(figsize=(7, 4))
+    steps = np.arange(1, len(losses) + 1)
+    axis.plot(steps, losses, alpha=0.35, label="per sample")
+    if len(losses) >= 5:
+        window = max(5, len(losses) // 20)
+        smooth = np.convolve(losses, np.ones(window) / window, mode="valid")
+        axis.plot(steps[window - 1:], smooth, label=f"running mean ({window})")
+    axis.set_xlabel("step")
+    axis.set_ylabel("weighted NLL")
+    axis.set_title(title)
+    axis.legend()
+    _save(figure, path)
+
+
+def save_kernel_picture(kernel: "ConvBKIKernel", class_ids: Sequence[int], class_names: Sequence[str],
+                        path: str | Path) -> None:
+    """Filters of the given classes in the x-z plane at dy = 0 (like the paper's Fig. 4)."""
+    plt = _pyplot()
+    filters = kernel.filters().detach().cpu().numpy()[:, 0]
+    half = kernel.filter_size // 2
+    reach = (half + 0.5) * kernel.resolution
+    figure, axes = plt.subplots(1, len(class_ids), figsize=(4 * len(class_ids), 3.8), squeeze=False)
+    for axis, class_id in zip(axes[0], class_ids):
+        image = axis.imshow(filters[class_id][:, half, :].T, origin="lower", vmin=0, vmax=1, cmap="magma",
+                            extent=[-reach, reach, -reach, reach])
+        axis.set_title(f"{class_names[class_id]} ({kernel.kind})")
+        axis.set_xlabel("dx [m]")
+        axis.set_ylabel("dz [m]")
+    figure.colorbar(image, ax=list(axes[0]), fraction=0.03)
+    _save(figure, path)

@@ -1,0 +1,158 @@
+"""``evaluate`` and ``train`` end to end on small sequences written by the test."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from convbki_core import evaluate, train
+from convbki_core.kernels import load_kernel_file
+from kitti_fixture import pose_about_z, write_sequence
+
+# Typed from shared/reference/semantic_kitti.md, independently of the project's label map.
+RAW_TO_LEARNING = {0: 0, 1: 0, 10: 1, 11: 2, 13: 5, 15: 3, 16: 5, 18: 4, 20: 5, 30: 6, 31: 7, 32: 8, 40: 9, 44: 10,
+                   48: 11, 49: 12, 50: 13, 51: 14, 52: 0, 60: 9, 70: 15, 71: 16, 72: 17, 80: 18, 81: 19, 99: 0,
+                   252: 1, 253: 7, 254: 6, 255: 8, 256: 5, 257: 5, 258: 4, 259: 5}
+ROAD, SIDEWALK, POLE, BUILDING = 40, 48, 80, 50
+
+
+def street_scene(rng, count=6000):
+    """World points of a small street: road, sidewalk, a wall and poles; raw ground-truth ids."""
+    road = np.column_stack([rng.uniform(-15, 15, count), rng.uniform(-3, 3, count), np.full(count, -1.7)])
+    walk = np.column_stack([rng.uniform(-15, 15, count // 2), rng.uniform(3, 5, count // 2),
+                            np.full(count // 2, -1.55)])
+    wall = np.column_stack([rng.uniform(-15, 15, count // 2), np.full(count // 2, 5.5),
+                            rng.uniform(-1.5, 2.5, count // 2)])
+    pole_xy = np.array([[-8, 2.8], [0, 2.8], [8, 2.8]])
+    poles = np.concatenate([np.column_stack([np.full(300, x) + rng.normal(0, 0.05, 300),
+                                             np.full(300, y) + rng.normal(0, 0.05, 300),
+                                             rng.uniform(-1.7, 2.5, 300)]) for x, y in pole_xy])
+    points = np.concatenate([road, walk, wall, poles])
+    labels = np.concatenate([np.full(len(road), ROAD), np.full(len(walk), SIDEWALK), np.full(len(wall), BUILDING),
+                             np.full(len(poles), POLE)]).astype(np.uint32)
+    return points, labels
+
+
+def noisy(labels, rng, rate):
+    """Per-frame random confusions (a network's errors): road<->sidewalk, pole->building."""
+    swap = {ROAD: SIDEWALK, SIDEWALK: ROAD, POLE: BUILDING, BUILDING: POLE}
+    flip = rng.random(len(labels)) < rate
+    out = labels.copy()
+    out[flip] = [swap[int(v)] for v in labels[flip]]
+    return out
+
+
+def write_drive(root, sequence, frames=5, seed=0, rate=0.3):
+    rng = np.random.default_rng(seed)
+    world, truth = street_scene(rng)
+    poses, data = [], []
+    for number in range(frames):
+        pose = pose_about_z(0.05 * number + 0.3, [-6.0 + 3.0 * number, 0.5, 0.2])
+        visible = rng.random(len(world)) < 0.7
+        sensor = (world[visible] - pose[:3, 3]) @ pose[:3, :3]
+        data.append((sensor.astype(np.float32), truth[visible], noisy(truth[visible], rng, rate)))
+        poses.append(pose)
+    write_sequence(root, sequence, data, poses)
+    return data
+
+
+def independent_miou(dataset_root, labels_root, sequence, frames):
+    """Score written label files the way the official evaluator would, with plain numpy."""
+    lut = np.zeros(1 << 16, np.int64)
+    for raw, learning in RAW_TO_LEARNING.items():
+        lut[raw] = learning
+    matrix = np.zeros((20, 20), np.int64)
+    for number in range(frames):
+        truth = np.fromfile(dataset_root / "sequences" / sequence / "labels" / f"{number:06d}.label", np.uint32)
+        guess = np.fromfile(labels_root / "sequences" / sequence / "predictions" / f"{number:06d}.label", np.uint32)
+        assert truth.shape == guess.shape
+        np.add.at(matrix, (lut[truth & 0xFFFF], lut[guess & 0xFFFF]), 1)
+    matrix[0, :] = 0
+    tp = np.diag(matrix).astype(float)
+    union = matrix.sum(0) + matrix.sum(1) - tp
+    present = matrix.sum(1) > 0
+    return float(np.mean(tp[present] / union[present]))
+
+
+SMALL_WINDOW = ["--local-bounds", "-20", "-12", "-3", "20", "12", "4"]
+
+
+def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys):
+    data = write_drive(tmp_path / "data", "08", frames=5)
+    report_path = tmp_path / "report.json"
+    code = evaluate.main(["--dataset", str(tmp_path / "data"), "--sequence", "08", "--report", str(report_path),
+                          "--write-labels", str(tmp_path / "out"), "--quiet", "--device", "cpu", *SMALL_WINDOW])
+    assert code == 0
+    report = json.loads(report_path.read_text())
+    assert report["sequence"] == "08" and report["frames"] == 5 and report["kernel"] == "compound"
+    assert set(report["input"]["iou"]) == {"road", "sidewalk", "building", "pole"}
+    for part in ("input", "map"):
+        assert 0.0 <= report[part]["miou"] <= 1.0 and 0.0 <= report[part]["accuracy"] <= 1.0
+    assert report["timing_ms"]["update_median"] > 0 and report["timing_ms"]["query_median"] > 0
+    # The label files, read back independently, give the reported map mIoU.
+    assert independent_miou(tmp_path / "data", tmp_path / "out", "08", 5) == pytest.approx(report["map"]["miou"],
+                                                                                              abs=1e-9)
+    for number, (points, _, _) in enumerate(data):
+        written = np.fromfile(tmp_path / "out" / "sequences" / "08" / "predictions" / f"{number:06d}.label", "<u4")
+        assert written.size == len(points) and set(np.unique(written)) <= {ROAD, SIDEWALK, POLE, BUILDING}
+    # Fusing five noisy views beats the single-view input by a wide margin on this scene.
+    assert report["map"]["miou"] > report["input"]["miou"] + 0.1
+    assert (tmp_path / "report_map.png").stat().st_size > 10_000
+    printed = capsys.readouterr().out
+    assert "road" in printed and "mIoU" in printed
+
+
+def test_evaluate_compares_several_kernels(tmp_path):
+    write_drive(tmp_path / "data", "00", frames=3)
+    kernels = [str(evaluate.kernel_path(name)) for name in ("semantic_kitti_sbki", "semantic_kitti_compound")]
+    code = evaluate.main(["--dataset", str(tmp_path / "data"), "--sequence", "0", "--report", str(tmp_path / "r.json"),
+                          "--kernel", *kernels, "--quiet", "--device", "cpu", *SMALL_WINDOW])
+    assert code == 0
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert [run["kernel"] for run in report["runs"]] == ["single", "compound"]
+    assert report["map"] == report["runs"][0]["map"]
+    assert (tmp_path / "r_semantic_kitti_compound_map.png").exists()
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--dataset", "{tmp}/nowhere", "--sequence", "00"], "dataset folder not found"),
+    (["--dataset", "{tmp}/data", "--sequence", "03"], "sequence 03 not found"),
+    (["--dataset", "{tmp}/data", "--sequence", "00", "--kernel", "{tmp}/bad.yaml"], "odd"),
+    (["--dataset", "{tmp}/data", "--sequence", "00", "--frames", "50:60"], "selects no frame"),
+    (["--dataset", "{tmp}/data", "--sequence", "00", "--predictions-dir", "other"], "predictions folder not found"),
+])
+def test_evaluate_errors_are_one_line_and_exit_2(tmp_path, capsys, arguments, message):
+    write_drive(tmp_path / "data", "00", frames=2)
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"kernel": "single", "resolution": 0.2, "filter_size": 4,
+                                                       "num_classes": 20, "ell": 0.3}))
+    arguments = [a.replace("{tmp}", str(tmp_path)) for a in arguments]
+    code = evaluate.main([*arguments, "--report", str(tmp_path / "r.json"), "--quiet"])
+    error = capsys.readouterr().err
+    assert code == 2
+    assert message in error and "Traceback" not in error and len(error.strip().splitlines()) == 1
+    assert not (tmp_path / "r.json").exists()
+
+
+@pytest.mark.parametrize("kind", ["single", "compound"])
+def test_train_writes_a_kernel_that_lowers_the_loss(tmp_path, capsys, kind):
+    write_drive(tmp_path / "data", "01", frames=8, seed=3)
+    out = tmp_path / f"{kind}.yaml"
+    code = train.main(["--dataset", str(tmp_path / "data"), "--sequences", "01", "--kernel", kind, "--out", str(out),
+                       "--frames-per-sample", "3", "--epochs", "3", "--lr", "0.05", "--quiet"])
+    assert code == 0
+    config = load_kernel_file(out)
+    assert config.kernel == kind and config.num_classes == 20
+    assert (tmp_path / f"{kind}_loss.png").exists() and (tmp_path / f"{kind}_kernels.png").exists()
+    printed = capsys.readouterr().out
+    first, last = _first_last(printed)
+    assert last < first, printed
+    lengths = config.ell if kind == "single" else config.ell_h + config.ell_z
+    assert any(abs(v - 0.5) > 1e-3 for v in lengths), "training must move the lengths off their initial 0.5 m"
+
+
+def _first_last(printed: str) -> tuple[float, float]:
+    line = next(line for line in printed.splitlines() if "(first tenth)" in line)
+    first = float(line.split("loss ")[1].split(" ")[0])
+    last = float(line.split("-> ")[1].split(" ")[0])
+    return first, last
