@@ -4,15 +4,20 @@ PYTHON := .venv/bin/python
 # -q: one line per module; -ra: say why tests were skipped or failed.
 PYTEST_FLAGS ?= -q -ra
 
-.PHONY: setup test demo clean distclean
+.PHONY: setup test lint demo clean distclean
 
 ## setup: .venv/ with every dependency, then colcon build into install/ (idempotent)
 setup:
 	@scripts/setup.sh
 
-## test: set-up, then the test suite under test/
+## test: set-up, lint, then the test suite under test/
 test: setup
+	@.venv/bin/ruff check --quiet . && echo "ruff: clean"
 	@scripts/venv_exec.sh $(PYTHON) -m pytest $(PYTEST_FLAGS) test
+
+## lint: ruff over the whole tree (config in ruff.toml)
+lint: setup
+	@.venv/bin/ruff check .
 
 ## demo: set-up, then the end-to-end demo
 demo: setup

@@ -22,9 +22,9 @@ which is the identity filter: that class is counted in its own voxel and never s
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import torch
 import yaml
@@ -79,7 +79,7 @@ class KernelConfig:
     ell_h: list[float] = field(default_factory=list)  # compound only
     ell_z: list[float] = field(default_factory=list)  # compound only
 
-    def validate(self) -> "KernelConfig":
+    def validate(self) -> KernelConfig:
         """Raise ``KernelFileError`` with a readable reason when the config is inconsistent."""
         if self.kernel not in KERNEL_KINDS:
             raise KernelFileError(f"kernel must be one of {', '.join(KERNEL_KINDS)}, got {self.kernel!r}")
@@ -207,7 +207,7 @@ class ConvBKIKernel(torch.nn.Module):
             self.ell_z = lengths(ell if ell_z is None else ell_z, self.num_classes)
 
     @classmethod
-    def from_config(cls, config: KernelConfig) -> "ConvBKIKernel":
+    def from_config(cls, config: KernelConfig) -> ConvBKIKernel:
         config.validate()
         if config.kernel == "compound":
             return cls("compound", config.num_classes, config.filter_size, config.resolution,
@@ -215,7 +215,7 @@ class ConvBKIKernel(torch.nn.Module):
         return cls(config.kernel, config.num_classes, config.filter_size, config.resolution, ell=config.ell)
 
     @classmethod
-    def from_file(cls, path: str | Path) -> "ConvBKIKernel":
+    def from_file(cls, path: str | Path) -> ConvBKIKernel:
         return cls.from_config(load_kernel_file(path))
 
     def to_config(self) -> KernelConfig:
@@ -260,4 +260,5 @@ class ConvBKIKernel(torch.nn.Module):
         return weights.unsqueeze(1).to(parameter.dtype).contiguous()
 
     def extra_repr(self) -> str:
-        return f"kind={self.kind}, num_classes={self.num_classes}, filter_size={self.filter_size}, resolution={self.resolution}"
+        return (f"kind={self.kind}, num_classes={self.num_classes}, filter_size={self.filter_size}, "
+                f"resolution={self.resolution}")

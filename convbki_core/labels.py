@@ -7,7 +7,7 @@ dataset is a new file, not new code.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -67,7 +67,7 @@ def load_label_map_file(path: str | Path) -> LabelMap:
                     tuple(int(c) for c in data.get("ignore_classes", [0])))
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_label_map(name: str = "semantic_kitti") -> LabelMap:
     """The label map shipped as ``config/<name>.yaml``."""
     return load_label_map_file(config_dir() / f"{name}.yaml")

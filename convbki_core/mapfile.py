@@ -34,7 +34,7 @@ class MapFileError(ValueError):
     """A map file that cannot be loaded; the message names the file and the problem."""
 
 
-def save_map(mapper: "ConvBKIMapper", path: str | Path) -> None:
+def save_map(mapper: ConvBKIMapper, path: str | Path) -> None:
     indices, alpha = mapper.store.items()
     if indices.size and (np.abs(indices) > np.iinfo(np.int32).max).any():
         raise ValueError("voxel indices exceed the int32 range of the map file")
@@ -95,7 +95,7 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
     return metadata, indices.astype(np.int64), alpha.astype(np.float32)
 
 
-def load_map_into(mapper: "ConvBKIMapper", path: str | Path) -> None:
+def load_map_into(mapper: ConvBKIMapper, path: str | Path) -> None:
     """Replace ``mapper``'s voxels with the file's; the map is untouched if the file is unusable."""
     metadata, indices, alpha = read_map(path)
     if metadata["num_classes"] != mapper.num_classes:

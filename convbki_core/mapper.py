@@ -25,8 +25,15 @@ from convbki_core.kernels import ConvBKIKernel, KernelConfig, load_kernel_file
 from convbki_core.layer import ConvBKILayer
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
-from convbki_core.voxelize import (SparseVolume, VoxelizeStats, WindowGeometry, unravel_linear, voxel_centres,
-                                   voxel_indices, voxelize)
+from convbki_core.voxelize import (
+    SparseVolume,
+    VoxelizeStats,
+    WindowGeometry,
+    unravel_linear,
+    voxel_centres,
+    voxel_indices,
+    voxelize,
+)
 
 
 def resolve_device(device: str) -> torch.device:

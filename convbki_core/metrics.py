@@ -7,7 +7,7 @@ are left out entirely; the mean IoU is over the classes present in the ground tr
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -32,7 +32,7 @@ class ConfusionMatrix:
         pairs = ground_truth[valid] * self.num_classes + prediction[valid]
         self.counts += np.bincount(pairs, minlength=self.num_classes ** 2).reshape(self.num_classes, -1)
 
-    def __iadd__(self, other: "ConfusionMatrix") -> "ConfusionMatrix":
+    def __iadd__(self, other: ConfusionMatrix) -> ConfusionMatrix:
         self.counts += other.counts
         return self
 

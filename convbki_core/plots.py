@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,12 +33,14 @@ def _save(figure, path: str | Path) -> None:
     atomic_write_bytes(Path(path), buffer.getvalue())
 
 
-def birds_eye_rasters(voxels: "VoxelSet", colours: np.ndarray, resolution: float, max_pixels: int = 2500):
-    """Top-down rasters of the highest voxel in every (x, y) column.
+def birds_eye_rasters(voxels: VoxelSet, colours: np.ndarray, resolution: float, max_pixels: int = 2500):
+    """Top-down rasters: per (x, y) column, the voxel holding the most evidence.
 
-    Returns (rgb (H, W, 3) float in [0, 1] with white background, variance (H, W) with NaN
-    where empty, extent [x_min, x_max, y_min, y_max] in metres). Large maps are shown at a
-    coarser cell so the image stays under ``max_pixels`` on a side.
+    The kernel spreads some evidence above and below every surface; the plain top voxel
+    of a column would show that fringe (whose class mix differs) instead of the surface.
+    Returns (rgb (H, W, 3) float in [0, 1] on white, variance (H, W) with NaN where empty,
+    extent [x_min, x_max, y_min, y_max] in metres). Large maps use coarser cells so the
+    image stays under ``max_pixels`` on a side.
     """
     if len(voxels) == 0:
         return np.ones((1, 1, 3)), np.full((1, 1), np.nan), [0, 1, 0, 1]
@@ -46,8 +49,8 @@ def birds_eye_rasters(voxels: "VoxelSet", colours: np.ndarray, resolution: float
     step = max(1, int(np.ceil((high - low + 1).max() / max_pixels)))
     cell = (indices[:, :2] - low) // step
     width, height = (high - low) // step + 1
-    # Sort by height so that, per cell, the last write is the highest voxel.
-    order = np.argsort(indices[:, 2], kind="stable")
+    # Sort by total concentration so that, per cell, the last write (the most evident voxel) wins.
+    order = np.argsort(voxels.alpha.sum(axis=1), kind="stable")
     flat = cell[order, 1] * width + cell[order, 0]
     rgb = np.ones((height * width, 3))
     variance = np.full(height * width, np.nan)
@@ -57,7 +60,7 @@ def birds_eye_rasters(voxels: "VoxelSet", colours: np.ndarray, resolution: float
     return rgb.reshape(height, width, 3), variance.reshape(height, width), extent
 
 
-def save_map_picture(voxels: "VoxelSet", label_map: LabelMap, resolution: float, path: str | Path,
+def save_map_picture(voxels: VoxelSet, label_map: LabelMap, resolution: float, path: str | Path,
                      title: str = "") -> None:
     """A bird's-eye PNG: the map in class colours next to its variance."""
     plt = _pyplot()
@@ -67,11 +70,12 @@ def save_map_picture(voxels: "VoxelSet", label_map: LabelMap, resolution: float,
     aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-6)
     figure, (left, right) = plt.subplots(1, 2, figsize=(15, max(4.0, min(12.0, 7.0 * aspect)) + 1.0))
     left.imshow(rgb, origin="lower", extent=extent, interpolation="nearest")
-    left.set_title("expected class (top voxel per column)")
+    left.set_title("expected class (most evident voxel per column)")
     present = np.unique(voxels.label) if len(voxels) else []
     handles = [Patch(color=label_map.colors[c] / 255.0, label=label_map.class_names[c]) for c in present]
     if handles:
-        left.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
+        figure.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), fontsize=9, frameon=False,
+                      bbox_to_anchor=(0.5, -0.02))
     image = right.imshow(variance, origin="lower", extent=extent, interpolation="nearest", cmap="viridis")
     right.set_title("variance of the expected class")
     figure.colorbar(image, ax=right, fraction=0.046, pad=0.02)
@@ -100,7 +104,7 @@ def save_loss_curve(losses: Sequence[float], path: str | Path, title: str = "tra
     _save(figure, path)
 
 
-def save_kernel_picture(kernel: "ConvBKIKernel", class_ids: Sequence[int], class_names: Sequence[str],
+def save_kernel_picture(kernel: ConvBKIKernel, class_ids: Sequence[int], class_names: Sequence[str],
                         path: str | Path) -> None:
     """Filters of the given classes in the x-z plane at dy = 0 (like the paper's Fig. 4)."""
     plt = _pyplot()

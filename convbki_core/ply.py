@@ -34,7 +34,7 @@ def class_colours(labels: np.ndarray, colours: np.ndarray | None = None) -> np.n
     return result
 
 
-def write_voxels_ply(voxels: "VoxelSet", path: str | Path, max_variance: float | None = None,
+def write_voxels_ply(voxels: VoxelSet, path: str | Path, max_variance: float | None = None,
                      colours: np.ndarray | None = None) -> int:
     """Write ``voxels`` (optionally only those with variance <= ``max_variance``); returns the count."""
     keep = np.ones(len(voxels), bool) if not max_variance else voxels.variance <= max_variance

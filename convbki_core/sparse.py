@@ -43,7 +43,7 @@ class SparsePlan:
 
     @classmethod
     def build(cls, query: np.ndarray, source: np.ndarray, features: np.ndarray, filter_size: int,
-              window: tuple[np.ndarray, np.ndarray] | None = None) -> "SparsePlan":
+              window: tuple[np.ndarray, np.ndarray] | None = None) -> SparsePlan:
         """``query`` (Q, 3) voxel indices; ``source`` (M, 3) unique occupied voxels with
         ``features`` (M, C). With ``window`` = (origin, dims), sources outside it are
         ignored, as zero padding would."""

@@ -15,8 +15,8 @@ looked up) and come back to the active table when the sensor returns.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 

@@ -71,7 +71,7 @@ def time_query(store: VoxelStore, geometry: WindowGeometry, touched: np.ndarray,
         written = time.perf_counter()
         query_ms.append(1e3 * (fetched - started))
         write_ms.append(1e3 * (written - fetched))
-    return {"stored_voxels": len(store), "window_voxels": int(len(linear)), "written_voxels": int(len(touched_linear)),
+    return {"stored_voxels": len(store), "window_voxels": len(linear), "written_voxels": len(touched_linear),
             "query_ms": statistics.median(query_ms), "write_back_ms": statistics.median(write_ms),
             "query_plus_write_ms": statistics.median(q + w for q, w in zip(query_ms, write_ms))}
 

@@ -2,13 +2,13 @@
 
 import numpy as np
 import pytest
+from kitti_fixture import pose_about_z, write_sequence
 
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.labels import load_label_map
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.voxelize import voxel_indices
-from kitti_fixture import pose_about_z, write_sequence
 
 
 def test_reader_round_trip(tmp_path):
@@ -34,7 +34,7 @@ def test_reader_round_trip(tmp_path):
         np.testing.assert_array_equal(frame.input_labels, label_map.to_learning(predicted))
         assert frame.name == f"{number:06d}"
     assert dataset[2].stamp == 0.25
-    # Raw ids above 255 keep their classes: 252 moving car -> car, 256 moving bus -> other-vehicle, 259 -> other-vehicle.
+    # Raw ids above 255 keep their classes: 252 moving car -> car, 256 and 259 -> other-vehicle.
     assert label_map.to_learning(np.array([252, 256, 259, 40 | (7 << 16), 777])).tolist() == [1, 5, 5, 9, 0]
     assert not np.allclose(dataset.poses[0], np.eye(4)), "the first pose is taken as written, not as identity"
 

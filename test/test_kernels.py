@@ -8,11 +8,19 @@ import torch
 import yaml
 from hypothesis import given
 from hypothesis import strategies as st
-
-from convbki_core.kernels import (ConvBKIKernel, KernelConfig, KernelFileError, kernel_config_from_dict,
-                                  load_kernel_file, save_kernel_file, sparse_kernel, tap_offsets)
-from convbki_core.paths import kernel_path
 from reference import sparse_kernel_np
+
+from convbki_core.kernels import (
+    ConvBKIKernel,
+    KernelConfig,
+    KernelFileError,
+    kernel_config_from_dict,
+    load_kernel_file,
+    save_kernel_file,
+    sparse_kernel,
+    tap_offsets,
+)
+from convbki_core.paths import kernel_path
 
 lengths = st.floats(min_value=0.01, max_value=5.0, allow_nan=False)
 distances = st.floats(min_value=0.0, max_value=10.0, allow_nan=False)
@@ -31,7 +39,8 @@ def test_kernel_is_one_at_zero_distance(ell):
 
 @given(lengths, st.floats(min_value=1.0, max_value=10.0))
 def test_kernel_is_zero_beyond_its_length(ell, factor):
-    assert float(sparse_kernel(torch.tensor(ell * factor, dtype=torch.float64), torch.tensor(ell, dtype=torch.float64))) == 0.0
+    distance = torch.tensor(ell * factor, dtype=torch.float64)
+    assert float(sparse_kernel(distance, torch.tensor(ell, dtype=torch.float64))) == 0.0
 
 
 @given(lengths, st.lists(distances, min_size=2, max_size=20))
@@ -48,7 +57,8 @@ variant_params = st.sampled_from(["single", "per_class", "compound"])
 def random_kernel(kind, num_classes, filter_size, resolution, rng, low=0.05, high=1.5):
     draw = lambda n: rng.uniform(low, high, n).tolist()  # noqa: E731
     if kind == "compound":
-        return ConvBKIKernel(kind, num_classes, filter_size, resolution, ell_h=draw(num_classes), ell_z=draw(num_classes))
+        return ConvBKIKernel(kind, num_classes, filter_size, resolution, ell_h=draw(num_classes),
+                             ell_z=draw(num_classes))
     return ConvBKIKernel(kind, num_classes, filter_size, resolution, ell=draw(1 if kind == "single" else num_classes))
 
 

@@ -1,5 +1,6 @@
 """The global map: sums, poses, the store, statistics, persistence and export."""
 
+import itertools
 import json
 
 import numpy as np
@@ -139,7 +140,7 @@ def test_more_evidence_lowers_the_variance():
         mapper.integrate(point, np.array([3]), np.eye(4))
         voxels = mapper.voxels()
         variances.append(float(voxels.variance[np.argmax(voxels.alpha[:, 3])]))
-    assert all(a > b for a, b in zip(variances, variances[1:]))
+    assert all(a > b for a, b in itertools.pairwise(variances))
 
 
 def test_labels_at_reads_the_expected_class_inside_the_window():
@@ -149,7 +150,7 @@ def test_labels_at_reads_the_expected_class_inside_the_window():
     mapper.integrate(points, labels, np.eye(4))
     found_labels, found = mapper.labels_at(points)
     assert found.all()
-    voxels = {tuple(i): l for i, l in zip(mapper.voxels().indices.tolist(), mapper.voxels().label)}
+    voxels = {tuple(i): c for i, c in zip(mapper.voxels().indices.tolist(), mapper.voxels().label)}
     expected = [voxels[tuple(i)] for i in np.floor(points / 0.2).astype(int).tolist()]
     assert found_labels.tolist() == expected
     far, far_found = mapper.labels_at(np.array([[100.0, 0, 0], [np.nan, 0, 0]]))
@@ -222,7 +223,7 @@ def test_stale_voxels_leave_the_active_set_but_are_kept():
 def test_save_load_gives_identical_statistics(tmp_path):
     mapper = small_mapper()
     rng = np.random.default_rng(6)
-    for step in range(3):
+    for _ in range(3):
         pose = random_pose(rng, 2.0)
         mapper.integrate(*random_scan(rng, 300), pose)
     path = tmp_path / "map.npz"
@@ -289,6 +290,6 @@ def test_ply_export_holds_every_voxel_in_class_colours(tmp_path):
     np.testing.assert_array_equal(vertices["label"], voxels.label)
     np.testing.assert_allclose(vertices["x"], voxels.centres[:, 0])
     road = vertices[vertices["label"] == 9]
-    assert road.size == 0 or (road["red"] == 255).all() and (road["green"] == 0).all() and (road["blue"] == 255).all()
+    assert road.size == 0 or ((road["red"] == 255).all() and (road["green"] == 0).all() and (road["blue"] == 255).all())
     limited = mapper.export_ply(tmp_path / "limited.ply", max_variance=float(np.median(voxels.variance)))
     assert 0 < limited < written

@@ -5,9 +5,9 @@ import pytest
 import torch
 from hypothesis import given
 from hypothesis import strategies as st
+from reference import brute_force_alpha
 
 from convbki_core import ConvBKIKernel, ConvBKILayer, ConvBKIMapper
-from reference import brute_force_alpha
 
 NUM_CLASSES = 5
 RESOLUTION = 0.2
@@ -17,7 +17,8 @@ BOUNDS = ((-1.0, -0.8, -0.6), (0.8, 0.8, 0.8))  # a 9 x 8 x 7 window
 def make_kernel(kind, filter_size, rng):
     draw = lambda n: rng.uniform(0.1, 1.0, n).tolist()  # noqa: E731  (some below one voxel: identity)
     if kind == "compound":
-        return ConvBKIKernel(kind, NUM_CLASSES, filter_size, RESOLUTION, ell_h=draw(NUM_CLASSES), ell_z=draw(NUM_CLASSES))
+        return ConvBKIKernel(kind, NUM_CLASSES, filter_size, RESOLUTION, ell_h=draw(NUM_CLASSES),
+                             ell_z=draw(NUM_CLASSES))
     return ConvBKIKernel(kind, NUM_CLASSES, filter_size, RESOLUTION, ell=draw(1 if kind == "single" else NUM_CLASSES))
 
 

@@ -8,8 +8,9 @@ Everything downstream (``evaluate``, ``train``, ``kitti_to_bag``, ``bench``) see
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator, Protocol
+from typing import Protocol
 
 import numpy as np
 

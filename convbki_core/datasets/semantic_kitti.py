@@ -16,8 +16,8 @@ says (never assumed to be identity).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
