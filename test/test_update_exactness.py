@@ -36,12 +36,19 @@ def random_scan(rng, count):
     return points, labels
 
 
-def assert_map_equals(mapper, expected):
+def assert_map_equals(mapper, expected, prior=1e-3):
+    """Every voxel with evidence is stored with the brute-force concentrations (1e-5 relative).
+
+    Evidence below 1e-9 of a point (a tap a hair inside the kernel's support, where float64
+    and float32 may disagree on "inside") may or may not create a voxel.
+    """
     voxels = mapper.voxels()
     stored = {tuple(index): alpha for index, alpha in zip(voxels.indices.tolist(), voxels.alpha)}
-    assert set(stored) == set(expected), "the map must hold exactly the voxels that received evidence"
-    for key, alpha in expected.items():
-        np.testing.assert_allclose(stored[key], alpha, rtol=1e-5, atol=0)
+    significant = {key for key, alpha in expected.items() if (alpha - prior).max() > 1e-9}
+    assert significant <= set(stored), "every voxel that received evidence must be in the map"
+    for key, alpha in stored.items():
+        reference = expected.get(key, np.full(len(alpha), prior))
+        np.testing.assert_allclose(alpha, reference, rtol=1e-5, atol=0)
 
 
 @pytest.mark.parametrize("kind", ["single", "per_class", "compound"])
