@@ -26,6 +26,7 @@ class LabelMap:
     class_names: tuple[str, ...]
     colors: np.ndarray  # (C, 3) uint8 RGB
     ignore_classes: tuple[int, ...]
+    known_raw: np.ndarray  # (65536,) bool: raw ids listed in the learning map
 
     @property
     def num_classes(self) -> int:
@@ -38,6 +39,10 @@ class LabelMap:
             raise TypeError(f"labels must be integers, got {raw.dtype}")
         semantic = raw.astype(np.int64) & 0xFFFF
         return self.learning_map[semantic].astype(np.int64)
+
+    def unknown_raw(self, raw_labels: np.ndarray) -> np.ndarray:
+        """(N,) bool: label words whose semantic id is not in the learning map."""
+        return ~self.known_raw[np.asarray(raw_labels).astype(np.int64) & 0xFFFF]
 
     def to_raw(self, learning_labels: np.ndarray) -> np.ndarray:
         """Learning ids -> raw ids (uint32) as written in submission files."""
@@ -59,12 +64,14 @@ def load_label_map_file(path: str | Path) -> LabelMap:
         inverse[class_id] = int(raw_id)
         colors[class_id] = rgb
     forward = np.zeros(0x10000, np.uint16)
+    known = np.zeros(0x10000, bool)
     for raw_id, class_id in data["learning_map"].items():
         if not 0 <= int(class_id) < num_classes:
             raise ValueError(f"{path}: learning_map sends {raw_id} to unknown class {class_id}")
         forward[int(raw_id)] = int(class_id)
+        known[int(raw_id)] = True
     return LabelMap(str(data.get("name", path.stem)), forward, inverse, tuple(names), colors,
-                    tuple(int(c) for c in data.get("ignore_classes", [0])))
+                    tuple(int(c) for c in data.get("ignore_classes", [0])), known)
 
 
 @cache

@@ -1,0 +1,369 @@
+"""sensor_msgs/PointCloud2 <-> numpy, on structured views of the message's bytes.
+
+No per-point Python: a cloud's bytes are read through one structured dtype with the
+message's offsets (``np.frombuffer``, zero copy) and written from one structured array.
+Works on any object with the PointCloud2 attributes (rclpy messages, rosbags dataclasses,
+plain namespaces), and imports no rclpy at module import time.
+
+Decoding accepts any field order, padding between fields, padding at the end of rows,
+big-endian data (byte-swapped), x/y/z as float32 or float64, a ``label`` field of any
+integer type up to 32 bits, and ``prob_0 .. prob_{C-1}`` (float32 or float64).
+"""
+
+from __future__ import annotations
+
+import array
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from convbki_ros.transforms import TypeResolver, make_header, message_types, stamp_to_ns
+
+# sensor_msgs/PointField datatype constants.
+INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
+DATATYPE_TO_DTYPE: dict[int, np.dtype] = {
+    INT8: np.dtype("i1"), UINT8: np.dtype("u1"), INT16: np.dtype("<i2"), UINT16: np.dtype("<u2"),
+    INT32: np.dtype("<i4"), UINT32: np.dtype("<u4"), FLOAT32: np.dtype("<f4"), FLOAT64: np.dtype("<f8"),
+}
+DTYPE_TO_DATATYPE: dict[str, int] = {dtype.str[1:]: datatype for datatype, dtype in DATATYPE_TO_DTYPE.items()}
+DATATYPE_NAMES = {INT8: "int8", UINT8: "uint8", INT16: "int16", UINT16: "uint16", INT32: "int32",
+                  UINT32: "uint32", FLOAT32: "float32", FLOAT64: "float64"}
+
+POINT_TYPES = (FLOAT32, FLOAT64)
+LABEL_TYPES = (UINT32, UINT16, INT32, UINT8, INT16, INT8)
+PROBABILITY_TYPES = (FLOAT32, FLOAT64)
+
+
+class CloudError(ValueError):
+    """A PointCloud2 that cannot be decoded as asked; the message names the problem."""
+
+
+@dataclass
+class DecodedCloud:
+    """The usable content of a PointCloud2, finite points only.
+
+    ``points`` are in the cloud's frame (m): float32 when x, y, z are all float32, else
+    float64. ``labels`` (int64, as stored: raw or learning ids, the caller knows which) or
+    ``probabilities`` ((N, C) float32) holds the semantics, the other is None.
+    """
+
+    points: np.ndarray  # (N, 3) float32 | float64
+    labels: np.ndarray | None  # (N,) int64
+    probabilities: np.ndarray | None  # (N, C) float32
+    raw_label_dtype: np.dtype | None  # the label field's dtype as sent (None for probabilities)
+    dropped_non_finite: int  # points dropped for NaN/inf coordinates (or probabilities)
+    total_points: int  # width * height
+    intensity: np.ndarray | None = None  # (N,) float32 when the cloud has an `intensity` field
+    frame_id: str = ""
+    stamp_ns: int = 0
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+# ----------------------------------------------------------------------------- decoding
+
+
+def _buffer(data: Any) -> np.ndarray:
+    """The message's ``data`` (bytes, bytearray, memoryview, array.array('B'), ndarray, list) as uint8."""
+    if isinstance(data, np.ndarray):
+        return data.reshape(-1).view(np.uint8) if data.dtype.itemsize == 1 else np.frombuffer(data.tobytes(), np.uint8)
+    try:
+        return np.frombuffer(data, dtype=np.uint8)
+    except TypeError:
+        return np.asarray(data, dtype=np.uint8)
+
+
+def _field_table(msg: Any) -> dict[str, tuple[int, int, int]]:
+    """name -> (offset, datatype, count), first occurrence of a name wins."""
+    table: dict[str, tuple[int, int, int]] = {}
+    for field in msg.fields:
+        table.setdefault(str(field.name), (int(field.offset), int(field.datatype), int(field.count)))
+    return table
+
+
+def _check_field(name: str, spec: tuple[int, int, int], allowed: tuple[int, ...], point_step: int) -> np.dtype:
+    offset, datatype, count = spec
+    if datatype not in DATATYPE_TO_DTYPE:
+        raise CloudError(f"field {name!r} has unknown datatype {datatype}")
+    if datatype not in allowed:
+        names = ", ".join(DATATYPE_NAMES[d] for d in allowed)
+        raise CloudError(f"field {name!r} has unsupported datatype {DATATYPE_NAMES[datatype]} (expected {names})")
+    if count != 1:
+        raise CloudError(f"field {name!r} has count {count}, expected 1")
+    dtype = DATATYPE_TO_DTYPE[datatype]
+    if offset < 0 or offset + dtype.itemsize > point_step:
+        raise CloudError(f"field {name!r} (offset {offset}, {dtype.itemsize} bytes) does not fit in "
+                         f"point_step {point_step}")
+    return dtype
+
+
+def _probability_names(table: Mapping[str, Any], num_classes: int | None) -> list[str]:
+    present = sorted(int(name[5:]) for name in table if name.startswith("prob_") and name[5:].isdigit())
+    if not present:
+        return []
+    count = num_classes if num_classes is not None else present[-1] + 1
+    missing = sorted(set(range(count)) - set(present))
+    extra = [i for i in present if i >= count]
+    if missing or extra:
+        def listed(indices: list[int]) -> str:
+            return ", ".join(f"prob_{i}" for i in indices[:5]) + (" ..." if len(indices) > 5 else "")
+
+        problems = [f"missing {listed(missing)}"] if missing else []
+        problems += [f"unexpected {listed(extra)}"] if extra else []
+        raise CloudError(f"incomplete probability fields for {count} classes: {'; '.join(problems)}")
+    return [f"prob_{i}" for i in range(count)]
+
+
+def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics: bool = True) -> DecodedCloud:
+    """Decode a PointCloud2 into finite points and their labels or class probabilities.
+
+    ``num_classes``: when given, probability fields must be exactly ``prob_0 .. prob_{C-1}``;
+    when None, C is taken from the fields present (they must still be contiguous from 0).
+    Probabilities win when a cloud has both ``label`` and ``prob_*`` fields. Points whose
+    coordinates (or probabilities) are NaN/inf are dropped and counted. Raises
+    ``CloudError`` naming the problem for a cloud that cannot be read.
+    """
+    table = _field_table(msg)
+    point_step = int(msg.point_step)
+    width, height = int(msg.width), int(msg.height)
+    missing = [name for name in ("x", "y", "z") if name not in table]
+    if missing:
+        raise CloudError(f"cloud has no {'/'.join(missing)} field (fields: {', '.join(table) or 'none'})")
+    probability_names = _probability_names(table, num_classes)
+    label_spec = table.get("label")
+    if require_semantics and not probability_names and label_spec is None:
+        raise CloudError("cloud has neither a `label` field nor `prob_0..prob_{C-1}` fields "
+                         f"(fields: {', '.join(table)})")
+    if point_step <= 0:
+        raise CloudError(f"point_step is {point_step}")
+
+    used: dict[str, np.dtype] = {}
+    for name in ("x", "y", "z"):
+        used[name] = _check_field(name, table[name], POINT_TYPES, point_step)
+    if probability_names:
+        for name in probability_names:
+            used[name] = _check_field(name, table[name], PROBABILITY_TYPES, point_step)
+    elif label_spec is not None:
+        used["label"] = _check_field("label", label_spec, LABEL_TYPES, point_step)
+    if "intensity" in table and table["intensity"][1] in DATATYPE_TO_DTYPE and table["intensity"][2] == 1:
+        dtype = DATATYPE_TO_DTYPE[table["intensity"][1]]
+        if table["intensity"][0] + dtype.itemsize <= point_step:
+            used["intensity"] = dtype
+
+    count = width * height
+    row_bytes = width * point_step
+    row_step = int(msg.row_step) if height > 1 else max(int(msg.row_step), row_bytes)
+    if height > 1 and row_step < row_bytes:
+        raise CloudError(f"row_step {row_step} is smaller than width * point_step = {row_bytes}")
+    raw = _buffer(msg.data)
+    needed = row_step * (height - 1) + row_bytes if count else 0
+    if raw.size < needed:
+        raise CloudError(f"data holds {raw.size} bytes, expected at least {needed} "
+                         f"(width {width} x height {height} x point_step {point_step})")
+    if height > 1 and row_step != row_bytes:  # padding at the end of each row: drop it (one copy)
+        raw = np.ascontiguousarray(raw[: row_step * height].reshape(height, row_step)[:, :row_bytes]).reshape(-1)
+
+    order = ">" if bool(msg.is_bigendian) else "<"
+    names = list(used)
+    structured = np.dtype({"names": names, "formats": [used[n].newbyteorder(order) for n in names],
+                           "offsets": [table[n][0] for n in names], "itemsize": point_step})
+    view = np.frombuffer(raw, dtype=structured, count=count)
+
+    point_dtype = np.float32 if all(used[n] == np.dtype("<f4") for n in ("x", "y", "z")) else np.float64
+    points = np.empty((count, 3), dtype=point_dtype)
+    for column, name in enumerate(("x", "y", "z")):
+        points[:, column] = view[name]
+    keep = np.isfinite(points).all(axis=1)
+
+    probabilities = labels = raw_label_dtype = None
+    if probability_names:
+        probabilities = _gather_probabilities(view, table, probability_names, used, order, point_step, raw, count)
+        keep &= np.isfinite(probabilities).all(axis=1)
+    elif "label" in used:
+        raw_label_dtype = used["label"]
+        labels = view["label"].astype(np.int64)
+    intensity = view["intensity"].astype(np.float32) if "intensity" in used else None
+
+    dropped = int(count - np.count_nonzero(keep))
+    if dropped:
+        points = points[keep]
+        labels = labels[keep] if labels is not None else None
+        probabilities = probabilities[keep] if probabilities is not None else None
+        intensity = intensity[keep] if intensity is not None else None
+    header = getattr(msg, "header", None)
+    return DecodedCloud(points=points, labels=labels, probabilities=probabilities, raw_label_dtype=raw_label_dtype,
+                        dropped_non_finite=dropped, total_points=count, intensity=intensity,
+                        frame_id=str(getattr(header, "frame_id", "")) if header is not None else "",
+                        stamp_ns=stamp_to_ns(header.stamp) if header is not None else 0)
+
+
+def _gather_probabilities(view: np.ndarray, table: Mapping[str, tuple[int, int, int]], names: list[str],
+                          used: Mapping[str, np.dtype], order: str, point_step: int, raw: np.ndarray,
+                          count: int) -> np.ndarray:
+    """(N, C) float32 probabilities; one strided sub-array view when the fields are packed."""
+    first = table[names[0]][0]
+    dtype = used[names[0]]
+    packed = all(used[n] == dtype and table[n][0] == first + i * dtype.itemsize for i, n in enumerate(names))
+    if packed:
+        block = np.dtype({"names": ["p"], "formats": [(dtype.newbyteorder(order), (len(names),))],
+                          "offsets": [first], "itemsize": point_step})
+        return np.frombuffer(raw, dtype=block, count=count)["p"].astype(np.float32)
+    out = np.empty((count, len(names)), dtype=np.float32)
+    for column, name in enumerate(names):
+        out[:, column] = view[name]
+    return out
+
+
+# ----------------------------------------------------------------------------- encoding
+
+
+def _aligned(offset: int, alignment: int) -> int:
+    return (offset + alignment - 1) // alignment * alignment
+
+
+def cloud_layout(fields: Mapping[str, np.ndarray]) -> tuple[list[tuple[str, int, int]], np.dtype, int]:
+    """Field list ``(name, offset, datatype)``, the structured dtype and the point count.
+
+    2-D arrays ``(N, K)`` expand into fields ``name_0 .. name_{K-1}``. Fields are laid out
+    in the given order, each aligned to its own size (little-endian).
+    """
+    columns: list[tuple[str, np.ndarray]] = []
+    for name, values in fields.items():
+        values = np.asarray(values)
+        if values.ndim == 1:
+            columns.append((name, values))
+        elif values.ndim == 2:
+            columns.extend((f"{name}_{k}", values[:, k]) for k in range(values.shape[1]))
+        else:
+            raise ValueError(f"field {name!r} must be (N,) or (N, K), got shape {values.shape}")
+    if not columns:
+        raise ValueError("a cloud needs at least one field")
+    count = columns[0][1].shape[0]
+    layout, names, formats, offsets, offset, alignment = [], [], [], [], 0, 1
+    for name, values in columns:
+        if values.shape[0] != count:
+            raise ValueError(f"field {name!r} has {values.shape[0]} values, expected {count}")
+        dtype = values.dtype.newbyteorder("<") if values.dtype.itemsize > 1 else values.dtype
+        if dtype.str[1:] not in DTYPE_TO_DATATYPE:
+            raise ValueError(f"field {name!r} has dtype {values.dtype}, which PointField cannot describe")
+        offset = _aligned(offset, dtype.itemsize)
+        layout.append((name, offset, DTYPE_TO_DATATYPE[dtype.str[1:]]))
+        names.append(name)
+        formats.append(dtype)
+        offsets.append(offset)
+        offset += dtype.itemsize
+        alignment = max(alignment, dtype.itemsize)
+    point_step = _aligned(offset, alignment)
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
+    return layout, dtype, count
+
+
+def pack_fields(fields: Mapping[str, np.ndarray],
+                out: Any = None) -> tuple[list[tuple[str, int, int]], int, np.ndarray]:
+    """Field layout, point_step and the (N,) structured array holding ``fields``.
+
+    ``out``: an optional writable buffer of exactly N * point_step bytes to fill in place
+    (e.g. the array.array that becomes the message's ``data``); by default a new array.
+    """
+    layout, dtype, count = cloud_layout(fields)
+    points = np.empty(count, dtype=dtype) if out is None else np.frombuffer(out, dtype=dtype, count=count)
+    for name, values in fields.items():
+        values = np.asarray(values)
+        if values.ndim == 1:
+            points[name] = values
+        else:
+            for k in range(values.shape[1]):
+                points[f"{name}_{k}"] = values[:, k]
+    return layout, dtype.itemsize, points
+
+
+def encode_cloud(stamp: Any, frame_id: str, fields: Mapping[str, np.ndarray], *,
+                 types: TypeResolver | None = None, is_dense: bool | None = None) -> Any:
+    """A PointCloud2 (height 1, little-endian) holding ``fields`` (name -> (N,) or (N, K) array).
+
+    ``stamp``: int ns, (sec, nanosec) or a builtin_interfaces Time. ``types``: message
+    class resolver (``transforms.message_types``), rclpy's classes by default, or a rosbags
+    typestore's. ``is_dense`` defaults to "x, y, z (when present) are all finite".
+    The points are written once, straight into the buffer that becomes ``data``.
+    """
+    types = types or message_types()
+    field_class = types("sensor_msgs/msg/PointField")
+    cloud_class = types("sensor_msgs/msg/PointCloud2")
+    _, dtype, count = cloud_layout(fields)
+    rosbags = hasattr(cloud_class, "__msgtype__")  # rosbags dataclass: uint8[] is an ndarray
+    size = count * dtype.itemsize
+    data: Any = np.empty(size, np.uint8) if rosbags else array.array("B", [0]) * size
+    layout, point_step, points = pack_fields(fields, out=data)
+    if is_dense is None:
+        is_dense = all(bool(np.isfinite(points[n]).all()) for n in ("x", "y", "z") if n in points.dtype.names)
+    del points  # release the view on ``data`` (an exported array.array cannot be resized)
+    arguments = {
+        "header": make_header(types, stamp, frame_id), "height": 1, "width": count,
+        "fields": [field_class(name=name, offset=offset, datatype=datatype, count=1)
+                   for name, offset, datatype in layout],
+        "is_bigendian": False, "point_step": point_step, "row_step": point_step * count, "is_dense": bool(is_dense)}
+    if rosbags:
+        return cloud_class(data=data, **arguments)
+    msg = cloud_class(**arguments)  # rclpy's constructor would copy ``data``; its setter keeps an array.array
+    msg.data = data
+    return msg
+
+
+# ----------------------------------------------------------------------------- colours and map clouds
+
+
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """(..., 3) uint8 RGB -> (...) float32 whose bits are 0x00RRGGBB (RViz's `rgb` field)."""
+    rgb = np.asarray(rgb)
+    if rgb.shape[-1] != 3:
+        raise ValueError(f"rgb must have shape (..., 3), got {rgb.shape}")
+    rgb = rgb.astype(np.uint32)
+    return ((rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]).astype(np.uint32).view(np.float32)
+
+
+def unpack_rgb(packed: np.ndarray) -> np.ndarray:
+    """(...) float32 packed 0x00RRGGBB -> (..., 3) uint8 RGB."""
+    bits = np.ascontiguousarray(packed, dtype=np.float32).view(np.uint32)
+    return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], axis=-1).astype(np.uint8)
+
+
+def map_cloud_fields(voxels: Any, class_colors: np.ndarray) -> dict[str, np.ndarray]:
+    """Fields of ``/semantic_map`` from a VoxelSet-like object (``centres``, ``label``, ``variance``,
+    ``confidence``): x, y, z (float32 voxel centre, m), rgb (float32 packed class colour), label
+    (uint32 learning id), variance and confidence (float32). ``class_colors``: (C, 3) uint8.
+    """
+    centres = np.asarray(voxels.centres)
+    label = np.asarray(voxels.label)
+    palette = pack_rgb(np.asarray(class_colors, dtype=np.uint8))
+    return {
+        "x": centres[:, 0].astype(np.float32, copy=False),
+        "y": centres[:, 1].astype(np.float32, copy=False),
+        "z": centres[:, 2].astype(np.float32, copy=False),
+        "rgb": palette[label],
+        "label": label.astype(np.uint32, copy=False),
+        "variance": np.asarray(voxels.variance).astype(np.float32, copy=False),
+        "confidence": np.asarray(voxels.confidence).astype(np.float32, copy=False),
+    }
+
+
+def variance_cloud_fields(voxels: Any) -> dict[str, np.ndarray]:
+    """Fields of ``/semantic_map/variance``: x, y, z (float32) and intensity (= variance, float32)."""
+    centres = np.asarray(voxels.centres)
+    return {
+        "x": centres[:, 0].astype(np.float32, copy=False),
+        "y": centres[:, 1].astype(np.float32, copy=False),
+        "z": centres[:, 2].astype(np.float32, copy=False),
+        "intensity": np.asarray(voxels.variance).astype(np.float32, copy=False),
+    }
+
+
+def encode_map_cloud(stamp: Any, frame_id: str, voxels: Any, class_colors: np.ndarray, *,
+                     types: TypeResolver | None = None, mask: np.ndarray | None = None) -> Any:
+    """``/semantic_map`` PointCloud2 of ``voxels`` (optionally only those where ``mask``)."""
+    fields = map_cloud_fields(voxels, class_colors)
+    if mask is not None:
+        fields = {name: values[mask] for name, values in fields.items()}
+    return encode_cloud(stamp, frame_id, fields, types=types)

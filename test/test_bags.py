@@ -1,0 +1,340 @@
+"""kitti_to_bag and play_bag on real files and real DDS: bags read back with rosbags, replays
+received by an rclpy subscriber in this process while play_bag runs as a subprocess."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from kitti_fixture import pose_about_z, write_sequence
+
+from convbki_ros import kitti_to_bag, play_bag
+from convbki_ros.pointcloud import decode_cloud
+from convbki_ros.transforms import odometry_to_pose, stamp_to_ns, transform_to_pose
+
+REPO = Path(__file__).resolve().parents[1]
+EPOCH_NS = 1_700_000_000_000_000_000
+TIMES = [0.0, 0.1037, 0.2071, 0.3109]
+FRAME_SIZES = [300, 301, 280, 333]
+TOPICS = {"/kitti/velo/pointcloud": "sensor_msgs/msg/PointCloud2", "/kitti/odom": "nav_msgs/msg/Odometry",
+          "/tf": "tf2_msgs/msg/TFMessage"}
+_domains = itertools.count()
+
+
+def domain_id() -> int:
+    """A ROS_DOMAIN_ID in 1..100, different per test and per pytest process."""
+    return 1 + (os.getpid() * 13 + next(_domains)) % 100
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory):
+    """A 4-frame sequence 08: first pose not identity, raw ids with instance bits, probabilities."""
+    root = tmp_path_factory.mktemp("kitti")
+    rng = np.random.default_rng(8)
+    frames, poses, probabilities = [], [], []
+    for number, size in enumerate(FRAME_SIZES):
+        points = rng.normal(scale=8.0, size=(size, 3)).astype(np.float32)
+        truth = rng.choice([10, 40, 50, 70], size).astype(np.uint32)
+        predicted = rng.choice([10, 40, 48, 50, 252], size).astype(np.uint32) | (rng.integers(0, 9, size) << 16).astype(
+            np.uint32)
+        frames.append((points, truth, predicted))
+        poses.append(pose_about_z(0.3 + 0.05 * number, [5.0 + number, -2.0 + 0.5 * number, 0.25]))
+        p = rng.random((size, 20))
+        probabilities.append(p / p.sum(axis=1, keepdims=True))
+    write_sequence(root, "08", frames, poses, times=TIMES, probabilities=probabilities)
+    return root, frames, probabilities
+
+
+def convert(*argv: str) -> int:
+    return kitti_to_bag.main([str(a) for a in argv])
+
+
+def read_bag(path: Path):
+    """{topic: [(timestamp, message)]} and the connections, read with rosbags."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    messages: dict[str, list] = {}
+    with Reader(path) as reader:
+        connections = {c.topic: c for c in reader.connections}
+        order = []
+        for connection, timestamp, data in reader.messages():
+            messages.setdefault(connection.topic, []).append(
+                (timestamp, store.deserialize_cdr(data, connection.msgtype)))
+            order.append((timestamp, connection.topic))
+    return messages, connections, order
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_kitti_to_bag_round_trip(dataset, tmp_path: Path, storage: str, capsys) -> None:
+    from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+
+    root, frames, _ = dataset
+    out = tmp_path / "nested" / "bag"
+    assert convert("--dataset", root, "--sequence", "8", "--out", out, "--storage", storage) == 0
+    summary = capsys.readouterr().out
+    assert f"{out}" in summary and "4 frames" in summary and "/kitti/velo/pointcloud" in summary
+    assert sorted(p.name for p in out.parent.iterdir()) == ["bag"]  # no staging folder left behind
+
+    messages, connections, order = read_bag(out)
+    assert {topic: c.msgtype for topic, c in connections.items()} == TOPICS
+    assert {topic: len(m) for topic, m in messages.items()} == dict.fromkeys(TOPICS, 4)
+    expected_stamps = [EPOCH_NS + round(t * 1e9) for t in TIMES]
+    # per frame: /tf, then odometry, then the cloud, all at the frame's stamp
+    assert [topic for _, topic in order] == ["/tf", "/kitti/odom", "/kitti/velo/pointcloud"] * 4
+    assert [t for t, _ in order] == [s for s in expected_stamps for _ in range(3)]
+
+    sequence = SemanticKittiSequence(root, "08")
+    for number, (points, _, predicted) in enumerate(frames):
+        timestamp, cloud = messages["/kitti/velo/pointcloud"][number]
+        assert timestamp == expected_stamps[number] == stamp_to_ns(cloud.header.stamp)
+        assert cloud.header.frame_id == "velo_link" and cloud.height == 1 and cloud.is_dense
+        assert [f.name for f in cloud.fields] == ["x", "y", "z", "intensity", "label"]
+        decoded = decode_cloud(cloud)
+        assert decoded.points.tobytes() == points.tobytes()
+        assert np.array_equal(decoded.labels, predicted.astype(np.int64))  # raw words, instance bits kept
+        assert decoded.raw_label_dtype == np.uint32
+        assert np.array_equal(decoded.intensity, np.full(len(points), 0.5, np.float32))
+
+        timestamp, odom = messages["/kitti/odom"][number]
+        assert timestamp == stamp_to_ns(odom.header.stamp)
+        assert (odom.header.frame_id, odom.child_frame_id) == ("map", "velo_link")
+        assert np.allclose(odometry_to_pose(odom), sequence[number].pose, atol=1e-12)
+        _, tf_message = messages["/tf"][number]
+        (transform,) = tf_message.transforms
+        assert (transform.header.frame_id, transform.child_frame_id) == ("map", "velo_link")
+        assert stamp_to_ns(transform.header.stamp) == timestamp
+        assert np.allclose(transform_to_pose(transform), sequence[number].pose, atol=1e-12)
+
+    metadata = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert metadata["version"] == 9
+    assert metadata["storage_identifier"] == storage
+    assert metadata["message_count"] == 12
+    assert metadata["starting_time"]["nanoseconds_since_epoch"] == expected_stamps[0]
+    assert metadata["duration"]["nanoseconds"] == expected_stamps[-1] - expected_stamps[0]
+    assert all((out / name).is_file() for name in metadata["relative_file_paths"])
+    topics = {t["topic_metadata"]["name"]: t for t in metadata["topics_with_message_count"]}
+    assert {name: t["topic_metadata"]["type"] for name, t in topics.items()} == TOPICS
+    for entry in topics.values():
+        assert entry["message_count"] == 4
+        assert entry["topic_metadata"]["serialization_format"] == "cdr"
+        assert entry["topic_metadata"]["type_description_hash"].startswith("RIHS01_")
+        (qos,) = entry["topic_metadata"]["offered_qos_profiles"]
+        assert (qos["reliability"], qos["durability"], qos["history"]) == ("reliable", "volatile", "keep_last")
+
+
+def test_kitti_to_bag_probabilities_and_frames(dataset, tmp_path: Path) -> None:
+    root, frames, probabilities = dataset
+    out = tmp_path / "probs"
+    assert convert("--dataset", root, "--sequence", "08", "--out", out, "--probabilities-dir", "probabilities",
+                   "--frames", "1:3") == 0
+    messages, _, _ = read_bag(out)
+    clouds = messages["/kitti/velo/pointcloud"]
+    assert [t for t, _ in clouds] == [EPOCH_NS + round(t * 1e9) for t in TIMES[1:3]]
+    for (_, cloud), number in zip(clouds, [1, 2]):
+        names = [f.name for f in cloud.fields]
+        assert names == ["x", "y", "z", "intensity"] + [f"prob_{k}" for k in range(20)]
+        decoded = decode_cloud(cloud, 20)
+        assert decoded.points.tobytes() == frames[number][0].tobytes()
+        # the dataset stores float16; the bag carries exactly their float32 values
+        assert np.array_equal(decoded.probabilities, probabilities[number].astype(np.float16).astype(np.float32))
+        assert decoded.labels is None
+
+
+def test_kitti_to_bag_errors(dataset, tmp_path: Path, capsys) -> None:
+    root, _, _ = dataset
+    assert convert("--dataset", tmp_path / "missing", "--sequence", "8", "--out", tmp_path / "a") == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith("kitti_to_bag: error:") and "missing" in error[0]
+    assert not (tmp_path / "a").exists()
+
+    assert convert("--dataset", root, "--sequence", "8", "--out", tmp_path / "b", "--predictions-dir", "nope") == 2
+    assert "nope" in capsys.readouterr().err
+
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    (existing / "keep.txt").write_text("mine")
+    assert convert("--dataset", root, "--sequence", "8", "--out", existing) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error == [f"kitti_to_bag: error: {existing} exists (use --force to replace it)"]
+    assert (existing / "keep.txt").read_text() == "mine"
+    assert convert("--dataset", root, "--sequence", "8", "--out", existing, "--force", "--frames", "0:2") == 0
+    assert not (existing / "keep.txt").exists() and (existing / "metadata.yaml").is_file()
+    assert yaml.safe_load((existing / "metadata.yaml").read_text())["rosbag2_bagfile_information"][
+        "message_count"] == 6
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["existing"]  # no staging or old-bag folders left
+
+
+def test_kitti_to_bag_failure_midway_leaves_nothing(dataset, tmp_path: Path, capsys) -> None:
+    """A frame that cannot be read after others were written: exit 2, no bag, no partial folder."""
+    import shutil
+
+    root = tmp_path / "broken"
+    shutil.copytree(dataset[0], root)
+    (root / "sequences" / "08" / "predictions" / "000002.label").write_bytes(b"\0" * 8)  # 2 labels for 280 points
+    assert convert("--dataset", root, "--sequence", "8", "--out", tmp_path / "bag") == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.startswith("kitti_to_bag: error:") and "000002.label" in error
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken"]
+
+
+def test_kitti_to_bag_module_entry_point(tmp_path: Path) -> None:
+    result = subprocess.run([sys.executable, "-m", "convbki_ros.kitti_to_bag", "--dataset", str(tmp_path / "none"),
+                             "--sequence", "0", "--out", str(tmp_path / "bag")], capture_output=True, text=True,
+                            cwd=REPO, timeout=60, stdin=subprocess.DEVNULL)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_to_rclpy_equals_rclpy_deserialisation(dataset, tmp_path: Path) -> None:
+    """The generic rosbags -> rclpy converter gives what rclpy itself decodes from the same bytes."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    root, _, _ = dataset
+    out = tmp_path / "bag"
+    assert convert("--dataset", root, "--sequence", "8", "--out", out, "--frames", "0:1") == 0
+    store = get_typestore(Stores.ROS2_JAZZY)
+    checked = set()
+    with Reader(out) as reader:
+        for connection, _, data in reader.messages():
+            if connection.msgtype.startswith("tf2_msgs/"):
+                continue  # no rclpy package for it in the PyPI wheels
+            cls = play_bag.rclpy_message_class(connection.msgtype)
+            converted = play_bag.to_rclpy(store.deserialize_cdr(data, connection.msgtype), cls)
+            assert converted == deserialize_message(bytes(data), cls)
+            # (bytes may differ in CDR alignment padding, which rosbags leaves uninitialised)
+            assert deserialize_message(serialize_message(converted), cls) == converted
+            checked.add(connection.msgtype)
+    assert checked == {"sensor_msgs/msg/PointCloud2", "nav_msgs/msg/Odometry"}
+
+
+# ----------------------------------------------------------------------------- play_bag over DDS
+
+
+class Listener:
+    """An rclpy subscriber node in its own context (this process), on one ROS domain."""
+
+    def __init__(self, domain: int, cloud_topic: str, odom_topic: str):
+        import rclpy
+        from nav_msgs.msg import Odometry
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock
+        from sensor_msgs.msg import PointCloud2
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = rclpy.create_node("bag_listener", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.clouds, self.odoms, self.clocks = [], [], []
+        self.node.create_subscription(PointCloud2, cloud_topic, self.clouds.append, qos)
+        self.node.create_subscription(Odometry, odom_topic, self.odoms.append, qos)
+        self.node.create_subscription(Clock, "/clock", lambda m: self.clocks.append(stamp_to_ns(m.clock)), qos)
+
+    def spin_until(self, done, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not done():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+def _play(bag: Path, domain: int, *args: str) -> subprocess.Popen:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    return subprocess.Popen([sys.executable, "-m", "convbki_ros.play_bag", str(bag), *args], cwd=REPO, env=env,
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.parametrize("mode", ["raw", "deserialize"])
+def test_play_bag_publishes_everything_in_order(dataset, tmp_path: Path, monkeypatch, mode: str) -> None:
+    root, frames, _ = dataset
+    bag = tmp_path / "bag"
+    assert convert("--dataset", root, "--sequence", "8", "--out", bag) == 0
+    domain = domain_id()
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if mode == "raw":
+        cloud_topic, odom_topic = "/kitti/velo/pointcloud", "/kitti/odom"
+        extra = ["--clock", "--rate", "4"]
+    else:  # converted messages, our --remap and a ROS remap rule
+        cloud_topic, odom_topic = "/cloud_in", "/odom"
+        extra = ["--clock", "--rate", "4", "--deserialize", "--remap", "/kitti/odom:=/odom",
+                 "--ros-args", "-r", "/kitti/velo/pointcloud:=/cloud_in"]
+    listener = Listener(domain, cloud_topic, odom_topic)
+    try:
+        process = _play(bag, domain, "--wait-subscribers", "20", *extra)
+        try:
+            listener.spin_until(lambda: len(listener.clouds) == 4 and len(listener.odoms) == 4
+                                and len(listener.clocks) >= 4, timeout=40)
+            _, stderr = process.communicate(timeout=30)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+    finally:
+        listener.close()
+    assert process.returncode == 0, stderr
+    assert "Traceback" not in stderr
+    assert "skipping /tf" in stderr  # tf2_msgs has no rclpy package here: one info line, not an error
+    stamps = [EPOCH_NS + round(t * 1e9) for t in TIMES]
+    assert [stamp_to_ns(m.header.stamp) for m in listener.clouds] == stamps
+    assert [stamp_to_ns(m.header.stamp) for m in listener.odoms] == stamps
+    assert listener.clocks == stamps  # one /clock per bag timestamp, in order
+    for cloud, (points, _, predicted) in zip(listener.clouds, frames):
+        decoded = decode_cloud(cloud)
+        assert decoded.points.tobytes() == points.tobytes()
+        assert np.array_equal(decoded.labels, predicted.astype(np.int64))
+
+
+def test_play_bag_paces_by_stamps_and_stops_on_ctrl_c(dataset, tmp_path: Path) -> None:
+    import signal
+
+    root, _, _ = dataset
+    bag = tmp_path / "bag"
+    assert convert("--dataset", root, "--sequence", "8", "--out", bag) == 0
+    # rate 0.01: the 4 frames would take ~31 s; SIGINT after the start must end it at once with 0
+    process = _play(bag, domain_id(), "--rate", "0.01", "--wait-subscribers", "0")
+    try:
+        deadline = time.monotonic() + 20
+        line = ""
+        while time.monotonic() < deadline and "skipping /tf" not in line:
+            line = process.stderr.readline()
+        time.sleep(0.5)
+        sent = time.monotonic()
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=10)
+        elapsed = time.monotonic() - sent
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 0
+    assert elapsed < 5.0
+    # only the first timestamp's messages (odometry + cloud) were due: pacing by the stamps
+    assert "interrupted after 2 messages" in stderr and "Traceback" not in stderr
+
+
+def test_play_bag_bad_input_is_one_line(tmp_path: Path) -> None:
+    assert play_bag.main([str(tmp_path / "nothing")]) == 2
+    not_a_bag = tmp_path / "folder"
+    not_a_bag.mkdir()
+    result = subprocess.run([sys.executable, "-m", "convbki_ros.play_bag", str(not_a_bag)], capture_output=True,
+                            text=True, cwd=REPO, timeout=60, stdin=subprocess.DEVNULL)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"play_bag: error: {not_a_bag}: no such bag (a rosbag2 folder with metadata.yaml, or a .mcap/.db3 file)"]

@@ -1,0 +1,46 @@
+"""Odometry interpolation at a cloud's stamp."""
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus
+from convbki_ros.transforms import pose_from_translation_quaternion
+
+
+def yaw_pose(yaw, x):
+    return pose_from_translation_quaternion(np.array([x, 2.0 * x, 0.5]),
+                                            np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)]))
+
+
+def test_exact_and_interpolated_stamps():
+    buffer = OdometryBuffer(tolerance_ns=0)
+    buffer.add(100, yaw_pose(0.0, 0.0), "velo_link")
+    buffer.add(300, yaw_pose(1.0, 2.0), "velo_link")
+    exact = buffer.lookup(300)
+    assert exact.status is PoseStatus.FOUND and exact.child_frame_id == "velo_link"
+    np.testing.assert_allclose(exact.pose, yaw_pose(1.0, 2.0))
+    middle = buffer.lookup(150)  # a quarter of the way
+    np.testing.assert_allclose(middle.pose, yaw_pose(0.25, 0.5), atol=1e-12)
+    assert buffer.lookup(50).status is PoseStatus.TOO_OLD
+    assert buffer.lookup(301).status is PoseStatus.WAIT
+    assert OdometryBuffer().lookup(5).status is PoseStatus.EMPTY
+
+
+def test_out_of_order_insertion_and_history_limit():
+    buffer = OdometryBuffer(history_ns=1000, tolerance_ns=0)
+    for stamp in (500, 100, 300, 1400):
+        buffer.add(stamp, yaw_pose(stamp * 1e-3, stamp * 1e-3))
+    assert len(buffer) == 2 and buffer.latest_stamp == 1400  # 100 and 300 fell out of the last 1000 ns
+    np.testing.assert_allclose(buffer.lookup(950).pose, yaw_pose(0.95, 0.95), atol=1e-12)
+
+
+@given(st.floats(0.0, 1.0), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0))
+def test_interpolated_rotation_stays_a_rotation(fraction, yaw0, yaw1):
+    buffer = OdometryBuffer(tolerance_ns=0)
+    buffer.add(0, yaw_pose(yaw0, 0.0))
+    buffer.add(10**9, yaw_pose(yaw1, 1.0))
+    pose = buffer.lookup(int(fraction * 1e9)).pose
+    rotation = pose[:3, :3]
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-9)
+    assert abs(np.linalg.det(rotation) - 1.0) < 1e-9
