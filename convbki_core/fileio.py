@@ -27,6 +27,8 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     handle = tempfile.NamedTemporaryFile(mode="wb", dir=folder, prefix=f".{path.name}.", suffix=".tmp", delete=False)
     temp_path = Path(handle.name)
     try:
+        # Temporary files are created 0600; give the result the permissions a plain open() would.
+        os.chmod(temp_path, _final_mode(path))
         with handle:
             yield handle
             handle.flush()
@@ -48,6 +50,22 @@ def atomic_write_with(path: str | Path, writer: Callable[[BinaryIO], None]) -> N
     """Call ``writer(file)`` on a temporary file that atomically becomes ``path``."""
     with atomic_open(path) as handle:
         writer(handle)
+
+
+def _final_mode(path: Path) -> int:
+    """The existing file's permissions, else 0666 minus the process umask."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        pass
+    umask = 0o022
+    try:  # Linux exposes the umask without changing it (os.umask would, racing other threads)
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                umask = int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    return 0o666 & ~umask
 
 
 def _fsync_folder(folder: Path) -> None:

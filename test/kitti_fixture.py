@@ -53,3 +53,46 @@ def write_sequence(root, sequence, frames, lidar_poses, predictions_dir="predict
     if times is not None:
         (folder / "times.txt").write_text("".join(f"{t:.6e}\n" for t in times))
     return folder
+
+
+ROAD, SIDEWALK, POLE, BUILDING = 40, 48, 80, 50
+
+
+def street_scene(rng, count=6000):
+    """World points of a small street: road, sidewalk, a wall and poles; raw ground-truth ids."""
+    road = np.column_stack([rng.uniform(-15, 15, count), rng.uniform(-3, 3, count), np.full(count, -1.7)])
+    walk = np.column_stack([rng.uniform(-15, 15, count // 2), rng.uniform(3, 5, count // 2),
+                            np.full(count // 2, -1.55)])
+    wall = np.column_stack([rng.uniform(-15, 15, count // 2), np.full(count // 2, 5.5),
+                            rng.uniform(-1.5, 2.5, count // 2)])
+    pole_xy = np.array([[-8, 2.8], [0, 2.8], [8, 2.8]])
+    poles = np.concatenate([np.column_stack([np.full(300, x) + rng.normal(0, 0.05, 300),
+                                             np.full(300, y) + rng.normal(0, 0.05, 300),
+                                             rng.uniform(-1.7, 2.5, 300)]) for x, y in pole_xy])
+    points = np.concatenate([road, walk, wall, poles])
+    labels = np.concatenate([np.full(len(road), ROAD), np.full(len(walk), SIDEWALK), np.full(len(wall), BUILDING),
+                             np.full(len(poles), POLE)]).astype(np.uint32)
+    return points, labels
+
+
+def noisy(labels, rng, rate):
+    """Per-frame random confusions (a network's errors): road<->sidewalk, pole->building."""
+    swap = {ROAD: SIDEWALK, SIDEWALK: ROAD, POLE: BUILDING, BUILDING: POLE}
+    flip = rng.random(len(labels)) < rate
+    out = labels.copy()
+    out[flip] = [swap[int(v)] for v in labels[flip]]
+    return out
+
+
+def write_drive(root, sequence, frames=5, seed=0, rate=0.3):
+    rng = np.random.default_rng(seed)
+    world, truth = street_scene(rng)
+    poses, data = [], []
+    for number in range(frames):
+        pose = pose_about_z(0.05 * number + 0.3, [-6.0 + 3.0 * number, 0.5, 0.2])
+        visible = rng.random(len(world)) < 0.7
+        sensor = (world[visible] - pose[:3, 3]) @ pose[:3, :3]
+        data.append((sensor.astype(np.float32), truth[visible], noisy(truth[visible], rng, rate)))
+        poses.append(pose)
+    write_sequence(root, sequence, data, poses)
+    return data

@@ -3,7 +3,6 @@ received by an rclpy subscriber in this process while play_bag runs as a subproc
 
 from __future__ import annotations
 
-import itertools
 import os
 import subprocess
 import sys
@@ -14,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 from kitti_fixture import pose_about_z, write_sequence
+from ros_helpers import domain_id
 
 from convbki_ros import kitti_to_bag, play_bag
 from convbki_ros.pointcloud import decode_cloud
@@ -25,14 +25,6 @@ TIMES = [0.0, 0.1037, 0.2071, 0.3109]
 FRAME_SIZES = [300, 301, 280, 333]
 TOPICS = {"/kitti/velo/pointcloud": "sensor_msgs/msg/PointCloud2", "/kitti/odom": "nav_msgs/msg/Odometry",
           "/tf": "tf2_msgs/msg/TFMessage"}
-_domains = itertools.count()
-
-
-def domain_id() -> int:
-    """A ROS_DOMAIN_ID in 1..100, different per test and per pytest process."""
-    return 1 + (os.getpid() * 13 + next(_domains)) % 100
-
-
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory):
     """A 4-frame sequence 08: first pose not identity, raw ids with instance bits, probabilities."""

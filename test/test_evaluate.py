@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 import yaml
-from kitti_fixture import pose_about_z, write_sequence
+from kitti_fixture import BUILDING, POLE, ROAD, SIDEWALK, write_drive
 
 from convbki_core import evaluate, train
 from convbki_core.kernels import load_kernel_file
@@ -14,49 +14,6 @@ from convbki_core.kernels import load_kernel_file
 RAW_TO_LEARNING = {0: 0, 1: 0, 10: 1, 11: 2, 13: 5, 15: 3, 16: 5, 18: 4, 20: 5, 30: 6, 31: 7, 32: 8, 40: 9, 44: 10,
                    48: 11, 49: 12, 50: 13, 51: 14, 52: 0, 60: 9, 70: 15, 71: 16, 72: 17, 80: 18, 81: 19, 99: 0,
                    252: 1, 253: 7, 254: 6, 255: 8, 256: 5, 257: 5, 258: 4, 259: 5}
-ROAD, SIDEWALK, POLE, BUILDING = 40, 48, 80, 50
-
-
-def street_scene(rng, count=6000):
-    """World points of a small street: road, sidewalk, a wall and poles; raw ground-truth ids."""
-    road = np.column_stack([rng.uniform(-15, 15, count), rng.uniform(-3, 3, count), np.full(count, -1.7)])
-    walk = np.column_stack([rng.uniform(-15, 15, count // 2), rng.uniform(3, 5, count // 2),
-                            np.full(count // 2, -1.55)])
-    wall = np.column_stack([rng.uniform(-15, 15, count // 2), np.full(count // 2, 5.5),
-                            rng.uniform(-1.5, 2.5, count // 2)])
-    pole_xy = np.array([[-8, 2.8], [0, 2.8], [8, 2.8]])
-    poles = np.concatenate([np.column_stack([np.full(300, x) + rng.normal(0, 0.05, 300),
-                                             np.full(300, y) + rng.normal(0, 0.05, 300),
-                                             rng.uniform(-1.7, 2.5, 300)]) for x, y in pole_xy])
-    points = np.concatenate([road, walk, wall, poles])
-    labels = np.concatenate([np.full(len(road), ROAD), np.full(len(walk), SIDEWALK), np.full(len(wall), BUILDING),
-                             np.full(len(poles), POLE)]).astype(np.uint32)
-    return points, labels
-
-
-def noisy(labels, rng, rate):
-    """Per-frame random confusions (a network's errors): road<->sidewalk, pole->building."""
-    swap = {ROAD: SIDEWALK, SIDEWALK: ROAD, POLE: BUILDING, BUILDING: POLE}
-    flip = rng.random(len(labels)) < rate
-    out = labels.copy()
-    out[flip] = [swap[int(v)] for v in labels[flip]]
-    return out
-
-
-def write_drive(root, sequence, frames=5, seed=0, rate=0.3):
-    rng = np.random.default_rng(seed)
-    world, truth = street_scene(rng)
-    poses, data = [], []
-    for number in range(frames):
-        pose = pose_about_z(0.05 * number + 0.3, [-6.0 + 3.0 * number, 0.5, 0.2])
-        visible = rng.random(len(world)) < 0.7
-        sensor = (world[visible] - pose[:3, 3]) @ pose[:3, :3]
-        data.append((sensor.astype(np.float32), truth[visible], noisy(truth[visible], rng, rate)))
-        poses.append(pose)
-    write_sequence(root, sequence, data, poses)
-    return data
-
-
 def independent_miou(dataset_root, labels_root, sequence, frames):
     """Score written label files the way the official evaluator would, with plain numpy."""
     lut = np.zeros(1 << 16, np.int64)

@@ -1,0 +1,132 @@
+"""The mapper node end to end: real processes, real DDS, real bag files."""
+
+import signal
+import time
+
+import numpy as np
+import pytest
+from kitti_fixture import write_drive
+from ros_helpers import Probe, domain_id, start, stop
+
+from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.paths import kernel_path
+from convbki_ros.kitti_to_bag import main as kitti_to_bag
+from convbki_ros.pointcloud import FLOAT32, UINT32, decode_cloud
+
+BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]
+FRAMES = 5
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """A short drive in SemanticKITTI layout and its bag."""
+    root = tmp_path_factory.mktemp("drive")
+    write_drive(root / "data", "08", frames=FRAMES)
+    assert kitti_to_bag(["--dataset", str(root / "data"), "--sequence", "08", "--out", str(root / "bag")]) == 0
+    return root
+
+
+def offline_map(root):
+    """What ``evaluate``'s mapper object holds after the same frames."""
+    dataset = SemanticKittiSequence(root / "data", "08")
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
+                           prior=0.001, device="cpu")
+    for frame in dataset:
+        mapper.integrate(frame.points, frame.input_labels, frame.pose)
+    return mapper
+
+
+def start_mapper(domain, tmp_path, *parameters):
+    return start("convbki_ros.mapper", domain, "--ros-args", "-r", "cloud_in:=/kitti/velo/pointcloud",
+                 "-r", "odom:=/kitti/odom", "-p", f"local_bounds:={BOUNDS}", "-p", "publish_period:=0.3",
+                 "-p", f"map_file:={tmp_path / 'map.npz'}", "-p", "device:=cpu", *parameters)
+
+
+def sorted_voxels(centres, labels):
+    order = np.lexsort(centres.T)
+    return centres[order], labels[order]
+
+
+def test_node_maps_a_bag_like_the_offline_mapper_and_serves_its_map(drive, tmp_path):
+    from sensor_msgs.msg import PointCloud2
+    from std_srvs.srv import Trigger
+
+    domain = domain_id()
+    mapper = start_mapper(domain, tmp_path)
+    probe = Probe(domain)
+    try:
+        maps = probe.subscribe(PointCloud2, "/semantic_map", latched=True)
+        variances = probe.subscribe(PointCloud2, "/semantic_map/variance", latched=True)
+        player = start("convbki_ros.play_bag", domain, drive / "bag", "--rate", "2", "--wait-subscribers", "20")
+        expected = offline_map(drive)
+        assert player.wait(timeout=60) == 0, stop(player)
+
+        def complete():
+            return bool(maps) and maps[-1].width == len(expected)
+
+        assert probe.spin_until(complete, timeout=60), f"map has {maps[-1].width if maps else 0} voxels, " \
+                                                       f"expected {len(expected)}"
+        cloud = maps[-1]
+        assert cloud.header.frame_id == "map" and cloud.height == 1
+        fields = {f.name: f.datatype for f in cloud.fields}
+        assert fields == {"x": FLOAT32, "y": FLOAT32, "z": FLOAT32, "rgb": FLOAT32, "label": UINT32,
+                          "variance": FLOAT32, "confidence": FLOAT32}
+        decoded = decode_cloud(cloud, 20)
+        voxels = expected.voxels()
+        got_centres, got_labels = sorted_voxels(decoded.points.astype(np.float32), decoded.labels)
+        want_centres, want_labels = sorted_voxels(voxels.centres, voxels.label)
+        np.testing.assert_array_equal(got_centres, want_centres)
+        np.testing.assert_array_equal(got_labels, want_labels)
+        assert probe.spin_until(lambda: variances and variances[-1].width == len(expected), timeout=10)
+        assert {f.name for f in variances[-1].fields} == {"x", "y", "z", "intensity"}
+
+        saved = probe.call(Trigger, "/convbki_mapper/save_map")
+        assert saved.success, saved.message
+        reloaded = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
+                                 device="cpu")
+        reloaded.load(tmp_path / "map.npz")
+        a, b = reloaded.voxels(), voxels
+        order_a, order_b = np.lexsort(a.indices.T), np.lexsort(b.indices.T)
+        np.testing.assert_array_equal(a.indices[order_a], b.indices[order_b])
+        np.testing.assert_allclose(a.alpha[order_a], b.alpha[order_b], rtol=1e-6)
+
+        ply = probe.call(Trigger, "/convbki_mapper/export_ply")
+        assert ply.success and (tmp_path / "map.ply").exists(), ply.message
+
+        reset = probe.call(Trigger, "/convbki_mapper/reset")
+        assert reset.success
+        assert probe.spin_until(lambda: maps[-1].width == 0, timeout=10), "after reset the map must be empty"
+    finally:
+        probe.close()
+        output = stop(mapper)
+    assert "Traceback" not in output, output
+
+
+def test_sigint_stops_the_node_within_two_seconds(tmp_path):
+    domain = domain_id()
+    mapper = start_mapper(domain, tmp_path, "-p", "save_on_shutdown:=false")
+    deadline = time.monotonic() + 60
+    output = ""
+    while time.monotonic() < deadline:  # wait until the node is up (torch import, DDS)
+        line = mapper.stdout.readline()
+        output += line
+        if "mapper ready" in line or mapper.poll() is not None:
+            break
+    assert "mapper ready" in output, output
+    mapper.send_signal(signal.SIGINT)
+    started = time.monotonic()
+    code = mapper.wait(timeout=10)
+    elapsed = time.monotonic() - started
+    rest = stop(mapper)
+    assert code == 0, output + rest
+    assert elapsed < 2.0, f"took {elapsed:.2f} s to stop"
+    assert "Traceback" not in rest
+
+
+def test_bad_parameters_exit_2_with_a_message(tmp_path):
+    domain = domain_id()
+    mapper = start_mapper(domain, tmp_path, "-p", "num_classes:=7")
+    code = mapper.wait(timeout=60)
+    output = stop(mapper)
+    assert code == 2 and "kernel has 20 classes, num_classes is 7" in output and "Traceback" not in output
