@@ -161,6 +161,12 @@ def test_ament_index_finds_installed_package(
         installed = sorted(p.name for p in share.glob(pattern))
         assert installed == shipped, pattern
     assert "mapper.yaml" in [p.name for p in share.glob("config/*.yaml")]
+    rviz = yaml.safe_load((share / "rviz" / "convbki.rviz").read_text())
+    displays = {d["Name"]: d for d in rviz["Visualization Manager"]["Displays"]}
+    assert displays["Semantic map"]["Topic"]["Value"] == "/semantic_map"
+    assert displays["Semantic map"]["Color Transformer"] == "RGB8"
+    assert displays["Variance"]["Topic"]["Value"] == "/semantic_map/variance"
+    assert rviz["Visualization Manager"]["Global Options"]["Fixed Frame"] == "map"
 
     # With the install sourced, the installed copy of the code is what imports.
     where = subprocess.run(
@@ -238,6 +244,16 @@ def test_venv_runs_modules_from_any_directory(tmp_path: Path) -> None:
     )
     assert result.returncode == 0, result.stderr
     assert "usage: mapper" in result.stdout
+
+
+def test_mapper_params_file_documents_every_declared_parameter() -> None:
+    from convbki_ros.mapper import PARAMETERS
+
+    params = yaml.safe_load((REPO / "config" / "mapper.yaml").read_text())["/**"]["ros__parameters"]
+    declared = {name: default for name, default, _ in PARAMETERS}
+    assert set(params) == set(declared)
+    for name, default in declared.items():
+        assert params[name] == default and type(params[name]) is type(default), name
 
 
 def test_mapper_params_file_has_paper_defaults() -> None:
