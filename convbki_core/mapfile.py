@@ -35,7 +35,7 @@ class MapFileError(ValueError):
 
 
 def save_map(mapper: ConvBKIMapper, path: str | Path) -> None:
-    indices, alpha = mapper.store.items()
+    indices, alpha = mapper.items()
     if indices.size and (np.abs(indices) > np.iinfo(np.int32).max).any():
         raise ValueError("voxel indices exceed the int32 range of the map file")
     metadata = {

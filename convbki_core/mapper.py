@@ -3,10 +3,14 @@
 One scan goes through the paper's global-mapping steps (section "Global Mapping"):
 
 1. move the points into the map frame with the scan's pose (any SE(3));
-2. find the local window around the sensor and voxelise the scan into F (Eq. 3);
-3. fetch the window's prior concentrations from the global store (new voxels: the prior);
-4. apply the ConvBKI update alpha += conv3d(F, K) (Eq. 4);
-5. write the voxels that received evidence back to the global store.
+2. move the local window to the sensor: the window stays resident (``window.RollingWindow``),
+   only the slabs that leave it go to the global store and those that enter come back
+   (the paper's query and write-back; new voxels hold the prior);
+3. voxelise the scan into the input volume F (Eq. 3);
+4. apply the ConvBKI update alpha += conv3d(F, K) (Eq. 4) in place: on the CPU as a
+   compiled sparse scatter (``fast_update``), on CUDA (or when asked) with the dense
+   depthwise convolution of ``layer.ConvBKILayer``, the paper's formulation and the
+   reference the fast path is tested against.
 
 Public surface: ``integrate``, ``labels_at``, ``voxels``, ``local_voxels``, ``save``,
 ``load``, ``export_ply``, ``reset``.
@@ -21,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from convbki_core.fast_update import scatter_update
 from convbki_core.kernels import ConvBKIKernel, KernelConfig, load_kernel_file
 from convbki_core.layer import ConvBKILayer
 from convbki_core.statistics import dirichlet_statistics
@@ -34,6 +39,7 @@ from convbki_core.voxelize import (
     voxel_indices,
     voxelize,
 )
+from convbki_core.window import RollingWindow
 
 
 def resolve_device(device: str) -> torch.device:
@@ -65,8 +71,7 @@ class IntegrationResult:
     stats: VoxelizeStats
     window_origin: np.ndarray
     occupied_voxels: int = 0  # voxels of F with points
-    updated_voxels: int = 0  # voxels whose concentrations changed
-    new_voxels: int = 0  # of those, voxels stored for the first time
+    new_voxels: int = 0  # voxels that received evidence for the first time
     timing_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -99,7 +104,7 @@ class ConvBKIMapper:
                      (-40.0, -40.0, -2.6), (40.0, 40.0, 2.6)),
                  prior: float = 1e-3, resolution: float | None = None, filter_size: int | None = None,
                  device: str = "auto", frame_id: str = "map", ignore_classes: tuple[int, ...] = (0,),
-                 stale_after: int = 20):
+                 stale_after: int = 20, update_path: str = "auto"):
         if isinstance(kernel, (str, Path)):
             kernel = load_kernel_file(kernel)
         if isinstance(kernel, KernelConfig):
@@ -119,7 +124,12 @@ class ConvBKIMapper:
         self.frame_id = frame_id
         self.ignore_classes = tuple(int(c) for c in ignore_classes)
         self.store = VoxelStore(kernel.num_classes, stale_after=stale_after)
-        self.last_origin: np.ndarray | None = None
+        self.window = RollingWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store)
+        if update_path not in ("auto", "fast", "dense"):
+            raise ValueError(f"update_path must be auto, fast or dense, got {update_path!r}")
+        if update_path == "auto":
+            update_path = "fast" if self.device.type == "cpu" else "dense"
+        self.update_path = update_path
         self.scans_integrated = 0
 
     # -- properties ------------------------------------------------------------------------
@@ -134,6 +144,11 @@ class ConvBKIMapper:
     @property
     def resolution(self) -> float:
         return self.geometry.resolution
+
+    @property
+    def last_origin(self) -> np.ndarray | None:
+        """Global index of the current window's first voxel (None before the first scan)."""
+        return self.window.origin
 
     # -- the update ------------------------------------------------------------------------
     def integrate(self, points: np.ndarray, values: np.ndarray, pose: np.ndarray) -> IntegrationResult:
@@ -154,80 +169,77 @@ class ConvBKIMapper:
         origin = self.geometry.origin_for(pose[:3, 3])
         volume = voxelize(points_map, values, origin, self.geometry.dims, self.resolution,
                           self.num_classes, self.ignore_classes)
+        voxelized = time.perf_counter()
+        self.window.move_to(origin)
+        moved = time.perf_counter()
         result = IntegrationResult(volume.stats, origin, occupied_voxels=volume.num_voxels)
-        result.timing_ms = {"voxelize": 1e3 * (time.perf_counter() - started), "query": 0.0, "update": 0.0,
-                            "write": 0.0}
         if volume.num_voxels:
-            result.updated_voxels, result.new_voxels = self._update_window(volume, result.timing_ms)
-        self.last_origin = origin
+            result.new_voxels = self._update_fast(volume) if self.update_path == "fast" else self._update_dense(volume)
         self.scans_integrated += 1
-        result.timing_ms["total"] = 1e3 * (time.perf_counter() - started)
+        finished = time.perf_counter()
+        result.timing_ms = {"voxelize": 1e3 * (voxelized - started), "query": 1e3 * (moved - voxelized),
+                            "update": 1e3 * (finished - moved), "total": 1e3 * (finished - started)}
         return result
 
-    def _update_window(self, volume: SparseVolume, timing_ms: dict[str, float]) -> tuple[int, int]:
-        """Dense ConvBKI update of one window; returns (updated voxels, new voxels).
+    def _filters(self) -> np.ndarray:
+        with torch.no_grad():
+            return self.kernel.filters().detach().cpu().numpy()[:, 0]
 
-        ``timing_ms`` receives "query" (fetch from the store), "update" (convolution and
-        sum) and "write" (write back), in milliseconds.
-        """
-        dims = volume.dims
-        started = time.perf_counter()
-        stored_linear, stored_alpha = self.store.query_window(volume.origin, dims)
-        fetched = time.perf_counter()
+    def _update_fast(self, volume: SparseVolume) -> int:
+        """Sparse compiled scatter into the resident window; returns the count of new voxels."""
+        occupied = unravel_linear(volume.linear, volume.dims) + volume.origin
+        return scatter_update(occupied, volume.features, self._filters(), volume.origin, volume.dims,
+                              self.window.alpha, self.window.mask)
+
+    def _update_dense(self, volume: SparseVolume) -> int:
+        """The paper's dense depthwise convolution over the whole window (CUDA path, reference)."""
         with torch.no_grad():
             increment = self.layer.increment(volume.to_dense(self.device))
-            increment = increment.reshape(self.num_classes, -1)
-            touched = torch.nonzero(increment.amax(dim=0) > _evidence_threshold(self.device)).squeeze(1)
-            added = increment[:, touched].T.clamp_min_(0.0).cpu().numpy()
-        touched = touched.cpu().numpy()
-        # Prior concentrations of the touched voxels: stored ones keep theirs, new ones start at the prior.
-        base = np.full((touched.size, self.num_classes), self.prior, np.float32)
-        known = np.zeros(touched.size, bool)
-        if stored_linear.size:
-            position = np.minimum(np.searchsorted(stored_linear, touched), stored_linear.size - 1)
-            known = stored_linear[position] == touched
-            base[known] = stored_alpha[position[known]]
-        updated = time.perf_counter()
-        self.store.write_window(volume.origin, dims, touched, base + added)
-        timing_ms.update(query=1e3 * (fetched - started), update=1e3 * (updated - fetched),
-                         write=1e3 * (time.perf_counter() - updated))
-        return int(touched.size), int(touched.size - known.sum())
+            touched = (increment.amax(dim=0) > _evidence_threshold(self.device)).cpu().numpy()
+            increment = increment.clamp_min_(0.0).cpu().numpy()
+        # Window-local index i lives at (origin + i) mod dims on the torus.
+        shift = tuple(int(v) for v in volume.origin % volume.dims)
+        touched = np.roll(touched, shift, axis=(0, 1, 2))
+        new = int(np.count_nonzero(touched & (self.window.mask == 0)))
+        self.window.alpha += np.roll(increment, shift, axis=(1, 2, 3))
+        self.window.mask |= touched.astype(np.uint8)
+        return new
 
     # -- reading the map -------------------------------------------------------------------
     def labels_at(self, points_map: np.ndarray, within_window: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Expected class of the voxel under each map-frame point.
 
         Returns (labels (N,) int64, has_evidence (N,) bool); labels are -1 where the voxel
-        holds no evidence, or (with ``within_window``) lies outside the last window.
+        holds no evidence, or (with ``within_window``) lies outside the current window.
         """
         points_map = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
         usable = np.isfinite(points_map).all(axis=1)
         indices = np.zeros((points_map.shape[0], 3), np.int64)
         indices[usable] = voxel_indices(points_map[usable], self.resolution)
-        if within_window:
-            if self.last_origin is None:
-                usable[:] = False
-            else:
-                local = indices - self.last_origin
-                usable &= (local >= 0).all(axis=1) & (local < self.geometry.dims).all(axis=1)
-        alpha, found = self.store.lookup(indices[usable])
+        in_window = usable & self.window.inside(indices)
+        alpha = np.zeros((points_map.shape[0], self.num_classes), np.float32)
         has_evidence = np.zeros(points_map.shape[0], bool)
-        has_evidence[np.flatnonzero(usable)[found]] = True
+        alpha[in_window], has_evidence[in_window] = self.window.lookup(indices[in_window])
+        if not within_window:
+            elsewhere = usable & ~in_window
+            alpha[elsewhere], has_evidence[elsewhere] = self.store.lookup(indices[elsewhere])
         labels = np.full(points_map.shape[0], -1, np.int64)
-        labels[has_evidence] = dirichlet_statistics(alpha[found]).label
+        labels[has_evidence] = dirichlet_statistics(alpha[has_evidence]).label
         return labels, has_evidence
 
+    def items(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every voxel with evidence: (global indices (N, 3) int64, alpha (N, C) float32)."""
+        stored_indices, stored_alpha = self.store.items()
+        window_indices, window_alpha = self.window.items()
+        return np.concatenate([stored_indices, window_indices]), np.concatenate([stored_alpha, window_alpha])
+
     def voxels(self) -> VoxelSet:
-        """Every stored voxel (all voxels that ever received evidence) with its statistics."""
-        indices, alpha = self.store.items()
-        return self._voxel_set(indices, alpha)
+        """Every voxel that ever received evidence, with its statistics."""
+        return self._voxel_set(*self.items())
 
     def local_voxels(self) -> VoxelSet:
-        """The stored voxels of the last window."""
-        if self.last_origin is None:
-            return self._voxel_set(np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32))
-        linear, alpha = self.store.query_window(self.last_origin, self.geometry.dims)
-        return self._voxel_set(unravel_linear(linear, self.geometry.dims) + self.last_origin, alpha)
+        """The voxels with evidence in the current window."""
+        return self._voxel_set(*self.window.items())
 
     def _voxel_set(self, indices: np.ndarray, alpha: np.ndarray) -> VoxelSet:
         stats = dirichlet_statistics(alpha)
@@ -235,13 +247,13 @@ class ConvBKIMapper:
                         stats.label, stats.confidence, stats.variance)
 
     def __len__(self) -> int:
-        return len(self.store)
+        return len(self.store) + self.window.count()
 
     # -- persistence -----------------------------------------------------------------------
     def reset(self) -> None:
         """Forget every voxel (the kernel and settings stay)."""
         self.store.clear()
-        self.last_origin = None
+        self.window.clear()
         self.scans_integrated = 0
 
     def save(self, path: str | Path) -> None:

@@ -107,6 +107,13 @@ class VoxelStore:
     # -- window access ---------------------------------------------------------------------
     def query_window(self, origin: np.ndarray, dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Stored voxels inside the window: (linear (n,) int64 sorted, alpha (n, C) float32 copy)."""
+        return self._collect_window(origin, dims, remove=False)
+
+    def take_window(self, origin: np.ndarray, dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Like ``query_window``, and the voxels leave the store (the caller now holds them)."""
+        return self._collect_window(origin, dims, remove=True)
+
+    def _collect_window(self, origin: np.ndarray, dims: np.ndarray, remove: bool) -> tuple[np.ndarray, np.ndarray]:
         origin = np.asarray(origin, np.int64)
         dims = np.asarray(dims, np.int64)
         parts_index, parts_alpha = [], []
@@ -119,6 +126,12 @@ class VoxelStore:
             inside = (local >= 0).all(axis=1) & (local < dims).all(axis=1)
             parts_index.append(local[inside])
             parts_alpha.append(chunk.alpha[inside])
+            if remove and inside.any():
+                self._count -= int(inside.sum())
+                if inside.all():
+                    del self._active[key]
+                else:
+                    chunk.offsets, chunk.alpha = chunk.offsets[~inside], chunk.alpha[~inside]
         if not parts_index:
             return np.zeros(0, np.int64), np.zeros((0, self.num_classes), np.float32)
         linear = linear_index(np.concatenate(parts_index), dims)

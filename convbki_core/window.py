@@ -1,0 +1,137 @@
+"""The active window: the local map around the sensor, dense, in memory, on a torus.
+
+The paper fetches the local window from the global map before every update and writes it
+back after. Here the window stays resident as dense concentrations alpha[c, x, y, z]
+(class-major) plus a byte mask of voxels that hold evidence; global voxel g lives at
+index g mod dims (a torus), so when the sensor moves only the slabs that leave the
+window are written to the global ``VoxelStore`` and the slabs that enter are read from it.
+Voxels without evidence hold the prior, so an update is a plain in-place addition.
+
+Every voxel with evidence is in exactly one place: in the window (mask set) or in the store.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from convbki_core.store import VoxelStore
+from convbki_core.voxelize import unravel_linear
+
+
+def box_difference(first_lo: np.ndarray, first_hi: np.ndarray, second_lo: np.ndarray,
+                   second_hi: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Disjoint boxes (lo, hi exclusive) covering ``first`` minus ``second`` (at most 6 boxes)."""
+    boxes = []
+    lo, hi = first_lo.copy(), first_hi.copy()
+    for axis in range(3):
+        if second_hi[axis] <= lo[axis] or second_lo[axis] >= hi[axis]:  # no overlap at all
+            return [*boxes, (lo, hi)]
+        if lo[axis] < second_lo[axis]:
+            below_hi = hi.copy()
+            below_hi[axis] = second_lo[axis]
+            boxes.append((lo.copy(), below_hi))
+            lo[axis] = second_lo[axis]
+        if hi[axis] > second_hi[axis]:
+            above_lo = lo.copy()
+            above_lo[axis] = second_hi[axis]
+            boxes.append((above_lo, hi.copy()))
+            hi[axis] = second_hi[axis]
+    return boxes
+
+
+class RollingWindow:
+    """Dense window of ``dims`` voxels over the global grid, backed by a ``VoxelStore``."""
+
+    def __init__(self, dims: np.ndarray, num_classes: int, prior: float, store: VoxelStore):
+        self.dims = np.asarray(dims, np.int64)
+        self.num_classes = int(num_classes)
+        self.prior = np.float32(prior)
+        self.store = store
+        self.alpha = np.full((self.num_classes, *self.dims.tolist()), self.prior, np.float32)
+        self.mask = np.zeros(self.dims.tolist(), np.uint8)
+        self.origin: np.ndarray | None = None
+
+    @property
+    def nbytes(self) -> int:
+        return self.alpha.nbytes + self.mask.nbytes
+
+    def count(self) -> int:
+        """Voxels with evidence inside the window."""
+        return int(np.count_nonzero(self.mask)) if self.origin is not None else 0
+
+    def _physical(self, lo: np.ndarray, hi: np.ndarray):
+        """Index arrays (for np.ix_) of the torus positions of the global box [lo, hi)."""
+        return tuple(np.arange(lo[a], hi[a]) % self.dims[a] for a in range(3))
+
+    def _evict(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Move the evidence of global box [lo, hi) to the store and reset it to the prior."""
+        px, py, pz = self._physical(lo, hi)
+        mask = self.mask[np.ix_(px, py, pz)]
+        local = np.argwhere(mask)
+        if local.size:
+            rows = self.alpha[:, px[local[:, 0]], py[local[:, 1]], pz[local[:, 2]]].T
+            self.store.write(local + lo, rows)
+        self.alpha[np.ix_(np.arange(self.num_classes), px, py, pz)] = self.prior
+        self.mask[np.ix_(px, py, pz)] = 0
+
+    def _load(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Bring the stored voxels of global box [lo, hi) into the window."""
+        linear, alpha = self.store.take_window(lo, hi - lo)
+        if linear.size == 0:
+            return
+        physical = (unravel_linear(linear, hi - lo) + lo) % self.dims
+        self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]] = alpha.T
+        self.mask[physical[:, 0], physical[:, 1], physical[:, 2]] = 1
+
+    def move_to(self, origin: np.ndarray) -> None:
+        """Make the window cover global indices origin .. origin + dims - 1."""
+        origin = np.asarray(origin, np.int64)
+        if self.origin is not None and np.array_equal(origin, self.origin):
+            return
+        new_lo, new_hi = origin, origin + self.dims
+        if self.origin is None:
+            self._load(new_lo, new_hi)
+        else:
+            old_lo, old_hi = self.origin, self.origin + self.dims
+            for lo, hi in box_difference(old_lo, old_hi, new_lo, new_hi):
+                self._evict(lo, hi)
+            for lo, hi in box_difference(new_lo, new_hi, old_lo, old_hi):
+                self._load(lo, hi)
+        self.origin = origin.copy()
+
+    def flush(self) -> None:
+        """Move everything to the store and forget the window's position."""
+        if self.origin is not None:
+            self._evict(self.origin, self.origin + self.dims)
+        self.origin = None
+
+    def clear(self) -> None:
+        """Drop every voxel of the window (the store is cleared by its owner)."""
+        self.alpha.fill(self.prior)
+        self.mask.fill(0)
+        self.origin = None
+
+    def inside(self, indices: np.ndarray) -> np.ndarray:
+        """(N,) bool: global indices inside the current window."""
+        if self.origin is None:
+            return np.zeros(len(indices), bool)
+        local = indices - self.origin
+        return (local >= 0).all(axis=1) & (local < self.dims).all(axis=1)
+
+    def lookup(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Concentrations at global ``indices`` that lie inside the window: (alpha (n, C), has_evidence (n,))."""
+        physical = np.asarray(indices, np.int64) % self.dims
+        has = self.mask[physical[:, 0], physical[:, 1], physical[:, 2]].astype(bool)
+        alpha = self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
+        return alpha, has
+
+    def items(self) -> tuple[np.ndarray, np.ndarray]:
+        """Voxels with evidence in the window: (global indices (n, 3), alpha (n, C)), sorted by index."""
+        if self.origin is None:
+            return np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32)
+        physical = np.argwhere(self.mask)
+        alpha = self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
+        # Unwrap the torus: the global index is the one in [origin, origin + dims) with this remainder.
+        indices = self.origin + (physical - self.origin) % self.dims
+        order = np.lexsort(indices.T[::-1])
+        return indices[order], alpha[order]

@@ -1,0 +1,118 @@
+"""The CPU fast path (compiled scatter into the rolling window) equals the dense reference."""
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from convbki_core import ConvBKIKernel, ConvBKIMapper, evaluate
+from convbki_core.store import VoxelStore
+from convbki_core.window import RollingWindow, box_difference
+from kitti_fixture import write_drive
+
+NUM_CLASSES = 6
+
+
+def random_kernel(kind, filter_size, rng):
+    draw = lambda n: rng.uniform(0.1, 1.2, n).tolist()  # noqa: E731
+    if kind == "compound":
+        return ConvBKIKernel(kind, NUM_CLASSES, filter_size, 0.2, ell_h=draw(NUM_CLASSES), ell_z=draw(NUM_CLASSES))
+    return ConvBKIKernel(kind, NUM_CLASSES, filter_size, 0.2, ell=draw(1 if kind == "single" else NUM_CLASSES))
+
+
+def voxel_dict(mapper):
+    indices, alpha = mapper.items()
+    return {tuple(i): a for i, a in zip(indices.tolist(), alpha)}
+
+
+@given(seed=st.integers(0, 2**31 - 1), kind=st.sampled_from(["single", "per_class", "compound"]),
+       filter_size=st.sampled_from([3, 5, 7, 9]), probabilities=st.booleans())
+def test_fast_path_equals_dense_reference(seed, kind, filter_size, probabilities):
+    rng = np.random.default_rng(seed)
+    kernel = random_kernel(kind, filter_size, rng)
+    low = -rng.uniform(0.8, 1.6, 3)
+    bounds = (tuple(low), tuple(low + rng.uniform(1.0, 2.4, 3)))  # small windows: scans reach every border
+    fast = ConvBKIMapper(kernel, local_bounds=bounds, device="cpu", update_path="fast")
+    dense = ConvBKIMapper(kernel, local_bounds=bounds, device="cpu", update_path="dense")
+    position = np.zeros(3)
+    for _ in range(4):
+        position = position + rng.uniform(-0.7, 0.7, 3)  # moves of a few voxels: slabs leave and enter
+        pose = np.eye(4)
+        pose[:3, 3] = position
+        points = rng.uniform(-2.0, 2.0, (150, 3))
+        if probabilities:
+            values = rng.dirichlet(np.ones(NUM_CLASSES) * 0.3, 150).astype(np.float32)
+        else:
+            values = rng.integers(0, NUM_CLASSES, 150)
+        a = fast.integrate(points, values, pose)
+        b = dense.integrate(points, values, pose)
+        assert a.new_voxels == b.new_voxels
+    got, want = voxel_dict(fast), voxel_dict(dense)
+    assert set(got) == set(want)
+    for key, alpha in want.items():
+        np.testing.assert_allclose(got[key], alpha, rtol=1e-5)
+    probe = rng.uniform(-2, 2, (300, 3)) + position
+    np.testing.assert_array_equal(fast.labels_at(probe)[0], dense.labels_at(probe)[0])
+
+
+@given(st.integers(0, 2**31 - 1))
+def test_rolling_window_matches_a_dict_of_voxels(seed):
+    rng = np.random.default_rng(seed)
+    dims = np.array([7, 6, 4])
+    store = VoxelStore(3, stale_after=2)
+    window = RollingWindow(dims, 3, 0.5, store)
+    naive = {}
+    origin = np.array([0, 0, 0])
+    for _ in range(15):
+        origin = origin + rng.integers(-9, 10, 3) * (rng.random() < 0.8)  # small moves and jumps, sometimes none
+        window.move_to(origin)
+        # Add evidence to random window voxels, as an update would.
+        local = rng.integers(0, dims, (int(rng.integers(0, 20)), 3))
+        for x, y, z in local:
+            g = origin + (x, y, z)
+            p = g % dims
+            add = rng.random(3).astype(np.float32)
+            window.alpha[:, p[0], p[1], p[2]] += add
+            window.mask[p[0], p[1], p[2]] = 1
+            naive[tuple(g.tolist())] = naive.get(tuple(g.tolist()), np.full(3, 0.5, np.float32)) + add
+        in_window, stored = window.items(), store.items()
+        everything = {tuple(i): a for i, a in zip(np.concatenate([in_window[0], stored[0]]).tolist(),
+                                                  np.concatenate([in_window[1], stored[1]]))}
+        assert len(everything) == len(in_window[0]) + len(stored[0]), "a voxel may live in one place only"
+        assert set(everything) == set(naive)
+        for key, alpha in naive.items():
+            np.testing.assert_allclose(everything[key], alpha, rtol=1e-6)
+    assert window.count() + len(store) == len(naive)
+
+
+def test_box_difference_covers_exactly_the_difference():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        a_lo, b_lo = rng.integers(-5, 5, 3), rng.integers(-5, 5, 3)
+        a_hi, b_hi = a_lo + rng.integers(1, 6, 3), b_lo + rng.integers(1, 6, 3)
+        cells = set()
+        for lo, hi in box_difference(a_lo, a_hi, b_lo, b_hi):
+            box = {(x, y, z) for x in range(lo[0], hi[0]) for y in range(lo[1], hi[1]) for z in range(lo[2], hi[2])}
+            assert not box & cells, "boxes must be disjoint"
+            cells |= box
+
+        def inside(lo, hi, c):
+            return all(lo[i] <= c[i] < hi[i] for i in range(3))
+
+        everything = {(x, y, z) for x in range(a_lo[0], a_hi[0]) for y in range(a_lo[1], a_hi[1])
+                      for z in range(a_lo[2], a_hi[2])}
+        assert cells == {c for c in everything if not inside(b_lo, b_hi, c)}
+
+
+def test_evaluate_writes_identical_labels_on_both_paths(tmp_path):
+    write_drive(tmp_path / "data", "08", frames=4)
+    outputs = {}
+    for path in ("fast", "dense"):
+        code = evaluate.main(["--dataset", str(tmp_path / "data"), "--sequence", "08", "--quiet", "--device", "cpu",
+                              "--update-path", path, "--report", str(tmp_path / f"{path}.json"),
+                              "--write-labels", str(tmp_path / path),
+                              "--local-bounds", "-20", "-12", "-3", "20", "12", "4"])
+        assert code == 0
+        folder = tmp_path / path / "sequences" / "08" / "predictions"
+        outputs[path] = {f.name: f.read_bytes() for f in sorted(folder.iterdir())}
+    assert len(outputs["fast"]) == 4
+    assert outputs["fast"] == outputs["dense"]
