@@ -48,40 +48,49 @@ if HAVE_NUMBA:
             x_begin = dims[0] * part // parts
             x_end = dims[0] * (part + 1) // parts
             created = 0
+            # Torus positions of the f targets along each axis (-1: outside the window), per voxel.
+            px = np.empty(size, np.int64)
+            py = np.empty(size, np.int64)
+            pz = np.empty(size, np.int64)
             for m in range(num_voxels):
                 first, last = row_start[m], row_start[m + 1]
                 if first == last:
                     continue
-                gx, gy, gz = occupied[m, 0], occupied[m, 1], occupied[m, 2]
+                any_x = False
                 for i in range(size):
-                    tx = gx + half - i
-                    lx = tx - origin[0]
-                    if lx < 0 or lx >= dims[0]:
-                        continue
-                    px = tx % dims[0]
-                    if px < x_begin or px >= x_end:
+                    t = occupied[m, 0] + half - i
+                    px[i] = -1
+                    if origin[0] <= t < origin[0] + dims[0]:
+                        p = t % dims[0]
+                        if x_begin <= p < x_end:
+                            px[i] = p
+                            any_x = True
+                if not any_x:
+                    continue
+                for j in range(size):
+                    t = occupied[m, 1] + half - j
+                    py[j] = t % dims[1] if origin[1] <= t < origin[1] + dims[1] else -1
+                for k in range(size):
+                    t = occupied[m, 2] + half - k
+                    pz[k] = t % dims[2] if origin[2] <= t < origin[2] + dims[2] else -1
+                for i in range(size):
+                    if px[i] < 0:
                         continue
                     for j in range(size):
-                        ty = gy + half - j
-                        ly = ty - origin[1]
-                        if ly < 0 or ly >= dims[1]:
+                        if py[j] < 0:
                             continue
-                        py = ty % dims[1]
                         for k in range(size):
-                            tz = gz + half - k
-                            lz = tz - origin[2]
-                            if lz < 0 or lz >= dims[2]:
+                            if pz[k] < 0:
                                 continue
-                            pz = tz % dims[2]
                             touched = False
                             for entry in range(first, last):
                                 c = entry_class[entry]
                                 weight = filters[c, i, j, k]
                                 if weight > 0.0:
-                                    alpha[c, px, py, pz] += entry_value[entry] * weight
+                                    alpha[c, px[i], py[j], pz[k]] += entry_value[entry] * weight
                                     touched = True
-                            if touched and mask[px, py, pz] == 0:
-                                mask[px, py, pz] = 1
+                            if touched and mask[px[i], py[j], pz[k]] == 0:
+                                mask[px[i], py[j], pz[k]] = 1
                                 created += 1
             new_counts[part] = created
         return new_counts.sum()
