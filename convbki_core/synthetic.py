@@ -83,11 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "seed writes the same drive, byte for byte (default: %(default)s)")
     p.add_argument("--input-miou", default=0.55, type=_float_in("--input-miou", 0.0, 1.0, lo_open=True),
                    metavar="M", help="target mIoU of the input segmentation in predictions/ (fraction, class 0 "
-                   "ignored, mean over classes in the ground truth); the noise strength is calibrated on a few "
-                   "low-resolution scans of the same drive to reach it (default: %(default)s)")
+                   "ignored, mean over classes in the ground truth); the noise strength is calibrated to reach it "
+                   "(within about 0.01) on a sample of the drive's own points, simulated in a first pass "
+                   "(default: %(default)s)")
     p.add_argument("--noise-strength", default=None, type=_float_in("--noise-strength", 0.0, 12.0), metavar="K",
-                   help="use this segmentation-noise strength (0 = perfect input, ~3 gives mIoU ~0.55) instead "
-                   "of calibrating to --input-miou")
+                   help="use this segmentation-noise strength (0 = perfect input; about 0.3-0.45 gives mIoU "
+                   "0.55, depending on the scene) instead of calibrating to --input-miou; skips the first pass")
     p.add_argument("--probabilities", action="store_true",
                    help="also write probabilities/NNNNNN.npy: float16 (N, 20) class probabilities over the "
                    "learning classes, arg-max equal to the predicted label")
@@ -131,7 +132,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         from convbki_core.labels import load_label_map
         from convbki_core.synth import DriveConfig, SynthError, check_destination, generate_drive
-        from convbki_core.synth.lidar import MissingDependency
+        from convbki_core.synth.lidar import MissingDependency, require_numba
     except ImportError as error:
         print(f"{PROG}: error: {error}", file=sys.stderr)
         return 1
@@ -141,7 +142,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                          speed=args.speed, max_range=args.max_range, range_noise=args.range_noise, force=args.force)
     bar = None
     try:
-        check_destination(config)  # before the progress bar, so a refusal is one clean line
+        # Before the progress bar, so that a refusal is one clean line.
+        require_numba()
+        check_destination(config)
         passes = 1 if args.noise_strength is not None else 2  # calibration pre-pass, then writing
         bar = tqdm(total=passes * args.frames, unit="scan", desc=PROG, disable=args.quiet, file=sys.stderr)
 
