@@ -36,7 +36,7 @@ except ImportError:  # pragma: no cover - numba is a pinned dependency; this is 
 
 if HAVE_NUMBA:
 
-    @njit(cache=True, parallel=True)
+    @njit(cache=True, parallel=True, nogil=True)  # nogil: ROS callbacks keep running during an update
     def _scatter_numba(occupied, row_start, entry_class, entry_value, filters, origin, dims, alpha, mask,
                        parts):  # pragma: no cover - compiled; tested through scatter_update
         num_voxels = occupied.shape[0]

@@ -235,13 +235,14 @@ class ConvBKIMapper:
 
     def voxels(self) -> VoxelSet:
         """Every voxel that ever received evidence, with its statistics."""
-        return self._voxel_set(*self.items())
+        return self.voxel_set(*self.items())
 
     def local_voxels(self) -> VoxelSet:
         """The voxels with evidence in the current window."""
-        return self._voxel_set(*self.window.items())
+        return self.voxel_set(*self.window.items())
 
-    def _voxel_set(self, indices: np.ndarray, alpha: np.ndarray) -> VoxelSet:
+    def voxel_set(self, indices: np.ndarray, alpha: np.ndarray) -> VoxelSet:
+        """Statistics of the given voxels (e.g. a copy taken from ``items()``)."""
         stats = dirichlet_statistics(alpha)
         return VoxelSet(indices, voxel_centres(indices, self.resolution).astype(np.float32), alpha,
                         stats.label, stats.confidence, stats.variance)

@@ -126,12 +126,10 @@ class RollingWindow:
         return alpha, has
 
     def items(self) -> tuple[np.ndarray, np.ndarray]:
-        """Voxels with evidence in the window: (global indices (n, 3), alpha (n, C)), sorted by index."""
+        """Voxels with evidence in the window: (global indices (n, 3), alpha (n, C)), in torus order."""
         if self.origin is None:
             return np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32)
         physical = np.argwhere(self.mask)
         alpha = self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
         # Unwrap the torus: the global index is the one in [origin, origin + dims) with this remainder.
-        indices = self.origin + (physical - self.origin) % self.dims
-        order = np.lexsort(indices.T[::-1])
-        return indices[order], alpha[order]
+        return self.origin + (physical - self.origin) % self.dims, alpha

@@ -7,6 +7,7 @@ or ``python -m convbki_ros.mapper --ros-args ...``.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import textwrap
 import threading
@@ -21,6 +22,7 @@ from convbki_core.labels import load_label_map
 from convbki_core.mapfile import MapFileError
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
+from convbki_ros.dds import use_large_data_profile
 from convbki_ros.pointcloud import CloudError, decode_cloud, encode_cloud, encode_map_cloud, variance_cloud_fields
 from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus
 from convbki_ros.transforms import odometry_to_pose, stamp_to_ns
@@ -54,7 +56,7 @@ PARAMETERS: tuple[tuple[str, object, str], ...] = (
     ("ply_file", "", "file written by ~/export_ply; \"\" = map_file with the suffix .ply, else convbki_map.ply"),
     ("publish_local", True, "publish /semantic_map/local (the window around the sensor) after each update; bool"),
     ("cloud_queue_size", 10, "clouds waiting to be integrated; when full the oldest is dropped; count"),
-    ("pose_wait_timeout", 1.0, "how long a cloud waits for odometry covering its stamp before it is dropped; "
+    ("pose_wait_timeout", 2.0, "how long a cloud waits for odometry covering its stamp before it is dropped; "
      "seconds"),
     ("stats_period", 10.0, "period of the counters line in the log (scans in, integrated, dropped); seconds"),
 )
@@ -157,6 +159,7 @@ class Counters:
     integrated: int = 0
     dropped: dict[str, int] = field(default_factory=dict)
     last_update_ms: float = 0.0
+    last_publish_ms: float = 0.0
 
     def drop(self, reason: str) -> None:
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
@@ -166,7 +169,7 @@ class Counters:
         reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(self.dropped.items()))
         return (f"scans in {self.scans_in}, integrated {self.integrated}, dropped {dropped}"
                 f"{f' ({reasons})' if reasons else ''}, queue {queue_length}, map voxels {voxels}, "
-                f"last update {self.last_update_ms:.0f} ms")
+                f"last update {self.last_update_ms:.0f} ms, last map publish {self.last_publish_ms:.0f} ms")
 
 
 def _import_ros():
@@ -184,6 +187,7 @@ def make_node_class():
     """The node class, built after rclpy is imported."""
     _, Node, PointCloud2, Odometry, Trigger = _import_ros()
     from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+    from rclpy.clock import Clock, ClockType
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
     class MapperNode(Node):
@@ -219,13 +223,19 @@ def make_node_class():
             self.create_service(Trigger, "~/save_map", self._on_save_map)
             self.create_service(Trigger, "~/reset", self._on_reset)
             self.create_service(Trigger, "~/export_ply", self._on_export_ply)
-            self.publish_timer = self.create_timer(self._param("publish_period"), self._publish_map)
-            self.stats_timer = self.create_timer(self._param("stats_period"), self._log_counters)
+            # Housekeeping runs on the steady clock: with use_sim_time the ROS clock stops when a bag
+            # pauses or ends, and the map must still be published and the counters logged.
+            steady = Clock(clock_type=ClockType.STEADY_TIME)
+            self.publish_due = False
+            self.publish_timer = self.create_timer(self._param("publish_period"), self._request_publish, clock=steady)
+            self.stats_timer = self.create_timer(self._param("stats_period"), self._log_counters, clock=steady)
             autosave = self._param("autosave_period")
             if autosave > 0:
-                self.create_timer(autosave, self._autosave)
+                self.create_timer(autosave, self._autosave, clock=steady)
             self.worker = threading.Thread(target=self._work, name="convbki_update", daemon=True)
             self.worker.start()
+            self.publisher_thread = threading.Thread(target=self._publish_loop, name="convbki_publish", daemon=True)
+            self.publisher_thread.start()
             self.get_logger().info(
                 f"ConvBKI mapper ready: {self.mapper.kernel.kind} kernel, {self.mapper.resolution} m voxels, "
                 f"f = {self.mapper.kernel.filter_size}, window {self.mapper.geometry.dims.tolist()} voxels, "
@@ -301,25 +311,60 @@ def make_node_class():
 
         # -- the update (worker thread) ---------------------------------------------------
         def _work(self) -> None:
+            """The update thread: integrates queued clouds in order, off the executor."""
             while True:
                 with self.queue_changed:
                     while not self.queue and not self.stopping:
                         self.queue_changed.wait(0.5)
                     if self.stopping:
                         return
-                    pending = self.queue[0]
-                    lookup = self.poses.lookup(stamp_to_ns(pending.msg.header.stamp))
-                    waiting = lookup.status in (PoseStatus.WAIT, PoseStatus.EMPTY)
-                    timeout = self._param("pose_wait_timeout")
-                    if waiting and time.monotonic() - pending.received < timeout:
+                    chosen = self._next_cloud()
+                    if chosen is None:  # every queued cloud still waits for its odometry
                         self.queue_changed.wait(0.02)
                         continue
-                    self.queue.popleft()
+                    pending, lookup = chosen
                 try:
                     self._integrate(pending, lookup)
                 except Exception as error:  # never let one scan stop the mapping thread
                     self.counters.drop("error")
                     self.get_logger().error(f"scan not integrated: {error.__class__.__name__}: {error}")
+
+        def _next_cloud(self):
+            """The oldest queued cloud that can be decided now (call with ``queue_changed`` held).
+
+            A cloud whose odometry has not arrived does not hold up the clouds behind it: the
+            update is a sum, so the order of integration does not change the map. A cloud is
+            decided when its pose is known, or when it has waited ``pose_wait_timeout``.
+            """
+            timeout = self._param("pose_wait_timeout")
+            now = time.monotonic()
+            for position, pending in enumerate(self.queue):
+                lookup = self.poses.lookup(stamp_to_ns(pending.msg.header.stamp))
+                waiting = lookup.status in (PoseStatus.WAIT, PoseStatus.EMPTY)
+                if not waiting or now - pending.received >= timeout:
+                    del self.queue[position]
+                    return pending, lookup
+            return None
+
+        def _publish_loop(self) -> None:
+            """The publishing thread: a map of a million voxels takes a while to encode and send,
+            so it runs beside the updates (the map is only locked while it is copied)."""
+            while True:
+                with self.queue_changed:
+                    while not self.publish_due and not self.stopping:
+                        self.queue_changed.wait(0.5)
+                    if self.stopping:
+                        return
+                    self.publish_due = False
+                try:
+                    self._publish_map()
+                except Exception as error:
+                    self.get_logger().error(f"publishing the map failed: {error.__class__.__name__}: {error}")
+
+        def _request_publish(self) -> None:
+            with self.queue_changed:
+                self.publish_due = True
+                self.queue_changed.notify_all()
 
         def _integrate(self, pending: PendingCloud, lookup) -> None:
             msg = pending.msg
@@ -329,8 +374,10 @@ def make_node_class():
                           PoseStatus.WAIT: f"no odometry covered its stamp within "
                                            f"{self._param('pose_wait_timeout')} s"}[lookup.status]
                 self.counters.drop("no pose")
+                latest = self.poses.latest_stamp
+                latest_text = f"; latest odometry {latest / 1e9:.3f} s" if latest is not None else ""
                 self.warnings.warn("pose", f"dropping cloud stamped {stamp_to_ns(msg.header.stamp) / 1e9:.3f} s: "
-                                   f"{reason}")
+                                   f"{reason}{latest_text}")
                 return
             if lookup.child_frame_id and msg.header.frame_id and lookup.child_frame_id != msg.header.frame_id:
                 self.counters.drop("frame mismatch")
@@ -371,21 +418,35 @@ def make_node_class():
 
         # -- outputs ---------------------------------------------------------------------
         def _publish_map(self) -> None:
+            """Publish /semantic_map and /semantic_map/variance if the map changed and anyone listens.
+
+            Both topics are latched; with no subscriber the (possibly large) map is not encoded
+            at all, and a subscriber that joins later gets the current map at the next tick.
+            """
+            listeners = self.map_publisher.get_subscription_count() + \
+                self.variance_publisher.get_subscription_count()
+            if not listeners:
+                return
+            started = time.perf_counter()
             with self.map_lock:
                 if self.map_version == self.published_version:
                     return
                 version = self.map_version
-                voxels = self.mapper.voxels()
+                indices, alpha = self.mapper.items()
+            voxels = self.mapper.voxel_set(indices, alpha)
             max_variance = self._param("max_variance")
             mask = voxels.variance <= max_variance if max_variance > 0 else None
             stamp = self.get_clock().now().nanoseconds
             frame = self._param("map_frame")
-            self.map_publisher.publish(encode_map_cloud(stamp, frame, voxels, self.label_map.colors, mask=mask))
-            fields = variance_cloud_fields(voxels)
-            if mask is not None:
-                fields = {name: values[mask] for name, values in fields.items()}
-            self.variance_publisher.publish(encode_cloud(stamp, frame, fields))
+            if self.map_publisher.get_subscription_count():
+                self.map_publisher.publish(encode_map_cloud(stamp, frame, voxels, self.label_map.colors, mask=mask))
+            if self.variance_publisher.get_subscription_count():
+                fields = variance_cloud_fields(voxels)
+                if mask is not None:
+                    fields = {name: values[mask] for name, values in fields.items()}
+                self.variance_publisher.publish(encode_cloud(stamp, frame, fields))
             self.published_version = version
+            self.counters.last_publish_ms = 1e3 * (time.perf_counter() - started)
 
         def _log_counters(self) -> None:
             with self.queue_changed:
@@ -414,7 +475,7 @@ def make_node_class():
             with self.map_lock:
                 self.mapper.reset()
                 self.map_version += 1
-            self._publish_map()
+            self._request_publish()
             response.success, response.message = True, "map reset: 0 voxels"
             self.get_logger().info(response.message)
             return response
@@ -444,6 +505,7 @@ def make_node_class():
                 self.stopping = True
                 self.queue_changed.notify_all()
             self.worker.join(timeout=1.5)
+            self.publisher_thread.join(timeout=0.3)
             if self._param("save_on_shutdown") and self._param("map_file") and self.map_version:
                 message = self.save_map()[1]
                 print(f"[{NODE_NAME}] on shutdown: {message}", file=sys.stderr)
@@ -456,19 +518,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     build_parser().parse_args(strip_ros_args(args))
     rclpy = _import_ros()[0]
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
+    use_large_data_profile()
     rclpy.init(args=args)
     node = None
     try:
+        # The executor exists before the node says "ready", so a Ctrl-C right after it lands in spin().
+        executor = SingleThreadedExecutor()
         node = make_node_class()()
-        rclpy.spin(node)
+        executor.add_node(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, KernelFileError, OSError) as error:
         print(f"{PROG}: error: {error}", file=sys.stderr)
         return 2
     finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the save short
         if node is not None:
             node.stop()
             node.destroy_node()

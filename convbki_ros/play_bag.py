@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from convbki_core.cli import UserError, run
+from convbki_ros.dds import use_large_data_profile
 
 PROG = "play_bag"
 NODE_NAME = "play_bag"
@@ -438,6 +439,7 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
         from rclpy.executors import ExternalShutdownException
 
         try:
+            use_large_data_profile()
             rclpy.init(args=ros_argv)
         except Exception as error:  # rclpy's errors for bad --ros-args have no common public base
             raise UserError(f"cannot start ROS 2 ({str(error).strip().splitlines()[0]})") from None

@@ -3,11 +3,11 @@
 import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
+from kitti_fixture import write_drive
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, evaluate
 from convbki_core.store import VoxelStore
 from convbki_core.window import RollingWindow, box_difference
-from kitti_fixture import write_drive
 
 NUM_CLASSES = 6
 

@@ -1,0 +1,34 @@
+"""DDS settings for large point clouds.
+
+With Fast DDS's default socket buffers (the system default, about 200 KB), a 3-4 MB
+PointCloud2 overflows the receiver's buffer and the small messages that arrive with it
+(odometry) are lost until the next heartbeat repairs them, seconds later: the mapper then
+sees clouds without poses. The package ships a Fast DDS profile with a large shared-memory
+segment and 4 MB UDP buffers; the package's own processes use it unless the user chose a
+profile (``FASTDDS_DEFAULT_PROFILES_FILE``) or another middleware.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from convbki_core.paths import config_dir
+
+PROFILE_VARIABLE = "FASTDDS_DEFAULT_PROFILES_FILE"
+
+
+def large_data_profile() -> Path:
+    return config_dir() / "dds" / "fastdds_large_data.xml"
+
+
+def use_large_data_profile() -> str | None:
+    """Point Fast DDS at the shipped profile (before rclpy.init); returns the profile used, if any."""
+    if os.environ.get(PROFILE_VARIABLE):
+        return None
+    middleware = os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    profile = large_data_profile()
+    if not middleware.startswith("rmw_fastrtps") or not profile.is_file():
+        return None
+    os.environ[PROFILE_VARIABLE] = str(profile)
+    return str(profile)
