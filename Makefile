@@ -19,10 +19,9 @@ test: setup
 lint: setup
 	@.venv/bin/ruff check .
 
-## demo: set-up, then the end-to-end demo
+## demo: set-up, then synthetic drive -> rosbag2 -> mapper node + play_bag over DDS -> map, PNG, mIoU (out/demo)
 demo: setup
-	@echo "demo: set-up is done. The end-to-end demo (synthetic drive -> rosbag2 -> mapper node"
-	@echo "      -> /semantic_map) comes with the ROS node issue (issue 4); not available yet."
+	@scripts/venv_exec.sh $(PYTHON) -m convbki_ros.demo --out out/demo
 
 ## clean: remove colcon output, caches and out/ (keeps .venv/)
 clean:

@@ -155,7 +155,7 @@ def kernel_config_to_dict(config: KernelConfig) -> dict:
     data = {"kernel": config.kernel, "resolution": float(config.resolution),
             "filter_size": int(config.filter_size), "num_classes": int(config.num_classes)}
     if config.kernel == "single":
-        data["ell"] = float(config.ell[0])
+        data["ell"] = round(float(config.ell[0]), 6)
     elif config.kernel == "per_class":
         data["ell"] = [round(float(v), 6) for v in config.ell]
     else:
@@ -169,8 +169,11 @@ def save_kernel_file(config: KernelConfig, path: str | Path) -> None:
     from convbki_core.fileio import atomic_write_bytes
 
     config.validate()
-    text = "# ConvBKI kernel file (convbki_ros). Lengths in metres.\n"
-    text += yaml.safe_dump(kernel_config_to_dict(config), sort_keys=False, default_flow_style=None, width=100)
+    lines = ["# ConvBKI kernel file (convbki_ros). Lengths in metres."]
+    for key, value in kernel_config_to_dict(config).items():
+        shown = "[" + ", ".join(f"{v:g}" for v in value) + "]" if isinstance(value, list) else f"{value}"
+        lines.append(f"{key}: {shown}")
+    text = "\n".join(lines) + "\n"
     atomic_write_bytes(Path(path), text.encode())
 
 

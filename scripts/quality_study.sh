@@ -2,7 +2,7 @@
 # Map-quality study (issue 3): train the three kernel variants on one synthetic drive and
 # score every kernel on another drive with its own seed and layout.
 #
-#   scripts/quality_study.sh [OUT=out/quality] [FRAMES=100]
+#   scripts/quality_study.sh [OUT=out/quality] [FRAMES=100] [TRAIN_FRAMES=300] [EPOCHS=2]
 #
 # Writes OUT/train (drive, seed 1), OUT/test (drive, seed 2), OUT/kernels/*.yaml (+ PNGs)
 # and OUT/report.json with the per-class table printed at the end.
@@ -10,15 +10,17 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 OUT="${1:-out/quality}"
 FRAMES="${2:-100}"
+TRAIN_FRAMES="${3:-300}"
+EPOCHS="${4:-2}"
 PY=.venv/bin/python
 mkdir -p "$OUT/kernels"
 
-[[ -d "$OUT/train/sequences/00" ]] || $PY -m convbki_core.synthetic --out "$OUT/train" --sequence 00 --frames "$FRAMES" --seed 1
+[[ -d "$OUT/train/sequences/00" ]] || $PY -m convbki_core.synthetic --out "$OUT/train" --sequence 00 --frames "$TRAIN_FRAMES" --seed 1
 [[ -d "$OUT/test/sequences/08" ]] || $PY -m convbki_core.synthetic --out "$OUT/test" --sequence 08 --frames "$FRAMES" --seed 2
 
 for kind in single per_class compound; do
     [[ -f "$OUT/kernels/$kind.yaml" ]] || $PY -m convbki_core.train --dataset "$OUT/train" --sequences 00 \
-        --kernel "$kind" --out "$OUT/kernels/$kind.yaml"
+        --kernel "$kind" --epochs "$EPOCHS" --out "$OUT/kernels/$kind.yaml"
 done
 
 $PY -m convbki_core.evaluate --dataset "$OUT/test" --sequence 08 --report "$OUT/report.json" \
