@@ -5,12 +5,12 @@ import time
 
 import numpy as np
 import pytest
-from kitti_fixture import write_drive
 from ros_helpers import Probe, domain_id, start, stop
 
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
+from convbki_core.synthetic import main as synth
 from convbki_ros.kitti_to_bag import main as kitti_to_bag
 from convbki_ros.pointcloud import FLOAT32, UINT32, decode_cloud
 
@@ -20,9 +20,10 @@ FRAMES = 5
 
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory):
-    """A short drive in SemanticKITTI layout and its bag."""
+    """A short synthetic drive (``synth``, a sparse 16-beam LiDAR to keep it quick) and its bag."""
     root = tmp_path_factory.mktemp("drive")
-    write_drive(root / "data", "08", frames=FRAMES)
+    assert synth(["--out", str(root / "data"), "--sequence", "08", "--frames", str(FRAMES), "--seed", "3",
+                  "--beams", "16", "--azimuth-steps", "360", "--noise-strength", "0.35", "--quiet"]) == 0
     assert kitti_to_bag(["--dataset", str(root / "data"), "--sequence", "08", "--out", str(root / "bag")]) == 0
     return root
 
