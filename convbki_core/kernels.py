@@ -34,6 +34,11 @@ KERNEL_KINDS = ("single", "per_class", "compound")
 # Lengths are clamped here before use: keeps d / l finite and the kernel well defined.
 MIN_ELL = 1e-4
 SUPPORT_TOLERANCE = 1e-6
+# Filter taps below this weight are zero. Near the end of its support the kernel falls off
+# as (1 - d/l)^3; a tap of 1e-9 would add evidence far below the float32 resolution of a
+# concentration (the prior is ~1e-3) yet create a map voxel with no usable class. 1e-6 of a
+# point is the smallest evidence that counts.
+MIN_TAP_WEIGHT = 1e-6
 
 
 def sparse_kernel(distance: torch.Tensor, ell: torch.Tensor) -> torch.Tensor:
@@ -260,6 +265,7 @@ class ConvBKIKernel(torch.nn.Module):
             weights = sparse_kernel(distance, self.ell.double().view(shape))
             if self.kind == "single":
                 weights = weights.expand(self.num_classes, -1, -1, -1)
+        weights = weights * (weights >= MIN_TAP_WEIGHT)  # the mask is constant: gradients pass unchanged
         return weights.unsqueeze(1).to(parameter.dtype).contiguous()
 
     def extra_repr(self) -> str:

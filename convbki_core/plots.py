@@ -76,8 +76,14 @@ def save_map_picture(voxels: VoxelSet, label_map: LabelMap, resolution: float, p
     if handles:
         figure.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), fontsize=9, frameon=False,
                       bbox_to_anchor=(0.5, -0.02))
-    image = right.imshow(variance, origin="lower", extent=extent, interpolation="nearest", cmap="viridis")
-    right.set_title("variance of the expected class")
+    from matplotlib.colors import LogNorm
+
+    # Variances span orders of magnitude (well-observed voxels ~1e-4, fringes ~0.1): log colours.
+    finite = variance[np.isfinite(variance)]
+    low = max(float(finite.min()) if finite.size else 1e-5, 1e-5)
+    image = right.imshow(variance, origin="lower", extent=extent, interpolation="nearest", cmap="viridis",
+                         norm=LogNorm(vmin=low, vmax=max(low * 10, 0.25)))
+    right.set_title("variance of the expected class (log scale)")
     figure.colorbar(image, ax=right, fraction=0.046, pad=0.02)
     for axis in (left, right):
         axis.set_xlabel("x [m]")

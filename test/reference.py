@@ -17,13 +17,18 @@ def sparse_kernel_np(distance, ell):
     return np.where(d < ell, value, 0.0)
 
 
+MIN_TAP_WEIGHT = 1e-6  # taps below one millionth of a point carry no evidence (kernels.MIN_TAP_WEIGHT)
+
+
 def kernel_weight(kind, offset_m, c, ell=None, ell_h=None, ell_z=None):
     """Kernel value for class c at metric offset (3,) between two voxel centres."""
     if kind == "compound":
         horizontal = math.hypot(offset_m[0], offset_m[1])
-        return float(sparse_kernel_np(horizontal, ell_h[c]) * sparse_kernel_np(abs(offset_m[2]), ell_z[c]))
-    length = ell[0] if kind == "single" else ell[c]
-    return float(sparse_kernel_np(np.linalg.norm(offset_m), length))
+        weight = float(sparse_kernel_np(horizontal, ell_h[c]) * sparse_kernel_np(abs(offset_m[2]), ell_z[c]))
+    else:
+        length = ell[0] if kind == "single" else ell[c]
+        weight = float(sparse_kernel_np(np.linalg.norm(offset_m), length))
+    return weight if weight >= MIN_TAP_WEIGHT else 0.0
 
 
 def brute_force_alpha(points_map, labels, num_classes, resolution, origin, dims, filter_size, prior, kind,
