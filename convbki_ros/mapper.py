@@ -534,6 +534,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, KernelFileError, OSError) as error:
         print(f"{PROG}: error: {error}", file=sys.stderr)
         return 2
+    except Exception:
+        # Ctrl-C shuts the context down from the signal handler; an executor that was just
+        # building its wait set then fails with an RCLError. That is a shutdown, not a crash.
+        if rclpy.ok():
+            raise
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the save short
         if node is not None:
