@@ -40,7 +40,7 @@ from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.fileio import atomic_write_bytes
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
-from convbki_core.voxelize import WindowGeometry, voxelize
+from convbki_core.voxelize import WindowGeometry, transform_points, voxelize
 
 PROG = "bench"
 PAPER_BOUNDS = ((-40.0, -40.0, -2.6), (40.0, 40.0, 2.6))
@@ -127,7 +127,7 @@ def dense_reference_figure(frame, repeat: int) -> float:
     """The paper's dense update as the reference code runs it: conv3d(groups=C), default layout."""
     mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=PAPER_BOUNDS, device="cpu",
                            update_path="dense")
-    points_map = frame.points.astype(np.float64) @ frame.pose[:3, :3].T + frame.pose[:3, 3]
+    points_map = transform_points(frame.points, frame.pose)
     origin = mapper.geometry.origin_for(frame.pose[:3, 3])
 
     def dense_update():

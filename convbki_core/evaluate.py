@@ -28,6 +28,7 @@ from convbki_core.kernels import load_kernel_file
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.paths import kernel_path
+from convbki_core.voxelize import transform_points
 
 PROG = "evaluate"
 DEFAULT_KERNEL = "semantic_kitti_compound"
@@ -50,7 +51,7 @@ class KernelRun:
 def map_frame_labels(mapper: ConvBKIMapper, points: np.ndarray, pose: np.ndarray,
                      input_labels: np.ndarray) -> np.ndarray:
     """The protocol's per-point labels after the frame was integrated: map label, else input label."""
-    points_map = points.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    points_map = transform_points(points, pose)
     map_labels, has_evidence = mapper.labels_at(points_map)
     return np.where(has_evidence, map_labels, input_labels)
 

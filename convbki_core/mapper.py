@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.fast_update import scatter_update
+from convbki_core.fast_update import HAVE_NUMBA, scatter_update, voxelize_scan
 from convbki_core.kernels import ConvBKIKernel, KernelConfig, load_kernel_file
 from convbki_core.layer import ConvBKILayer
 from convbki_core.statistics import dirichlet_statistics
@@ -34,6 +34,8 @@ from convbki_core.voxelize import (
     SparseVolume,
     VoxelizeStats,
     WindowGeometry,
+    check_scan,
+    transform_points,
     unravel_linear,
     voxel_centres,
     voxel_indices,
@@ -161,14 +163,14 @@ class ConvBKIMapper:
         """
         started = time.perf_counter()
         pose = check_pose(pose)
-        points = np.asarray(points)
-        if points.ndim != 2 or points.shape[1] != 3:
-            raise ValueError(f"points must have shape (N, 3), got {points.shape}")
-        with np.errstate(invalid="ignore"):  # NaN points stay NaN and are dropped by voxelize
-            points_map = points.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+        points, values = check_scan(points, values, self.num_classes)
         origin = self.geometry.origin_for(pose[:3, 3])
-        volume = voxelize(points_map, values, origin, self.geometry.dims, self.resolution,
-                          self.num_classes, self.ignore_classes)
+        if HAVE_NUMBA:
+            volume = voxelize_scan(points, values, pose, origin, self.geometry.dims, self.resolution,
+                                   self.num_classes, self.ignore_classes, self.window.slot)
+        else:
+            volume = voxelize(transform_points(points, pose), values, origin, self.geometry.dims, self.resolution,
+                              self.num_classes, self.ignore_classes)
         voxelized = time.perf_counter()
         self.window.move_to(origin)
         moved = time.perf_counter()

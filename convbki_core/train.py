@@ -30,7 +30,7 @@ from convbki_core.datasets import Frame, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
 from convbki_core.kernels import ConvBKIKernel, save_kernel_file
 from convbki_core.sparse import SparsePlan
-from convbki_core.voxelize import WindowGeometry, unravel_linear, voxel_indices, voxelize
+from convbki_core.voxelize import WindowGeometry, transform_points, unravel_linear, voxel_indices, voxelize
 
 PROG = "train"
 INITIAL_ELL = 0.5
@@ -83,7 +83,7 @@ class SampleBuilder:
         for past in range(max(0, position - self.frames_per_sample + 1), position + 1):
             frame = self._frame(dataset_number, dataset, past)
             relative = to_current @ frame.pose
-            points.append(frame.points.astype(np.float64) @ relative[:3, :3].T + relative[:3, 3])
+            points.append(transform_points(frame.points, relative))
             values.append(frame.input_values)
         origin = self.geometry.origin_for(np.zeros(3))
         dims = self.geometry.dims

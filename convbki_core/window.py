@@ -49,11 +49,13 @@ class RollingWindow:
         self.store = store
         self.alpha = np.full((self.num_classes, *self.dims.tolist()), self.prior, np.float32)
         self.mask = np.zeros(self.dims.tolist(), np.uint8)
+        # Scratch table for the compiled voxeliser (voxel -> row of F), -1 between scans.
+        self.slot = np.full(int(np.prod(self.dims)), -1, np.int32)
         self.origin: np.ndarray | None = None
 
     @property
     def nbytes(self) -> int:
-        return self.alpha.nbytes + self.mask.nbytes
+        return self.alpha.nbytes + self.mask.nbytes + self.slot.nbytes
 
     def count(self) -> int:
         """Voxels with evidence inside the window."""

@@ -34,6 +34,7 @@ from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.paths import config_dir, kernel_path
+from convbki_core.voxelize import transform_points
 
 PROG = "demo"
 COUNTERS = re.compile(r"scans in (\d+), integrated (\d+), dropped (\d+).*queue (\d+)")
@@ -61,7 +62,7 @@ def score_final_map(map_file: Path, dataset: SemanticKittiSequence) -> dict:
     input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
     map_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
     for frame in dataset:
-        points_map = frame.points.astype(np.float64) @ frame.pose[:3, :3].T + frame.pose[:3, 3]
+        points_map = transform_points(frame.points, frame.pose)
         labels, has_evidence = mapper.labels_at(points_map, within_window=False)
         input_scores.add(frame.ground_truth, frame.input_labels)
         map_scores.add(frame.ground_truth, np.where(has_evidence, labels, frame.input_labels))

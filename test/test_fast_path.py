@@ -116,3 +116,33 @@ def test_evaluate_writes_identical_labels_on_both_paths(tmp_path):
         outputs[path] = {f.name: f.read_bytes() for f in sorted(folder.iterdir())}
     assert len(outputs["fast"]) == 4
     assert outputs["fast"] == outputs["dense"]
+
+
+@given(seed=st.integers(0, 2**31 - 1), probabilities=st.booleans())
+def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities):
+    from convbki_core.fast_update import voxelize_scan
+    from convbki_core.voxelize import transform_points, voxelize
+
+    rng = np.random.default_rng(seed)
+    count = int(rng.integers(0, 400))
+    points = rng.uniform(-3, 3, (count, 3)).astype(np.float32)
+    points[rng.random(count) < 0.05] = np.nan
+    points[rng.random(count) < 0.02, 1] = np.inf
+    if probabilities:
+        values = rng.dirichlet(np.ones(NUM_CLASSES), count).astype(np.float32)
+        values[rng.random(count) < 0.03, 2] = np.nan
+    else:
+        values = rng.integers(-1, NUM_CLASSES + 2, count)  # negative and unknown labels too
+    pose = np.eye(4)
+    rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    pose[:3, :3] = rotation * np.sign(np.linalg.det(rotation))  # a proper rotation (det +1)
+    pose[:3, 3] = rng.uniform(-1, 1, 3)
+    origin, dims = np.array([-9, -8, -7]), np.array([15, 14, 12])
+    slot = np.full(int(np.prod(dims)), -1, np.int32)
+    fast = voxelize_scan(points, values, pose, origin, dims, 0.2, NUM_CLASSES, (0,), slot)
+    reference = voxelize(transform_points(points, pose), values, origin, dims, 0.2, NUM_CLASSES, (0,))
+    assert (slot == -1).all(), "the scratch table must be left clean"
+    np.testing.assert_array_equal(fast.linear, reference.linear)
+    np.testing.assert_array_equal(fast.point_linear, reference.point_linear)
+    np.testing.assert_allclose(fast.features, reference.features, rtol=1e-6, atol=1e-6)
+    assert fast.stats == reference.stats
