@@ -25,6 +25,7 @@ from convbki_core.paths import kernel_path
 from convbki_ros.dds import use_large_data_profile
 from convbki_ros.pointcloud import CloudError, decode_cloud, encode_cloud, encode_map_cloud, variance_cloud_fields
 from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus
+from convbki_ros.ros_args import strip_ros_args
 from convbki_ros.transforms import odometry_to_pose, stamp_to_ns
 
 PROG = "mapper"
@@ -60,20 +61,6 @@ PARAMETERS: tuple[tuple[str, object, str], ...] = (
      "seconds"),
     ("stats_period", 10.0, "period of the counters line in the log (scans in, integrated, dropped); seconds"),
 )
-
-
-def strip_ros_args(argv: Sequence[str]) -> list[str]:
-    """Remove ROS arguments (``--ros-args ... [--]``) from ``argv``, as rclpy does."""
-    out: list[str] = []
-    in_ros = False
-    for arg in argv:
-        if arg == "--ros-args":
-            in_ros = True
-        elif in_ros and arg == "--":
-            in_ros = False
-        elif not in_ros:
-            out.append(arg)
-    return out
 
 
 def _epilog() -> str:

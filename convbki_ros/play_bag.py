@@ -28,25 +28,12 @@ import numpy as np
 
 from convbki_core.cli import UserError, run
 from convbki_ros.dds import use_large_data_profile
+from convbki_ros.ros_args import strip_ros_args
 
 PROG = "play_bag"
 NODE_NAME = "play_bag"
 CLOCK_TOPIC = "/clock"
 DEPTH = 100
-
-
-def strip_ros_args(argv: Sequence[str]) -> list[str]:
-    """Remove ROS arguments (``--ros-args ... [--]``) from ``argv``, as rclpy does."""
-    out: list[str] = []
-    in_ros = False
-    for arg in argv:
-        if arg == "--ros-args":
-            in_ros = True
-        elif in_ros and arg == "--":
-            in_ros = False
-        elif not in_ros:
-            out.append(arg)
-    return out
 
 
 def rate_arg(text: str) -> float:
