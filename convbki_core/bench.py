@@ -82,12 +82,8 @@ def soft_probabilities(labels: np.ndarray, num_classes: int, rng: np.random.Gene
 
 
 def map_memory_bytes(mapper: ConvBKIMapper) -> tuple[int, int]:
-    """(bytes of the global store incl. per-chunk overhead, bytes of the resident window)."""
-    store = mapper.store
-    chunk_overhead = 0
-    for table in (store._active, store._archive):
-        chunk_overhead += sys.getsizeof(table) + len(table) * (200 + 3 * 28 + 2 * 112)  # key tuple, chunk, arrays
-    return store.nbytes + chunk_overhead, mapper.window.nbytes
+    """(bytes of the global store incl. its bookkeeping, bytes of the resident window)."""
+    return mapper.store.resident_bytes, mapper.window.nbytes
 
 
 def drive_figures(dataset: SemanticKittiSequence, scans: int, repeat: int) -> tuple[dict, ConvBKIMapper, list]:

@@ -15,6 +15,7 @@ looked up) and come back to the active table when the sensor returns.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -75,6 +76,14 @@ class VoxelStore:
     def nbytes(self) -> int:
         """Bytes held by voxel arrays (keys and concentrations), excluding Python overhead."""
         return sum(c.offsets.nbytes + c.alpha.nbytes for c in self._chunks())
+
+    @property
+    def resident_bytes(self) -> int:
+        """``nbytes`` plus the Python bookkeeping of the chunk tables (estimated per chunk:
+        its key tuple, the chunk object and the two array headers)."""
+        per_chunk = 200 + 3 * 28 + 2 * 112
+        tables = sys.getsizeof(self._active) + sys.getsizeof(self._archive)
+        return self.nbytes + tables + per_chunk * (len(self._active) + len(self._archive))
 
     def _chunks(self) -> Iterator[_Chunk]:
         yield from self._active.values()
