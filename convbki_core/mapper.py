@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.fast_update import HAVE_NUMBA, scatter_update, voxelize_scan
+from convbki_core.fast_update import HAVE_NUMBA, FilterPlan, scatter_update, voxelize_scan
 from convbki_core.kernels import ConvBKIKernel, KernelConfig, load_kernel_file
 from convbki_core.layer import ConvBKILayer
 from convbki_core.statistics import dirichlet_statistics
@@ -133,6 +133,8 @@ class ConvBKIMapper:
             update_path = "fast" if self.device.type == "cpu" else "dense"
         self.update_path = update_path
         self.scans_integrated = 0
+        self._plan: FilterPlan | None = None
+        self._plan_key: tuple | None = None
 
     # -- properties ------------------------------------------------------------------------
     @property
@@ -183,14 +185,20 @@ class ConvBKIMapper:
                             "update": 1e3 * (finished - moved), "total": 1e3 * (finished - started)}
         return result
 
-    def _filters(self) -> np.ndarray:
+    def _filter_plan(self) -> FilterPlan:
+        """The kernel's filters prepared for the scatter, rebuilt only when its lengths change."""
         with torch.no_grad():
-            return self.kernel.filters().detach().cpu().numpy()[:, 0]
+            key = (self.kernel.kind, self.kernel.resolution, self.kernel.filter_size,
+                   *(parameter.detach().cpu().numpy().tobytes() for parameter in self.kernel.parameters()))
+            if self._plan_key != key:
+                self._plan = FilterPlan.from_filters(self.kernel.filters().detach().cpu().numpy()[:, 0])
+                self._plan_key = key
+        return self._plan
 
     def _update_fast(self, volume: SparseVolume) -> int:
         """Sparse compiled scatter into the resident window; returns the count of new voxels."""
         occupied = unravel_linear(volume.linear, volume.dims) + volume.origin
-        return scatter_update(occupied, volume.features, self._filters(), volume.origin, volume.dims,
+        return scatter_update(occupied, volume.features, self._filter_plan(), volume.origin, volume.dims,
                               self.window.alpha, self.window.mask)
 
     def _update_dense(self, volume: SparseVolume) -> int:

@@ -146,3 +146,30 @@ def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities):
     np.testing.assert_array_equal(fast.point_linear, reference.point_linear)
     np.testing.assert_allclose(fast.features, reference.features, rtol=1e-6, atol=1e-6)
     assert fast.stats == reference.stats
+
+
+@given(seed=st.integers(0, 2**31 - 1), filter_size=st.sampled_from([1, 3, 5]), probabilities=st.booleans())
+def test_compiled_scatter_handles_any_zero_pattern_in_the_filters(seed, filter_size, probabilities):
+    """Filters with holes (not a ball around the centre) give the numpy scatter's result exactly."""
+    from convbki_core import fast_update
+
+    rng = np.random.default_rng(seed)
+    filters = rng.uniform(0.0, 1.0, (NUM_CLASSES, filter_size, filter_size, filter_size)).astype(np.float32)
+    filters[rng.random(filters.shape) < 0.5] = 0.0  # zero taps anywhere, also inside a row
+    dims = rng.integers(2, 7, 3)
+    origin = rng.integers(-20, 20, 3)
+    occupied = np.unique(origin + rng.integers(-2, dims + 2, (40, 3)), axis=0)
+    if probabilities:
+        features = rng.uniform(0.0, 1.0, (len(occupied), NUM_CLASSES)).astype(np.float32)
+        features[rng.random(features.shape) < 0.3] = 0.0
+    else:
+        features = np.eye(NUM_CLASSES, dtype=np.float32)[rng.integers(0, NUM_CLASSES, len(occupied))]
+    start = rng.uniform(0.5, 2.0, (NUM_CLASSES, *dims)).astype(np.float32)
+    compiled_alpha, numpy_alpha = start.copy(), start.copy()
+    compiled_mask = np.zeros(dims, np.uint8)
+    numpy_mask = compiled_mask.copy()
+    created = fast_update.scatter_update(occupied, features, filters, origin, dims, compiled_alpha, compiled_mask)
+    expected = fast_update._scatter_numpy(occupied, features, filters, origin, dims, numpy_alpha, numpy_mask)
+    assert created == expected
+    np.testing.assert_array_equal(compiled_mask, numpy_mask)
+    np.testing.assert_allclose(compiled_alpha, numpy_alpha, rtol=1e-6)
