@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus
+from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus, pose_problem
 from convbki_ros.transforms import pose_from_translation_quaternion
 
 
@@ -44,3 +44,40 @@ def test_interpolated_rotation_stays_a_rotation(fraction, yaw0, yaw1):
     rotation = pose[:3, :3]
     np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-9)
     assert abs(np.linalg.det(rotation) - 1.0) < 1e-9
+
+
+def test_pose_problem_names_non_finite_and_non_unit_poses():
+    identity = np.array([0.0, 0.0, 0.0, 1.0])
+    assert pose_problem([1.0, 2.0, 3.0], identity) is None
+    assert pose_problem([0.0, 0.0, 0.0], identity * (1 + 1e-6)) is None  # float round-off is fine
+    assert "position (nan, 0, 0) is not finite" in pose_problem([np.nan, 0.0, 0.0], identity)
+    assert "is not finite" in pose_problem([0.0, 0.0, 0.0], [0.0, np.inf, 0.0, 1.0])
+    assert "has norm 2, not 1" in pose_problem([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 2.0])
+    assert "has norm 0, not 1" in pose_problem([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0])
+
+
+def test_no_interpolation_across_a_jump():
+    buffer = OdometryBuffer(tolerance_ns=0, max_jump=5.0)
+    assert buffer.add(0, yaw_pose(0.0, 0.0)) is None
+    assert buffer.add(100, yaw_pose(0.0, 1.0)) is None  # 2.2 m: an ordinary step
+    jump = buffer.add(200, yaw_pose(0.0, 21.0))  # (1, 2) -> (21, 42): 44.7 m
+    assert jump is not None and abs(jump - np.hypot(20.0, 40.0)) < 1e-9
+    assert buffer.lookup(50).status is PoseStatus.FOUND
+    assert buffer.lookup(150).status is PoseStatus.JUMP
+    for exact in (100, 200):  # the poses themselves stay usable
+        assert buffer.lookup(exact).status is PoseStatus.FOUND
+    # A pose inserted inside the gap moves the jump to whichever side is still far.
+    assert buffer.add(190, yaw_pose(0.0, 20.5)) is not None
+    assert buffer.lookup(150).status is PoseStatus.JUMP
+    assert buffer.lookup(195).status is PoseStatus.FOUND
+    # Dropping the poses before the jump leaves an ordinary buffer that starts after it.
+    buffer.drop_before(190)
+    assert len(buffer) == 2 and buffer.lookup(150).status is PoseStatus.TOO_OLD
+    assert buffer.lookup(195).status is PoseStatus.FOUND
+
+
+def test_max_jump_zero_never_reports_a_jump():
+    buffer = OdometryBuffer(tolerance_ns=0)
+    buffer.add(0, yaw_pose(0.0, 0.0))
+    assert buffer.add(100, yaw_pose(0.0, 1000.0)) is None
+    assert buffer.lookup(50).status is PoseStatus.FOUND
