@@ -289,3 +289,82 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
     stats.used = stats.points_in - stats.non_finite - stats.unknown_label - stats.ignored_class - stats.outside_window
     return SparseVolume(np.asarray(origin, np.int64), np.asarray(dims, np.int64), occupied[order], features[order],
                         point_linear, stats)
+
+
+if HAVE_NUMBA:
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _gather_window_numba(alpha, mask, origin, dims):  # pragma: no cover - compiled; tested via items()
+        size_x, size_y, size_z = mask.shape
+        num_classes = alpha.shape[0]
+        counts = np.zeros(size_x + 1, np.int64)
+        for x in prange(size_x):
+            found = 0
+            for y in range(size_y):
+                for z in range(size_z):
+                    if mask[x, y, z] != 0:
+                        found += 1
+            counts[x + 1] = found
+        starts = np.cumsum(counts)
+        indices = np.empty((starts[-1], 3), np.int64)
+        values = np.empty((starts[-1], num_classes), np.float32)
+        for x in prange(size_x):
+            row = starts[x]
+            global_x = origin[0] + (x - origin[0]) % dims[0]
+            for y in range(size_y):
+                global_y = origin[1] + (y - origin[1]) % dims[1]
+                for z in range(size_z):
+                    if mask[x, y, z] != 0:
+                        indices[row, 0] = global_x
+                        indices[row, 1] = global_y
+                        indices[row, 2] = origin[2] + (z - origin[2]) % dims[2]
+                        for c in range(num_classes):
+                            values[row, c] = alpha[c, x, y, z]
+                        row += 1
+        return indices, values
+
+
+def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray):
+    """Voxels of the torus window whose mask is set: (global indices (n, 3), alpha (n, C)), torus order.
+
+    One compiled pass instead of ``alpha[:, argwhere(mask)]``, which gathers each of the C
+    class planes separately (about 10x slower for a million voxels); the node does this
+    for every map it publishes.
+    """
+    origin = np.ascontiguousarray(origin, np.int64)
+    dims = np.ascontiguousarray(dims, np.int64)
+    if HAVE_NUMBA:
+        return _gather_window_numba(alpha, mask, origin, dims)
+    physical = np.argwhere(mask)
+    values = alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
+    # Unwrap the torus: the global index is the one in [origin, origin + dims) with this remainder.
+    return origin + (physical - origin) % dims, np.ascontiguousarray(values)
+
+
+_warmed_up = False
+
+
+def warm_up() -> None:
+    """Load (or compile) the compiled kernels now, on a toy problem, once per process.
+
+    The first call of a numba function loads its machine code from the cache and starts the
+    thread pool: about 1.5 s here. A mapping node pays that at start-up instead of on its
+    first scan, when the 10 Hz clouds are already queueing.
+    """
+    global _warmed_up
+    if _warmed_up or not HAVE_NUMBA:
+        return
+    dims = np.array([4, 4, 4], np.int64)
+    origin = np.zeros(3, np.int64)
+    slot = np.full(int(np.prod(dims)), -1, np.int32)
+    points = np.array([[0.1, 0.1, 0.1], [0.5, 0.3, 0.1]])
+    alpha = np.ones((2, *dims.tolist()), np.float32)
+    mask = np.zeros(dims.tolist(), np.uint8)
+    filters = np.ones((2, 3, 3, 3), np.float32)
+    for values in (np.array([1, 1]), np.full((2, 2), 0.5, np.float32)):
+        for dtype in (np.float32, np.float64):
+            volume = voxelize_scan(points.astype(dtype), values, np.eye(4), origin, dims, 0.2, 2, (0,), slot)
+        occupied = np.stack(np.unravel_index(volume.linear, dims.tolist()), axis=1)
+        scatter_update(occupied, volume.features, filters, origin, dims, alpha, mask)
+    gather_window(alpha, mask, origin, dims)
+    _warmed_up = True

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.fast_update import HAVE_NUMBA, FilterPlan, scatter_update, voxelize_scan
+from convbki_core.fast_update import HAVE_NUMBA, FilterPlan, scatter_update, voxelize_scan, warm_up
 from convbki_core.kernels import ConvBKIKernel, KernelConfig, load_kernel_file
 from convbki_core.layer import ConvBKILayer
 from convbki_core.statistics import dirichlet_statistics
@@ -132,6 +132,8 @@ class ConvBKIMapper:
         if update_path == "auto":
             update_path = "fast" if self.device.type == "cpu" else "dense"
         self.update_path = update_path
+        if update_path == "fast":
+            warm_up()  # compiled code loads now, not during the first scan
         self.scans_integrated = 0
         self._plan: FilterPlan | None = None
         self._plan_key: tuple | None = None

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from convbki_core.fast_update import gather_window
 from convbki_core.store import VoxelStore
 from convbki_core.voxelize import unravel_linear
 
@@ -131,7 +132,4 @@ class RollingWindow:
         """Voxels with evidence in the window: (global indices (n, 3), alpha (n, C)), in torus order."""
         if self.origin is None:
             return np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32)
-        physical = np.argwhere(self.mask)
-        alpha = self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
-        # Unwrap the torus: the global index is the one in [origin, origin + dims) with this remainder.
-        return self.origin + (physical - self.origin) % self.dims, alpha
+        return gather_window(self.alpha, self.mask, self.origin, self.dims)

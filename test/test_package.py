@@ -38,6 +38,7 @@ EXECUTABLES: dict[str, tuple[str, tuple[str, ...]]] = {
         "--lr")),
     "synth": ("convbki_core.synthetic", ("--out", "--sequence", "--frames", "--seed")),
     "bench": ("convbki_core.bench", ("--config", "--repeat", "--json")),
+    "realtime_check": ("convbki_ros.realtime_check", ("--frames", "--rate", "--publish-period", "--dataset")),
 }
 
 # INTERFACE.md section 4: parameters of the mapper node, with the paper's defaults.
@@ -57,6 +58,7 @@ VALID_ARGS = {
     "train": ["--dataset", "ds", "--sequences", "0", "--out", "k.yaml"],
     "synth": ["--out", "ds"],
     "bench": ["--repeat", "1"],
+    "realtime_check": ["--frames", "10"],
 }
 
 # Top-level entries of the repo that are not part of the package source.
