@@ -4,6 +4,19 @@ Every file the project writes goes through here: a temporary file in the destina
 folder, flushed and fsync'ed, then renamed over the destination (atomic on POSIX), and
 finally the folder itself is fsync'ed so the rename survives a power cut. A crash at any
 moment leaves either the old file or the new one, never a mix.
+
+Temporary files and what happens to them when a writer is killed (``kill -9``, power cut):
+
+* they are named ``.NAME.PID.RANDOM.tmp`` next to ``NAME``: hidden, obviously temporary,
+  and carrying the id of the process that writes them;
+* a writer that fails with an exception removes its own temporary file;
+* one that is killed cannot, so every save of ``NAME`` first removes the temporary files
+  of ``NAME`` whose writer process no longer exists. Stale files therefore never pile up:
+  there is at most one per killed writer until the next save of the same file. Files of a
+  live process (a concurrent save from another process or thread) are left alone.
+
+Caveat: liveness is judged by process id on this machine, so on a folder shared between
+machines (NFS) another machine's temporary files are treated as live and kept.
 """
 
 from __future__ import annotations
@@ -15,6 +28,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO
 
+TEMP_SUFFIX = ".tmp"
+
+
+def temp_prefix(path: str | Path) -> str:
+    """The name prefix of ``path``'s temporary files: ``.NAME.`` (the process id follows)."""
+    return f".{Path(path).name}."
+
 
 @contextmanager
 def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
@@ -24,7 +44,9 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
-    handle = tempfile.NamedTemporaryFile(mode="wb", dir=folder, prefix=f".{path.name}.", suffix=".tmp", delete=False)
+    remove_stale_temp_files(path)
+    handle = tempfile.NamedTemporaryFile(mode="wb", dir=folder, prefix=f"{temp_prefix(path)}{os.getpid()}.",
+                                         suffix=TEMP_SUFFIX, delete=False)
     temp_path = Path(handle.name)
     try:
         # Temporary files are created 0600; give the result the permissions a plain open() would.
@@ -50,6 +72,51 @@ def atomic_write_with(path: str | Path, writer: Callable[[BinaryIO], None]) -> N
     """Call ``writer(file)`` on a temporary file that atomically becomes ``path``."""
     with atomic_open(path) as handle:
         writer(handle)
+
+
+def temp_files(path: str | Path) -> list[Path]:
+    """Every temporary file of ``path`` in its folder, live or stale."""
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    prefix = temp_prefix(path)
+    try:
+        with os.scandir(folder) as entries:
+            return sorted(folder / entry.name for entry in entries
+                          if entry.name.startswith(prefix) and entry.name.endswith(TEMP_SUFFIX))
+    except OSError:
+        return []
+
+
+def remove_stale_temp_files(path: str | Path) -> int:
+    """Remove ``path``'s temporary files left by processes that no longer exist; returns how many."""
+    removed = 0
+    prefix = temp_prefix(path)
+    for candidate in temp_files(path):
+        owner = candidate.name[len(prefix):].split(".", 1)[0]
+        if not owner.isdigit() or _process_alive(int(owner)):
+            continue  # not one of ours, or its writer may still be writing it
+        try:
+            candidate.unlink()
+            removed += 1
+        except FileNotFoundError:
+            pass  # another writer cleaned it first
+        except OSError:
+            pass  # cannot remove it (read-only folder): the save itself will report that
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True  # maybe another thread of this process, mid-save
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True  # exists but belongs to another user (or cannot be asked): keep its file
+    return True
 
 
 def _final_mode(path: Path) -> int:

@@ -14,6 +14,7 @@ Saves are atomic (temp file in the same folder, fsync, rename).
 from __future__ import annotations
 
 import json
+import math
 import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -59,10 +60,21 @@ def save_map(mapper: ConvBKIMapper, path: str | Path) -> None:
 
 
 def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
-    """Read and check a map file: (metadata, voxel_index (N, 3) int64, alpha (N, C) float32)."""
+    """Read and check a map file: (metadata, voxel_index (N, 3) int64, alpha (N, C) float32).
+
+    Anything that is not a complete map file of this format (empty, truncated, corrupted,
+    another program's .npz or .npy, another format version) raises ``MapFileError`` naming
+    the file and the problem.
+    """
     path = Path(path)
     try:
+        if path.is_dir():
+            raise MapFileError(f"{path}: is a folder, not a map file")
+        if path.exists() and path.stat().st_size == 0:
+            raise MapFileError(f"{path}: empty file, not a ConvBKI map file")
         with np.load(path, allow_pickle=False) as archive:
+            if not isinstance(archive, np.lib.npyio.NpzFile):  # a bare .npy array
+                raise MapFileError(f"{path}: not a ConvBKI map file (a single NumPy array, not an .npz archive)")
             members = set(archive.files)
             missing = {"metadata", "voxel_index", "alpha"} - members
             if missing:
@@ -74,15 +86,24 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
         raise
     except FileNotFoundError:
         raise MapFileError(f"{path}: no such map file") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise MapFileError(f"{path}: not a readable ConvBKI map file ({error.__class__.__name__}: {error})") from None
+    except AttributeError:  # np.load returned something without __enter__: a bare .npy array
+        raise MapFileError(f"{path}: not a ConvBKI map file (a single NumPy array, not an .npz archive)") from None
+    except MemoryError:
+        raise MapFileError(f"{path}: corrupted map file (array sizes beyond the memory of this machine)") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError, NotImplementedError, RuntimeError,
+            json.JSONDecodeError, UnicodeDecodeError) as error:
+        # RuntimeError covers encrypted zip members and RecursionError from absurdly nested JSON.
+        detail = str(error).splitlines()[0][:200] if str(error) else ""
+        raise MapFileError(f"{path}: not a readable ConvBKI map file, truncated or corrupted "
+                           f"({error.__class__.__name__}{': ' + detail if detail else ''})") from None
     if not isinstance(metadata, dict) or metadata.get("format") != MAP_FORMAT:
         raise MapFileError(f"{path}: not a ConvBKI map file (format is {metadata.get('format')!r})"
                            if isinstance(metadata, dict) else f"{path}: not a ConvBKI map file")
     if metadata.get("version") != MAP_VERSION:
-        raise MapFileError(f"{path}: map format version {metadata.get('version')} is not supported "
+        raise MapFileError(f"{path}: map format version {metadata.get('version')!r} is not supported "
                            f"(this build reads version {MAP_VERSION})")
-    num_classes = metadata.get("num_classes")
+    _check_metadata(path, metadata)
+    num_classes = metadata["num_classes"]
     if indices.ndim != 2 or indices.shape[1] != 3 or alpha.ndim != 2 or alpha.shape != (indices.shape[0], num_classes):
         raise MapFileError(f"{path}: inconsistent arrays (voxel_index {indices.shape}, alpha {alpha.shape}, "
                            f"num_classes {num_classes})")
@@ -93,6 +114,30 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
     if len(np.unique(indices, axis=0)) != indices.shape[0]:
         raise MapFileError(f"{path}: duplicate voxel indices")
     return metadata, indices.astype(np.int64), alpha.astype(np.float32)
+
+
+def _check_metadata(path: Path, metadata: dict) -> None:
+    """The metadata fields a loader relies on have the right types (a hand-edited file may not)."""
+
+    def is_int(value) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool)
+
+    num_classes = metadata.get("num_classes")
+    if not (is_int(num_classes) and num_classes >= 1):
+        raise MapFileError(f"{path}: metadata num_classes must be a positive integer, got {num_classes!r}")
+    resolution = metadata.get("resolution")
+    try:  # float(): json integers may be too large for a float
+        usable = (isinstance(resolution, (int, float)) and not isinstance(resolution, bool)
+                  and math.isfinite(float(resolution)) and resolution > 0)
+    except OverflowError:
+        usable = False
+    if not usable:
+        raise MapFileError(f"{path}: metadata resolution must be a positive number of metres, got {resolution!r}")
+    scans = metadata.get("scans_integrated", 0)
+    if not (is_int(scans) and scans >= 0):
+        raise MapFileError(f"{path}: metadata scans_integrated must be a count, got {scans!r}")
+    if not isinstance(metadata.get("frame_id", ""), str):
+        raise MapFileError(f"{path}: metadata frame_id must be a string, got {metadata.get('frame_id')!r}")
 
 
 def load_map_into(mapper: ConvBKIMapper, path: str | Path) -> None:
