@@ -40,6 +40,12 @@ class CloudError(ValueError):
     """A PointCloud2 that cannot be decoded as asked; the message names the problem."""
 
 
+# Sanity limits: far beyond any real sensor or semantic cloud, they keep an absurd header
+# (a uint32 field filled with garbage) from reaching numpy as a multi-gigabyte dtype.
+MAX_POINT_STEP = 1 << 24
+MAX_PROBABILITY_FIELDS = 1024
+
+
 @dataclass
 class DecodedCloud:
     """The usable content of a PointCloud2, finite points only.
@@ -68,20 +74,51 @@ class DecodedCloud:
 
 def _buffer(data: Any) -> np.ndarray:
     """The message's ``data`` (bytes, bytearray, memoryview, array.array('B'), ndarray, list) as uint8."""
-    if isinstance(data, np.ndarray):
-        return data.reshape(-1).view(np.uint8) if data.dtype.itemsize == 1 else np.frombuffer(data.tobytes(), np.uint8)
     try:
-        return np.frombuffer(data, dtype=np.uint8)
-    except TypeError:
-        return np.asarray(data, dtype=np.uint8)
+        if isinstance(data, np.ndarray):
+            if data.dtype.itemsize == 1:
+                return data.reshape(-1).view(np.uint8)
+            return np.frombuffer(data.tobytes(), np.uint8)
+        try:
+            return np.frombuffer(data, dtype=np.uint8)
+        except TypeError:
+            return np.asarray(data, dtype=np.uint8).reshape(-1)
+    except (TypeError, ValueError, OverflowError) as error:
+        raise CloudError(f"data is not a byte buffer ({error.__class__.__name__})") from None
 
 
-def _field_table(msg: Any) -> dict[str, tuple[int, int, int]]:
+def _field_table(fields: list[Any]) -> dict[str, tuple[int, int, int]]:
     """name -> (offset, datatype, count), first occurrence of a name wins."""
     table: dict[str, tuple[int, int, int]] = {}
-    for field in msg.fields:
-        table.setdefault(str(field.name), (int(field.offset), int(field.datatype), int(field.count)))
+    for number, field in enumerate(fields):
+        try:
+            spec = (int(field.offset), int(field.datatype), int(field.count))
+        except (TypeError, ValueError, AttributeError):
+            raise CloudError(f"field {number} lacks an integer offset, datatype or count") from None
+        table.setdefault(str(field.name), spec)
     return table
+
+
+def _field_list(table: Mapping[str, Any], limit: int = 12) -> str:
+    """Field names for a one-line message: odd names quoted (a name may hold a newline), long lists cut."""
+    shown = [name if name.isprintable() and name and len(name) <= 32 else repr(name[:32]) for name in table]
+    return (", ".join(shown[:limit]) + (f", ... ({len(shown)} fields)" if len(shown) > limit else "")) or "none"
+
+
+def _header_integers(msg: Any) -> tuple[int, int, int, int]:
+    """(point_step, width, height, row_step) as ints, each within what numpy and ROS allow."""
+    values = []
+    for name in ("point_step", "width", "height", "row_step"):
+        try:
+            value = int(getattr(msg, name))
+        except (TypeError, ValueError, AttributeError):
+            raise CloudError(f"{name} is not an integer") from None
+        if name != "point_step" and not 0 <= value < 1 << 32:  # uint32 in the message definition
+            raise CloudError(f"{name} is {value}, outside the uint32 range")
+        values.append(value)
+    if values[0] > MAX_POINT_STEP:
+        raise CloudError(f"point_step is {values[0]} bytes, more than the {MAX_POINT_STEP} this decoder accepts")
+    return values[0], values[1], values[2], values[3]
 
 
 def _check_field(name: str, spec: tuple[int, int, int], allowed: tuple[int, ...], point_step: int) -> np.dtype:
@@ -101,11 +138,17 @@ def _check_field(name: str, spec: tuple[int, int, int], allowed: tuple[int, ...]
 
 
 def _probability_names(table: Mapping[str, Any], num_classes: int | None) -> list[str]:
-    present = sorted(int(name[5:]) for name in table if name.startswith("prob_") and name[5:].isdigit())
+    # Only canonical names count: prob_7, not prob_07 (which would alias prob_7).
+    present = sorted(int(name[5:]) for name in table
+                     if name.startswith("prob_") and name[5:].isdigit() and name == f"prob_{int(name[5:])}")
     if not present:
         return []
     count = num_classes if num_classes is not None else present[-1] + 1
-    missing = sorted(set(range(count)) - set(present))
+    if count > MAX_PROBABILITY_FIELDS:
+        raise CloudError(f"probability fields for {count} classes, more than the {MAX_PROBABILITY_FIELDS} "
+                         "this decoder accepts")
+    present_set = set(present)
+    missing = [i for i in range(count) if i not in present_set]
     extra = [i for i in present if i >= count]
     if missing or extra:
         def listed(indices: list[int]) -> str:
@@ -126,17 +169,20 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
     coordinates (or probabilities) are NaN/inf are dropped and counted. Raises
     ``CloudError`` naming the problem for a cloud that cannot be read.
     """
-    table = _field_table(msg)
-    point_step = int(msg.point_step)
-    width, height = int(msg.width), int(msg.height)
+    try:
+        fields = list(msg.fields)
+    except (TypeError, AttributeError):
+        raise CloudError("message has no field list: not a PointCloud2") from None
+    table = _field_table(fields)
+    point_step, width, height, header_row_step = _header_integers(msg)
     missing = [name for name in ("x", "y", "z") if name not in table]
     if missing:
-        raise CloudError(f"cloud has no {'/'.join(missing)} field (fields: {', '.join(table) or 'none'})")
+        raise CloudError(f"cloud has no {'/'.join(missing)} field (fields: {_field_list(table)})")
     probability_names = _probability_names(table, num_classes)
     label_spec = table.get("label")
     if require_semantics and not probability_names and label_spec is None:
         raise CloudError("cloud has neither a `label` field nor `prob_0..prob_{C-1}` fields "
-                         f"(fields: {', '.join(table)})")
+                         f"(fields: {_field_list(table)})")
     if point_step <= 0:
         raise CloudError(f"point_step is {point_step}")
 
@@ -149,13 +195,14 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
     elif label_spec is not None:
         used["label"] = _check_field("label", label_spec, LABEL_TYPES, point_step)
     if "intensity" in table and table["intensity"][1] in DATATYPE_TO_DTYPE and table["intensity"][2] == 1:
+        # Optional and informative only: a malformed intensity field is ignored, not an error.
         dtype = DATATYPE_TO_DTYPE[table["intensity"][1]]
-        if table["intensity"][0] + dtype.itemsize <= point_step:
+        if table["intensity"][0] >= 0 and table["intensity"][0] + dtype.itemsize <= point_step:
             used["intensity"] = dtype
 
     count = width * height
     row_bytes = width * point_step
-    row_step = int(msg.row_step) if height > 1 else max(int(msg.row_step), row_bytes)
+    row_step = header_row_step if height > 1 else max(header_row_step, row_bytes)
     if height > 1 and row_step < row_bytes:
         raise CloudError(f"row_step {row_step} is smaller than width * point_step = {row_bytes}")
     raw = _buffer(msg.data)
@@ -163,7 +210,7 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
     if raw.size < needed:
         raise CloudError(f"data holds {raw.size} bytes, expected at least {needed} "
                          f"(width {width} x height {height} x point_step {point_step})")
-    if height > 1 and row_step != row_bytes:  # padding at the end of each row: drop it (one copy)
+    if count and height > 1 and row_step != row_bytes:  # padding at the end of each row: drop it (one copy)
         raw = np.ascontiguousarray(raw[: row_step * height].reshape(height, row_step)[:, :row_bytes]).reshape(-1)
 
     order = ">" if bool(msg.is_bigendian) else "<"
@@ -180,12 +227,15 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
 
     probabilities = labels = raw_label_dtype = None
     if probability_names:
-        probabilities = _gather_probabilities(view, table, probability_names, used, order, point_step, raw, count)
+        with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, then dropped
+            probabilities = _gather_probabilities(view, table, probability_names, used, order, point_step, raw,
+                                                  count)
         keep &= np.isfinite(probabilities).all(axis=1)
     elif "label" in used:
         raw_label_dtype = used["label"]
         labels = view["label"].astype(np.int64)
-    intensity = view["intensity"].astype(np.float32) if "intensity" in used else None
+    with np.errstate(over="ignore", invalid="ignore"):  # a float64 beyond float32's range becomes inf, as a cast should
+        intensity = view["intensity"].astype(np.float32) if "intensity" in used else None
 
     dropped = int(count - np.count_nonzero(keep))
     if dropped:
@@ -194,10 +244,14 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
         probabilities = probabilities[keep] if probabilities is not None else None
         intensity = intensity[keep] if intensity is not None else None
     header = getattr(msg, "header", None)
+    try:
+        frame_id = str(getattr(header, "frame_id", "")) if header is not None else ""
+        stamp_ns = stamp_to_ns(header.stamp) if header is not None else 0
+    except (TypeError, ValueError, AttributeError, OverflowError):
+        raise CloudError("header has no usable stamp") from None
     return DecodedCloud(points=points, labels=labels, probabilities=probabilities, raw_label_dtype=raw_label_dtype,
                         dropped_non_finite=dropped, total_points=count, intensity=intensity,
-                        frame_id=str(getattr(header, "frame_id", "")) if header is not None else "",
-                        stamp_ns=stamp_to_ns(header.stamp) if header is not None else 0)
+                        frame_id=frame_id, stamp_ns=stamp_ns)
 
 
 def _gather_probabilities(view: np.ndarray, table: Mapping[str, tuple[int, int, int]], names: list[str],
