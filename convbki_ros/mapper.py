@@ -7,6 +7,8 @@ or ``python -m convbki_ros.mapper --ros-args ...``.
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import signal
 import sys
 import textwrap
@@ -17,6 +19,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from convbki_core.kernels import KernelFileError, load_kernel_file
 from convbki_core.labels import load_label_map
 from convbki_core.mapfile import MapFileError
@@ -24,9 +28,9 @@ from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_ros.dds import use_large_data_profile
 from convbki_ros.pointcloud import CloudError, decode_cloud, encode_cloud, encode_map_cloud, variance_cloud_fields
-from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus
+from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus, pose_problem
 from convbki_ros.ros_args import strip_ros_args
-from convbki_ros.transforms import odometry_to_pose, stamp_to_ns
+from convbki_ros.transforms import pose_from_translation_quaternion, seconds_to_ns, stamp_to_ns
 
 PROG = "mapper"
 NODE_NAME = "convbki_mapper"
@@ -60,6 +64,23 @@ PARAMETERS: tuple[tuple[str, object, str], ...] = (
     ("pose_wait_timeout", 2.0, "how long a cloud waits for odometry covering its stamp before it is dropped; "
      "seconds"),
     ("stats_period", 10.0, "period of the counters line in the log (scans in, integrated, dropped); seconds"),
+    ("max_points_per_cloud", 2_000_000,
+     "clouds with more points (width * height) are dropped on arrival with a warning, before any decoding, "
+     "so that a runaway source cannot exhaust memory; count; 0 = no limit"),
+    ("max_pose_jump", 10.0,
+     "two consecutive odometry poses further apart than this are a jump: warned, and clouds stamped between "
+     "them are dropped rather than placed half way; metres; 0.0 = no check"),
+    ("reset_on_pose_jump", False,
+     "on a pose jump, also clear the map and the odometry before the jump (a new map starts there); bool"),
+    ("stamp_backwards_tolerance", 1.0,
+     "an input (cloud or odometry) stamped more than this before the newest input stamp means time went "
+     "backwards (a restarted bag): the odometry history and the waiting clouds are dropped; seconds"),
+    ("reset_on_stamp_backwards", False,
+     "when time goes backwards, also clear the map; false keeps it (a replayed bag adds to it); bool"),
+    ("odometry_timeout", 5.0,
+     "while clouds arrive but no usable odometry has for this long, warn every this many seconds; seconds"),
+    ("refuse_bad_map_file", False,
+     "exit (code 2) when map_file exists but cannot be loaded, instead of starting with an empty map; bool"),
 )
 
 
@@ -110,6 +131,13 @@ def build_parser() -> argparse.ArgumentParser:
 READ_WRITE = {"max_variance", "publish_period", "stats_period"}  # the rest are fixed at start
 
 
+def problem_key(message: str) -> str:
+    """A throttling key for a problem described in words: the message with its numbers blanked,
+    so "data holds 10 bytes" and "data holds 12 bytes" are one problem, while a missing field and a
+    wrong datatype are two (each gets its own warning)."""
+    return re.sub(r"[-+]?\d[\d.eE+-]*", "#", message)
+
+
 class WarningThrottle:
     """One warning per problem per ``period`` seconds; counts what it held back."""
 
@@ -119,9 +147,9 @@ class WarningThrottle:
         self._last: dict[str, float] = {}
         self._held: dict[str, int] = {}
 
-    def warn(self, key: str, message: str) -> None:
+    def warn(self, key: str, message: str, period: float | None = None) -> None:
         now = time.monotonic()
-        if now - self._last.get(key, -1e9) < self.period:
+        if now - self._last.get(key, -1e9) < (self.period if period is None else period):
             self._held[key] = self._held.get(key, 0) + 1
             return
         held = self._held.pop(key, 0)
@@ -135,7 +163,7 @@ class PendingCloud:
 
     msg: object
     received: float  # time.monotonic() at reception
-    decoded: object = None
+    generation: int = 0  # the map generation it was received in; a reset makes it stale
 
 
 @dataclass
@@ -145,17 +173,21 @@ class Counters:
     scans_in: int = 0
     integrated: int = 0
     dropped: dict[str, int] = field(default_factory=dict)
+    odometry_in: int = 0
+    odometry_rejected: int = 0
     last_update_ms: float = 0.0
     last_publish_ms: float = 0.0
 
-    def drop(self, reason: str) -> None:
-        self.dropped[reason] = self.dropped.get(reason, 0) + 1
+    def drop(self, reason: str, count: int = 1) -> None:
+        if count:
+            self.dropped[reason] = self.dropped.get(reason, 0) + count
 
     def line(self, queue_length: int, voxels: int) -> str:
         dropped = sum(self.dropped.values())
         reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(self.dropped.items()))
         return (f"scans in {self.scans_in}, integrated {self.integrated}, dropped {dropped}"
-                f"{f' ({reasons})' if reasons else ''}, queue {queue_length}, map voxels {voxels}, "
+                f"{f' ({reasons})' if reasons else ''}, odometry in {self.odometry_in} "
+                f"(rejected {self.odometry_rejected}), queue {queue_length}, map voxels {voxels}, "
                 f"last update {self.last_update_ms:.0f} ms, last map publish {self.last_publish_ms:.0f} ms")
 
 
@@ -193,10 +225,18 @@ def make_node_class():
             self.map_lock = threading.Lock()
             self.map_version = 0
             self.published_version = -1
-            self.poses = OdometryBuffer()
+            self.saved_version = 0  # map_version at the last save (or load): autosave skips an unchanged map
+            self.map_generation = 0  # bumped by every reset; clouds received before it are stale
+            self._check_robustness_parameters()
+            self.poses = OdometryBuffer(max_jump=self._param("max_pose_jump"))
             self.queue: deque[PendingCloud] = deque()
             self.queue_changed = threading.Condition()
             self.stopping = False
+            self.newest_input_stamp: int | None = None  # ns, over clouds and odometry alike
+            self.started = time.monotonic()
+            self.last_cloud_received: float | None = None
+            self.last_odometry_received: float | None = None
+            self.unreadable_map_file: str | None = None  # moved aside before the first save overwrites it
             self._load_map_at_start()
 
             input_qos = self._input_qos()
@@ -219,6 +259,7 @@ def make_node_class():
             autosave = self._param("autosave_period")
             if autosave > 0:
                 self.create_timer(autosave, self._autosave, clock=steady)
+            self.create_timer(min(1.0, self._param("odometry_timeout") / 2), self._watch_odometry, clock=steady)
             self.worker = threading.Thread(target=self._work, name="convbki_update", daemon=True)
             self.worker.start()
             self.publisher_thread = threading.Thread(target=self._publish_loop, name="convbki_publish", daemon=True)
@@ -257,6 +298,13 @@ def make_node_class():
                                  filter_size=self._param("filter_size"), device=self._param("device"),
                                  frame_id=self._param("map_frame"), ignore_classes=self.label_map.ignore_classes)
 
+        def _check_robustness_parameters(self) -> None:
+            for name in ("max_points_per_cloud", "max_pose_jump", "stamp_backwards_tolerance"):
+                if self._param(name) < 0:
+                    raise ValueError(f"{name} must be >= 0, got {self._param(name)}")
+            if not self._param("odometry_timeout") > 0:
+                raise ValueError(f"odometry_timeout must be > 0, got {self._param('odometry_timeout')}")
+
         def _input_qos(self):
             kind = self._param("input_qos")
             if kind == "sensor_data":
@@ -272,29 +320,126 @@ def make_node_class():
                 return
             try:
                 self.mapper.load(path)
-                self.map_version += 1
-                self.get_logger().info(f"loaded {len(self.mapper)} voxels from {path}")
             except MapFileError as error:
-                self.get_logger().error(f"{error}; starting with an empty map")
+                if self._param("refuse_bad_map_file"):
+                    raise MapFileError(f"{error} (refuse_bad_map_file is true: not starting)") from None
+                self.unreadable_map_file = path
+                self.get_logger().error(
+                    f"{error}; starting with an EMPTY map. The file is kept: the first save moves it to "
+                    f"{path}.unreadable before writing the new map (set refuse_bad_map_file to exit instead)")
+                return
+            self.map_version += 1
+            self.saved_version = self.map_version
+            self.get_logger().info(f"loaded {len(self.mapper)} voxels from {path}")
 
         # -- inputs (executor thread: cheap, no maths) -------------------------------------
         def _on_cloud(self, msg) -> None:
             self.counters.scans_in += 1
+            self.last_cloud_received = time.monotonic()
+            stamp = stamp_to_ns(msg.header.stamp)
+            self._check_stamp(stamp, "cloud")
+            # Checks that need no decoding run here, so that a cloud that can never be used does
+            # not wait for odometry nor sit in the queue (a 5 M point cloud is 80 MB).
+            points = int(msg.width) * int(msg.height)
+            limit = int(self._param("max_points_per_cloud"))
+            if limit and points > limit:
+                self.counters.drop("too large")
+                self.warnings.warn("too large", f"dropping cloud stamped {stamp / 1e9:.3f} s: {points} points "
+                                   f"({len(msg.data) / 1e6:.0f} MB), more than max_points_per_cloud = {limit}")
+                return
+            if points == 0:
+                self.counters.drop("empty")
+                self.warnings.warn("empty", f"dropping empty cloud stamped {stamp / 1e9:.3f} s "
+                                   f"(width {msg.width} x height {msg.height})")
+                return
             with self.queue_changed:
-                limit = max(1, int(self._param("cloud_queue_size")))
-                while len(self.queue) >= limit:
+                queue_limit = max(1, int(self._param("cloud_queue_size")))
+                while len(self.queue) >= queue_limit:
                     self.queue.popleft()
                     self.counters.drop("queue full")
-                    self.warnings.warn("queue", f"update queue full ({limit} clouds waiting): dropping the oldest "
-                                       "cloud; the map update is slower than the input rate")
-                self.queue.append(PendingCloud(msg, time.monotonic()))
+                    self.warnings.warn("queue", f"update queue full ({queue_limit} clouds waiting): dropping the "
+                                       "oldest cloud; the map update is slower than the input rate")
+                self.queue.append(PendingCloud(msg, time.monotonic(), self.map_generation))
                 self.queue_changed.notify()
 
         def _on_odometry(self, msg) -> None:
-            pose = odometry_to_pose(msg)
+            self.counters.odometry_in += 1
+            stamp = stamp_to_ns(msg.header.stamp)
+            position, orientation = msg.pose.pose.position, msg.pose.pose.orientation
+            translation = [position.x, position.y, position.z]
+            quaternion = [orientation.x, orientation.y, orientation.z, orientation.w]
+            problem = pose_problem(translation, quaternion)
+            if problem:
+                self.counters.odometry_rejected += 1
+                self.warnings.warn("odometry " + problem_key(problem),
+                                   f"ignoring odometry stamped {stamp / 1e9:.3f} s: {problem}")
+                return
+            self.last_odometry_received = time.monotonic()
+            self._check_stamp(stamp, "odometry")
+            pose = pose_from_translation_quaternion(translation, quaternion)
             with self.queue_changed:
-                self.poses.add(stamp_to_ns(msg.header.stamp), pose, msg.child_frame_id)
+                previous = self.poses.latest_stamp
+                jump = self.poses.add(stamp, pose, msg.child_frame_id)
                 self.queue_changed.notify()
+            if jump is None:
+                return
+            after = f"after {previous / 1e9:.3f} s" if previous is not None and previous < stamp else "out of order"
+            if self._param("reset_on_pose_jump"):
+                with self.queue_changed:
+                    self.poses.drop_before(stamp)
+                action = "map reset (reset_on_pose_jump): a new map starts at the new pose"
+                self._reset_map()
+            else:
+                action = "map kept; clouds stamped inside the jump are dropped"
+            self.warnings.warn("jump", f"odometry jumped {jump:.2f} m at {stamp / 1e9:.3f} s ({after}; "
+                               f"max_pose_jump = {self._param('max_pose_jump')} m): {action}")
+
+        def _check_stamp(self, stamp: int, source: str) -> None:
+            """Notice time going backwards (a bag played again, a restarted source) on either input."""
+            newest = self.newest_input_stamp
+            if newest is None or stamp > newest:
+                self.newest_input_stamp = stamp
+                return
+            if newest - stamp <= seconds_to_ns(self._param("stamp_backwards_tolerance")):
+                return
+            self.newest_input_stamp = stamp
+            # The odometry kept belongs to the old timeline: a cloud of the new one must never be
+            # placed with it, and the clouds still waiting belong to the old one.
+            with self.queue_changed:
+                self.poses.clear()
+                stale = len(self.queue)
+                self.queue.clear()
+                self.counters.drop("time reset", stale)
+            reset = self._param("reset_on_stamp_backwards")
+            if reset:
+                self._reset_map()
+            self.warnings.warn("time", f"time went backwards by {(newest - stamp) / 1e9:.3f} s ({source} stamped "
+                               f"{stamp / 1e9:.3f} s after input stamped {newest / 1e9:.3f} s; a restarted bag?): "
+                               f"odometry history cleared, {stale} waiting clouds dropped, "
+                               f"{'map reset (reset_on_stamp_backwards)' if reset else 'map kept'}")
+
+        def _watch_odometry(self) -> None:
+            """Warn every odometry_timeout seconds while clouds come in and odometry does not."""
+            timeout = self._param("odometry_timeout")
+            now = time.monotonic()
+            if self.last_cloud_received is None or now - self.last_cloud_received > timeout:
+                return  # no input at all (nothing played yet, or the bag ended): nothing to say
+            since = now - (self.last_odometry_received or self.started)
+            if since < timeout:
+                return
+            what = "no usable odometry" if self.counters.odometry_in else "no odometry at all"
+            self.warnings.warn("no odometry", f"{what} on {self.resolve_topic_name('odom')} for {since:.1f} s "
+                               f"while clouds arrive on {self.resolve_topic_name('cloud_in')}: clouds cannot be "
+                               "placed (check the odom remapping, its QoS and its publisher)", period=timeout)
+
+        def _reset_map(self) -> None:
+            """Clear the map; clouds received before now are stale (their poses may be too)."""
+            with self.queue_changed:
+                self.map_generation += 1
+            with self.map_lock:
+                self.mapper.reset()
+                self.map_version += 1
+            self._request_publish()
 
         # -- the update (worker thread) ---------------------------------------------------
         def _work(self) -> None:
@@ -326,6 +471,9 @@ def make_node_class():
             timeout = self._param("pose_wait_timeout")
             now = time.monotonic()
             for position, pending in enumerate(self.queue):
+                if pending.generation != self.map_generation:
+                    del self.queue[position]
+                    return pending, None
                 lookup = self.poses.lookup(stamp_to_ns(pending.msg.header.stamp))
                 waiting = lookup.status in (PoseStatus.WAIT, PoseStatus.EMPTY)
                 if not waiting or now - pending.received >= timeout:
@@ -355,15 +503,21 @@ def make_node_class():
 
         def _integrate(self, pending: PendingCloud, lookup) -> None:
             msg = pending.msg
+            if lookup is None:
+                self.counters.drop("map reset")
+                self.warnings.warn("stale", "dropping a cloud received before the map was reset")
+                return
             if lookup.status is not PoseStatus.FOUND:
                 reason = {PoseStatus.EMPTY: "no odometry received yet",
                           PoseStatus.TOO_OLD: "the cloud is older than the odometry kept",
+                          PoseStatus.JUMP: "the odometry jumped between the poses around its stamp",
                           PoseStatus.WAIT: f"no odometry covered its stamp within "
                                            f"{self._param('pose_wait_timeout')} s"}[lookup.status]
-                self.counters.drop("no pose")
+                self.counters.drop("pose jump" if lookup.status is PoseStatus.JUMP else "no pose")
                 latest = self.poses.latest_stamp
                 latest_text = f"; latest odometry {latest / 1e9:.3f} s" if latest is not None else ""
-                self.warnings.warn("pose", f"dropping cloud stamped {stamp_to_ns(msg.header.stamp) / 1e9:.3f} s: "
+                self.warnings.warn(f"pose {lookup.status.value}",
+                                   f"dropping cloud stamped {stamp_to_ns(msg.header.stamp) / 1e9:.3f} s: "
                                    f"{reason}{latest_text}")
                 return
             if lookup.child_frame_id and msg.header.frame_id and lookup.child_frame_id != msg.header.frame_id:
@@ -375,33 +529,59 @@ def make_node_class():
                 cloud = decode_cloud(msg, self.mapper.num_classes)
             except CloudError as error:
                 self.counters.drop("bad cloud")
-                self.warnings.warn("cloud", f"dropping cloud: {error}")
+                self.warnings.warn("cloud " + problem_key(str(error)), f"dropping cloud: {error}")
                 return
+            if not len(cloud):
+                self.counters.drop("no finite points")
+                self.warnings.warn("no finite", f"dropping cloud: all {cloud.total_points} points have NaN/inf "
+                                   "coordinates (or probabilities)")
+                return
+            if cloud.dropped_non_finite:
+                self.warnings.warn("nan", f"{cloud.dropped_non_finite} of {cloud.total_points} points with NaN/inf "
+                                   "coordinates (or probabilities) dropped; the rest are integrated")
             values = cloud.probabilities
             if values is None:
-                values = cloud.labels
-                if self._param("label_space") == "raw":
-                    unknown = self.label_map.unknown_raw(values)
-                    if unknown.any():
-                        self.warnings.warn("labels", f"{int(unknown.sum())} points carry label ids unknown to the "
-                                           "SemanticKITTI label map; they are ignored")
-                    values = self.label_map.to_learning(values)
-            if cloud.dropped_non_finite:
-                self.warnings.warn("nan", f"{cloud.dropped_non_finite} points with NaN/inf coordinates dropped")
+                values = self._learning_labels(cloud.labels)
+                if values is None:
+                    self.counters.drop("unknown labels")
+                    return
             with self.map_lock:
+                if pending.generation != self.map_generation:  # a reset came while it was decoded
+                    self.counters.drop("map reset")
+                    return
                 result = self.mapper.integrate(cloud.points, values, lookup.pose)
                 self.map_version += 1
             self.counters.integrated += 1
             self.counters.last_update_ms = result.timing_ms["total"]
-            if result.stats.unknown_label:
-                self.warnings.warn("unknown", f"{result.stats.unknown_label} points with labels outside "
-                                   f"0..{self.mapper.num_classes - 1} ignored (label_space is "
-                                   f"{self._param('label_space')})")
             if self._param("publish_local") and self.local_publisher.get_subscription_count():
                 with self.map_lock:
                     local = self.mapper.local_voxels()
                 self.local_publisher.publish(encode_map_cloud(msg.header.stamp, self._param("map_frame"), local,
                                                               self.label_map.colors))
+
+        def _learning_labels(self, labels):
+            """The cloud's labels as learning ids; unknown ids are warned about and become ignored
+            class 0. None (and a warning) when no label is known: the cloud would add nothing, and
+            such a cloud usually means a wrong label_space."""
+            space = self._param("label_space")
+            if space == "raw":
+                unknown = self.label_map.unknown_raw(labels)
+            else:
+                unknown = (labels < 0) | (labels >= self.mapper.num_classes)
+            count = int(np.count_nonzero(unknown))
+            if count:
+                examples = ", ".join(str(v) for v in np.unique(labels[unknown])[:5])
+                known = f"{self.label_map.name} label map" if space == "raw" else \
+                    f"learning ids 0..{self.mapper.num_classes - 1}"
+                if count == labels.size:
+                    self.warnings.warn("all unknown", f"dropping cloud: all {count} label ids are unknown to the "
+                                       f"{known} (e.g. {examples}); is label_space ({space}) right?")
+                    return None
+                self.warnings.warn("unknown", f"{count} of {labels.size} points carry label ids unknown to the "
+                                   f"{known} (e.g. {examples}); they are ignored")
+            if space == "raw":
+                return self.label_map.to_learning(labels)
+            return np.where(unknown, 0, labels)
 
         # -- outputs ---------------------------------------------------------------------
         def _publish_map(self) -> None:
@@ -442,27 +622,30 @@ def make_node_class():
 
         # -- services --------------------------------------------------------------------
         def save_map(self) -> tuple[bool, str]:
+            """Write the map to map_file (atomically: a failed save leaves the previous file as it was)."""
             path = self._param("map_file")
             if not path:
                 return False, "map_file parameter is empty: nowhere to save"
             try:
+                if self.unreadable_map_file == path and os.path.lexists(path):
+                    os.replace(path, path + ".unreadable")
+                    self.get_logger().warning(f"moved the unreadable map file {path} to {path}.unreadable")
+                self.unreadable_map_file = None
                 with self.map_lock:
                     self.mapper.save(path)
                     count = len(self.mapper)
+                    self.saved_version = self.map_version
             except (OSError, ValueError) as error:
                 return False, f"could not save {path}: {getattr(error, 'strerror', None) or error}"
             return True, f"saved {count} voxels to {path}"
 
         def _on_save_map(self, request, response):
             response.success, response.message = self.save_map()
-            (self.get_logger().info if response.success else self.get_logger().error)(response.message)
+            self._log_outcome(response.success, response.message)
             return response
 
         def _on_reset(self, request, response):
-            with self.map_lock:
-                self.mapper.reset()
-                self.map_version += 1
-            self._request_publish()
+            self._reset_map()
             response.success, response.message = True, "map reset: 0 voxels"
             self.get_logger().info(response.message)
             return response
@@ -481,9 +664,17 @@ def make_node_class():
             return response
 
         def _autosave(self) -> None:
-            if self._param("map_file"):
+            if self._param("map_file") and self.map_version != self.saved_version:
                 ok, message = self.save_map()
-                (self.get_logger().info if ok else self.get_logger().error)(f"autosave: {message}")
+                self._log_outcome(ok, f"autosave: {message}")
+
+        def _log_outcome(self, ok: bool, message: str) -> None:
+            # Two call sites on purpose: rclpy remembers the severity of each logging call site
+            # and raises (stopping the node) when one line logs at two severities.
+            if ok:
+                self.get_logger().info(message)
+            else:
+                self.get_logger().error(message)
 
         # -- shutdown --------------------------------------------------------------------
         def stop(self) -> None:
@@ -493,9 +684,14 @@ def make_node_class():
                 self.queue_changed.notify_all()
             self.worker.join(timeout=1.5)
             self.publisher_thread.join(timeout=0.3)
-            if self._param("save_on_shutdown") and self._param("map_file") and self.map_version:
+            path = self._param("map_file")
+            if not (self._param("save_on_shutdown") and path and self.map_version):
+                return
+            if self.map_version != self.saved_version:
                 message = self.save_map()[1]
-                print(f"[{NODE_NAME}] on shutdown: {message}", file=sys.stderr)
+            else:
+                message = f"the map is unchanged since it was last saved to (or loaded from) {path}"
+            print(f"[{NODE_NAME}] on shutdown: {message}", file=sys.stderr)
 
     return MapperNode
 

@@ -2,13 +2,24 @@
 
 import itertools
 import os
+import re
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
+from convbki_ros.dds import use_large_data_profile
+
 REPO = Path(__file__).resolve().parents[1]
 _domains = itertools.count()
+
+# The test process talks to the node with the same Fast DDS profile the node uses (large
+# shared-memory segment, large socket buffers), or a big cloud crawls through 64 KB UDP
+# fragments. Fast DDS reads the profile when the process creates its first participant,
+# so it is set when this module is imported, before any test runs.
+use_large_data_profile()
 
 
 def domain_id() -> int:
@@ -77,3 +88,66 @@ class Probe:
         self.executor.shutdown()
         self.node.destroy_node()
         self.context.try_shutdown()
+
+
+class NodeLog:
+    """Reads a process's output line by line on a thread, so a test can wait for a log line
+    while the process runs (``stop`` would only give the output once it has ended)."""
+
+    def __init__(self, process: subprocess.Popen):
+        self.process = process
+        self.lines: list[str] = []
+        self._changed = threading.Condition()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            with self._changed:
+                self.lines.append(line)
+                self._changed.notify_all()
+        with self._changed:
+            self._changed.notify_all()
+
+    def mark(self) -> int:
+        """A position in the output: ``wait_for(..., since=mark)`` looks only at what comes after."""
+        with self._changed:
+            return len(self.lines)
+
+    def find(self, pattern: str, since: int = 0) -> list[re.Match]:
+        with self._changed:
+            lines = self.lines[since:]
+        return [match for match in map(re.compile(pattern).search, lines) if match]
+
+    def wait_for(self, pattern: str, since: int = 0, timeout: float = 30.0, count: int = 1) -> list[re.Match]:
+        """The first ``count`` matches of ``pattern`` after ``since``; [] on timeout or exit."""
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while True:
+                found = self.find(pattern, since)
+                if len(found) >= count:
+                    return found[:count]
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or not self._thread.is_alive():
+                    return []
+                self._changed.wait(min(remaining, 0.2))
+
+    def text(self, since: int = 0) -> str:
+        with self._changed:
+            return "".join(self.lines[since:])
+
+    def close(self, timeout: float = 10.0) -> str:
+        """Stop the process if still running (Ctrl-C, then kill); the whole output.
+
+        A clean stop lets Fast DDS remove its shared-memory segment (32 MB with the large-data
+        profile); a killed process leaves it in /dev/shm.
+        """
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+        self.process.wait(timeout=timeout)
+        self._thread.join(timeout=timeout)
+        return self.text()

@@ -1,0 +1,585 @@
+"""The mapper node under bad input, over DDS, in a separate process (issue 6, node side).
+
+Each bad message is published to a running node; the test then checks the node is alive,
+logged one warning naming the problem, counted the message as dropped (or rejected), and
+left the map as it was: the node's own counters (scans integrated, map voxels) are equal
+before and after, and no new /semantic_map was published (the node publishes only when
+the map changed; a message that reached the map would show up as a new map message).
+Every rig first integrates a good cloud, so "the map did not change" is a check that can
+fail. To keep the time down, one node takes many cases in sequence.
+"""
+
+import array
+import os
+import re
+import resource
+import signal
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ros_helpers import NodeLog, Probe, domain_id, start
+
+from convbki_core.labels import load_label_map
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.paths import kernel_path
+from convbki_ros.pointcloud import decode_cloud, encode_cloud
+from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_odometry
+
+BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]
+FRAME = "velo_link"
+SECOND = 1_000_000_000
+START = 1_000 * SECOND  # stamp of the first input (ns); not 0, so that time can go back
+TRANSLATION = np.array([1.0, 2.0, 0.5])
+QUATERNION = np.array([0.0, 0.0, np.sin(0.15), np.cos(0.15)])  # yaw 0.3 rad: not the identity
+POSE = pose_from_translation_quaternion(TRANSLATION, QUATERNION)
+COUNTERS = re.compile(r"scans in (\d+), integrated (\d+), dropped (\d+)(?: \(([^)]*)\))?, odometry in (\d+) "
+                      r"\(rejected (\d+)\), queue (\d+), map voxels (\d+)")
+WAIT = 30.0  # seconds any one thing may take on a loaded CI machine before the test gives up
+
+
+def good_points() -> tuple[np.ndarray, np.ndarray]:
+    """A small scene in the sensor frame: road (raw 40) on the ground, a building wall (50),
+    a car (10); float32 points (m) and uint32 raw labels."""
+    grid = np.stack(np.meshgrid(np.arange(-10.0, 10.0, 0.4), np.arange(-6.0, 6.0, 0.4)), -1).reshape(-1, 2)
+    ground = np.column_stack([grid, np.full(len(grid), -1.6)])
+    wall_grid = np.stack(np.meshgrid(np.arange(-6.0, 6.0, 0.3), np.arange(-1.5, 2.0, 0.3)), -1).reshape(-1, 2)
+    wall = np.column_stack([np.full(len(wall_grid), 8.0), wall_grid])
+    car = np.random.default_rng(5).uniform([3.0, -3.0, -1.5], [7.0, -1.4, -0.2], (400, 3))
+    points = np.concatenate([ground, wall, car]).astype(np.float32)
+    labels = np.concatenate([np.full(len(ground), 40), np.full(len(wall), 50), np.full(len(car), 10)])
+    return points, labels.astype(np.uint32)
+
+
+POINTS, LABELS = good_points()
+
+
+def fields(points=POINTS, labels=LABELS, **extra) -> dict:
+    return {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], "label": labels, **extra}
+
+
+def cloud(stamp: int, frame: str = FRAME, **columns):
+    return encode_cloud(stamp, frame, columns or fields())
+
+
+def big_endian_cloud(stamp: int):
+    """The good cloud with its bytes in big-endian order, as a big-endian sensor would send it."""
+    msg = cloud(stamp)
+    layout = np.dtype({"names": ["x", "y", "z", "label"], "formats": [">f4", ">f4", ">f4", ">u4"],
+                       "offsets": [f.offset for f in msg.fields], "itemsize": msg.point_step})
+    swapped = np.zeros(len(POINTS), layout)
+    for axis, name in enumerate("xyz"):
+        swapped[name] = POINTS[:, axis]
+    swapped["label"] = LABELS
+    msg.is_bigendian = True
+    msg.data = array.array("B", swapped.tobytes())
+    return msg
+
+
+def odometry(stamp: int, translation=TRANSLATION, quaternion=QUATERNION, child: str = FRAME):
+    msg = pose_to_odometry(np.eye(4), stamp, "map", child)
+    position, orientation = msg.pose.pose.position, msg.pose.pose.orientation
+    position.x, position.y, position.z = (float(v) for v in translation)
+    orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in quaternion)
+    return msg
+
+
+def offline_map(scans: int) -> ConvBKIMapper:
+    """The good cloud integrated ``scans`` times at POSE by the mapper object the node uses."""
+    label_map = load_label_map("semantic_kitti")
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
+                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes)
+    for _ in range(scans):
+        mapper.integrate(POINTS, label_map.to_learning(LABELS), POSE)
+    return mapper
+
+
+@dataclass(frozen=True)
+class Stats:
+    """One counters line of the node's log."""
+
+    scans_in: int
+    integrated: int
+    dropped: int
+    reasons: dict
+    odometry_in: int
+    odometry_rejected: int
+    voxels: int
+
+    @classmethod
+    def parse(cls, match: re.Match) -> "Stats":
+        reasons = {}
+        for item in filter(None, (match.group(4) or "").split(", ")):
+            reason, count = item.rsplit(" ", 1)
+            reasons[reason] = int(count)
+        return cls(int(match.group(1)), int(match.group(2)), int(match.group(3)), reasons, int(match.group(5)),
+                   int(match.group(6)), int(match.group(8)))
+
+
+class Rig:
+    """A running mapper node, a probe that publishes its inputs and reads its map, and its log."""
+
+    def __init__(self, folder: Path, *parameters: str):
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        self.folder = folder
+        self.map_file = folder / "maps" / "map.npz"
+        self.map_file.parent.mkdir(parents=True, exist_ok=True)
+        domain = domain_id()
+        self.process = start("convbki_ros.mapper", domain, "--ros-args", "-p", f"local_bounds:={BOUNDS}",
+                             "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "stats_period:=0.25",
+                             "-p", "pose_wait_timeout:=0.5", "-p", f"map_file:={self.map_file}", *parameters)
+        self.log = NodeLog(self.process)
+        self.probe = Probe(domain)
+        self.maps = self.probe.subscribe(PointCloud2, "/semantic_map", latched=True)
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.cloud_publisher = self.probe.node.create_publisher(PointCloud2, "cloud_in", qos)
+        self.odometry_publisher = self.probe.node.create_publisher(Odometry, "odom", qos)
+        self.stamp = START
+        connected = self.probe.spin_until(lambda: self.cloud_publisher.get_subscription_count()
+                                          and self.odometry_publisher.get_subscription_count()
+                                          and self.log.find("mapper ready"), timeout=60)
+        assert connected, self.log.text()
+
+    # -- inputs --------------------------------------------------------------------------
+    def next_stamp(self, step: float = 1.0) -> int:
+        self.stamp += round(step * SECOND)
+        return self.stamp
+
+    def publish(self, *messages) -> None:
+        for msg in messages:
+            (self.cloud_publisher if hasattr(msg, "point_step") else self.odometry_publisher).publish(msg)
+
+    def integrate_good_cloud(self, translation=TRANSLATION) -> "Stats":
+        """Odometry and the good cloud at a new stamp; waits until the node integrated it."""
+        before = self.stats()
+        stamp = self.next_stamp()
+        self.publish(odometry(stamp, translation), cloud(stamp))
+        return self.wait_stats(lambda s: s.integrated == before.integrated + 1)
+
+    # -- observations --------------------------------------------------------------------
+    def wait_log(self, pattern: str, since: int, count: int = 1) -> list[re.Match]:
+        """Spin the probe (so maps keep arriving) until ``pattern`` shows up ``count`` times."""
+        assert self.probe.spin_until(lambda: len(self.log.find(pattern, since)) >= count, WAIT), \
+            f"no {pattern!r} in the node's output:\n{self.log.text(since)}"
+        return self.log.find(pattern, since)
+
+    def stats(self) -> Stats:
+        """The node's counters as of now: the first counters line printed after this call."""
+        return Stats.parse(self.wait_log(COUNTERS.pattern, self.log.mark())[0])
+
+    def wait_stats(self, done) -> Stats:
+        found: list[Stats] = []
+
+        def check() -> bool:
+            found.append(self.stats())
+            return done(found[-1])
+
+        assert self.probe.spin_until(check, WAIT), f"counters never reached the expected state: {found[-1]}"
+        return found[-1]
+
+    def map_message(self, voxels: int):
+        """The latest /semantic_map once it holds ``voxels`` voxels."""
+        assert self.probe.spin_until(lambda: self.maps and self.maps[-1].width == voxels, WAIT), \
+            f"/semantic_map has {self.maps[-1].width if self.maps else None} voxels, expected {voxels}"
+        return self.maps[-1]
+
+    def close(self) -> str:
+        self.probe.close()
+        return self.log.close()
+
+
+class Baseline:
+    """The node's map as it stands: counters, and the /semantic_map message that shows it."""
+
+    def __init__(self, rig: Rig):
+        self.rig = rig
+        self.stats = rig.stats()
+        assert self.stats.integrated > 0 and self.stats.voxels > 0, "the map must hold something to compare"
+        self.map = bytes(rig.map_message(self.stats.voxels).data)
+        self.map_messages = len(rig.maps)
+
+    def expect_untouched(self, now: Stats) -> None:
+        assert rig_alive(self.rig)
+        assert (now.integrated, now.voxels) == (self.stats.integrated, self.stats.voxels), (self.stats, now)
+        self.rig.stats()  # another counters period (> publish_period) with the probe spinning
+        assert len(self.rig.maps) == self.map_messages, "the map was published again: it changed"
+        assert bytes(self.rig.maps[-1].data) == self.map
+
+
+def rig_alive(rig: Rig) -> bool:
+    return rig.process.poll() is None
+
+
+def expect_dropped(rig: Rig, baseline: Baseline, messages: list, warning: str, reason: str,
+                   copies: int = 2) -> None:
+    """Publish ``messages`` (odometry first, then the cloud) ``copies`` times; the node must warn
+    once (throttled), count every cloud as dropped for ``reason`` and leave the map alone."""
+    before = rig.stats()
+    mark = rig.log.mark()
+    for _ in range(copies):
+        rig.publish(*messages)
+    now = rig.wait_stats(lambda s: s.reasons.get(reason, 0) >= before.reasons.get(reason, 0) + copies)
+    assert now.reasons.get(reason, 0) == before.reasons.get(reason, 0) + copies, now
+    assert now.dropped == before.dropped + copies and now.scans_in == before.scans_in + copies, (before, now)
+    assert len(rig.wait_log(r"\[WARN\].*" + warning, mark)) == 1, rig.log.text(mark)
+    baseline.expect_untouched(now)
+
+
+# ----------------------------------------------------------------------------- node A: defaults
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    """One node with the default robustness parameters, holding one good scan."""
+    rig = Rig(tmp_path_factory.mktemp("robust"))
+    try:
+        rig.integrate_good_cloud()
+        yield rig
+    finally:
+        output = rig.close()
+        assert "Traceback" not in output, output
+
+
+def test_malformed_clouds_are_dropped_with_one_warning_each(rig):
+    baseline = Baseline(rig)
+    count = len(POINTS)
+
+    def case(make, warning: str, reason: str = "bad cloud") -> None:
+        stamp = rig.next_stamp()
+        expect_dropped(rig, baseline, [odometry(stamp), make(stamp)], warning, reason)
+
+    case(lambda t: cloud(t, **{"x": POINTS[:, 0], "y": POINTS[:, 1], "label": LABELS}),
+         r"dropping cloud: cloud has no z field \(fields: x, y, label\)")
+    case(lambda t: cloud(t, **{"x": POINTS[:, 0], "y": POINTS[:, 1], "z": POINTS[:, 2],
+                               "intensity": POINTS[:, 0]}),
+         r"cloud has neither a `label` field nor `prob_0..prob_\{C-1\}` fields")
+    case(lambda t: cloud(t, **fields(points=POINTS.astype(np.int16))),
+         r"field 'x' has unsupported datatype int16 \(expected float32, float64\)")
+    case(lambda t: cloud(t, **fields(labels=LABELS.astype(np.float32))),
+         r"field 'label' has unsupported datatype float32")
+
+    def unknown_datatype(stamp):
+        msg = cloud(stamp)
+        msg.fields[3].datatype = 42
+        return msg
+
+    case(unknown_datatype, r"field 'label' has unknown datatype 42")
+
+    def short_data(stamp):
+        msg = cloud(stamp)
+        msg.data = msg.data[:-100]
+        return msg
+
+    case(short_data, rf"data holds {16 * count - 100} bytes, expected at least {16 * count} ")
+
+    def step_too_small(stamp):  # x, y, z, label laid out in 16 bytes, point_step claims 12
+        msg = cloud(stamp)
+        msg.point_step, msg.row_step = 12, 12 * count
+        return msg
+
+    case(step_too_small, r"field 'label' \(offset 12, 4 bytes\) does not fit in point_step 12")
+
+    def all_non_finite(stamp):
+        points = POINTS.copy()
+        points[0::2, 0] = np.nan
+        points[1::2, 2] = np.inf
+        return cloud(stamp, **fields(points=points))
+
+    case(all_non_finite, rf"dropping cloud: all {count} points have NaN/inf coordinates", "no finite points")
+    case(lambda t: cloud(t, **fields(labels=np.full(count, 7777, np.uint32))),
+         rf"dropping cloud: all {count} label ids are unknown to the semantic_kitti label map \(e.g. 7777\)",
+         "unknown labels")
+    case(lambda t: cloud(t, **fields(points=POINTS[:0], labels=LABELS[:0])),
+         r"dropping empty cloud stamped [\d.]+ s \(width 0 x height 1\)", "empty")
+    case(lambda t: cloud(t, frame="camera"), r"dropping cloud in frame 'camera': odometry is for 'velo_link'",
+         "frame mismatch")
+    assert rig_alive(rig)
+
+
+def test_a_five_million_point_cloud_is_refused_without_exhausting_memory(rig):
+    baseline = Baseline(rig)
+    count = 5_000_000
+    # 16 bytes a point as the node expects them (x, y, z float32, label uint32), built in one
+    # go from numpy: 80 MB.
+    layout = np.dtype({"names": ["x", "y", "z", "label"], "formats": ["<f4", "<f4", "<f4", "<u4"],
+                       "offsets": [0, 4, 8, 12], "itemsize": 16})
+    points = np.zeros(count, layout)
+    points["x"] = np.linspace(-15.0, 15.0, count, dtype=np.float32)
+    points["z"] = -1.6
+    points["label"] = 40
+    stamp = rig.next_stamp()
+    msg = cloud(stamp)
+    msg.width, msg.row_step = count, 16 * count
+    msg.data = array.array("B", points.tobytes())
+    del points
+    expect_dropped(rig, baseline, [odometry(stamp), msg], rf"{count} points \(80 MB\), more than "
+                   r"max_points_per_cloud = 2000000", "too large", copies=1)
+    # The node read the message (DDS hands over all of it) and let it go: its peak resident
+    # memory stays far from the 80 MB x queue length it would reach by queueing such clouds.
+    peak_kib = int(re.search(r"VmHWM:\s+(\d+)", Path(f"/proc/{rig.process.pid}/status").read_text()).group(1))
+    assert peak_kib < 3 * 1024 * 1024, f"node peaked at {peak_kib / 1024:.0f} MiB"
+
+
+def test_bad_odometry_is_ignored_and_its_clouds_are_not_placed(rig):
+    baseline = Baseline(rig)
+
+    def case(warning: str, **bad) -> None:
+        # The only odometry at the cloud's stamp is the bad one: had the node used it, the
+        # cloud would be integrated; ignored, the cloud times out waiting for a pose.
+        before = rig.stats()
+        stamp = rig.next_stamp()
+        expect_dropped(rig, baseline, [odometry(stamp, **bad), cloud(stamp)], warning, "no pose", copies=1)
+        after = rig.stats()
+        assert after.odometry_rejected == before.odometry_rejected + 1, (before, after)
+
+    case(r"ignoring odometry stamped [\d.]+ s: orientation quaternion \(0, 0, nan, 1\) is not finite",
+         quaternion=[0.0, 0.0, np.nan, 1.0])
+    case(r"orientation quaternion \(0, 0, 0, 2\) has norm 2, not 1", quaternion=[0.0, 0.0, 0.0, 2.0])
+    case(r"position \(inf, 2, 0.5\) is not finite", translation=[np.inf, 2.0, 0.5])
+    assert rig_alive(rig)
+
+
+def test_a_pose_jump_is_warned_and_clouds_inside_it_are_dropped(rig):
+    baseline = Baseline(rig)
+    before = rig.stats()
+    mark = rig.log.mark()
+    rig.publish(odometry(rig.next_stamp()))
+    jumped = rig.next_stamp()
+    rig.publish(odometry(jumped, translation=TRANSLATION + [50.0, 0.0, 0.0]))
+    rig.wait_log(r"\[WARN\].*odometry jumped 50.00 m at [\d.]+ s \(after [\d.]+ s; max_pose_jump = 10.0 m\): "
+                 r"map kept; clouds stamped inside the jump are dropped", mark)
+    now = rig.stats()
+    assert now.odometry_in == before.odometry_in + 2 and now.odometry_rejected == before.odometry_rejected
+    baseline.expect_untouched(now)
+    # Half way between the two poses is 25 m from either: never a place the sensor was.
+    expect_dropped(rig, baseline, [cloud(jumped - SECOND // 2)], "the odometry jumped between the poses around "
+                   "its stamp", "pose jump")
+    # Mapping goes on at the new pose.
+    after = rig.integrate_good_cloud(translation=TRANSLATION + [50.0, 0.0, 0.0])
+    assert after.voxels > baseline.stats.voxels
+
+
+def test_time_going_backwards_keeps_the_map_and_mapping_resumes(rig):
+    baseline = Baseline(rig)
+    before = rig.stats()
+    mark = rig.log.mark()
+    rig.stamp -= 500 * SECOND  # the bag starts again
+    rig.publish(odometry(rig.next_stamp()))
+    rig.wait_log(r"\[WARN\].*time went backwards by 49\d\.\d+ s \(odometry stamped [\d.]+ s after input stamped "
+                 r"[\d.]+ s; a restarted bag\?\): odometry history cleared, 0 waiting clouds dropped, map kept", mark)
+    now = rig.stats()
+    assert now.odometry_in == before.odometry_in + 1
+    baseline.expect_untouched(now)
+    after = rig.integrate_good_cloud()
+    assert after.integrated == before.integrated + 1
+
+
+def test_clouds_with_some_bad_points_or_big_endian_bytes_map_like_their_good_points(tmp_path_factory):
+    """NaN/inf points and unknown label ids are warned about and left out; a big-endian cloud
+    is read as such. The map equals the offline mapper's for the good points alone."""
+    rig = Rig(tmp_path_factory.mktemp("partial"))
+    try:
+        rig.integrate_good_cloud()
+        count = len(POINTS)
+        nan_points = np.concatenate([POINTS, np.full((60, 3), np.nan, np.float32), np.full((40, 3), -np.inf,
+                                                                                         np.float32)])
+        nan_labels = np.concatenate([LABELS, np.full(100, 40, np.uint32)])
+        unknown_points = np.concatenate([POINTS, POINTS[:50]])
+        unknown_labels = np.concatenate([LABELS, np.full(50, 7777, np.uint32)])
+        expectations = [
+            (cloud(0, **fields(points=nan_points, labels=nan_labels)),
+             rf"100 of {count + 100} points with NaN/inf coordinates \(or probabilities\) dropped"),
+            (cloud(0, **fields(points=unknown_points, labels=unknown_labels)),
+             rf"50 of {count + 50} points carry label ids unknown to the semantic_kitti label map \(e.g. 7777\)"),
+            (big_endian_cloud(0), None),
+        ]
+        for msg, warning in expectations:
+            before = rig.stats()
+            mark = rig.log.mark()
+            stamp = rig.next_stamp()
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, SECOND)
+            rig.publish(odometry(stamp), msg)
+            rig.wait_stats(lambda s, before=before: s.integrated == before.integrated + 1)
+            if warning:
+                rig.wait_log(r"\[WARN\].*" + warning, mark)
+            else:
+                assert "[WARN]" not in rig.log.text(mark), rig.log.text(mark)
+        expected = offline_map(4).voxels()
+        got = decode_cloud(rig.map_message(len(expected.centres)), 20)
+        order_got, order_expected = np.lexsort(got.points.T), np.lexsort(expected.centres.T)
+        np.testing.assert_array_equal(got.points[order_got], expected.centres[order_expected])
+        np.testing.assert_array_equal(got.labels[order_got], expected.label[order_expected])
+    finally:
+        output = rig.close()
+    assert "Traceback" not in output, output
+
+
+# ----------------------------------------------------------------------------- saving
+
+
+def test_a_save_that_fails_answers_why_keeps_the_old_file_and_mapping_goes_on(rig):
+    """A full disk, simulated with the node's file-size limit (RLIMIT_FSIZE, which binds root
+    too): the write fails part way, like ENOSPC. The service says why; the file saved before is
+    byte for byte the same; no temporary file is left; the node keeps mapping."""
+    from std_srvs.srv import Trigger
+
+    saved = rig.probe.call(Trigger, "/convbki_mapper/save_map")
+    assert saved.success, saved.message
+    before = rig.map_file.read_bytes()
+    rig.integrate_good_cloud()
+    _, hard = resource.prlimit(rig.process.pid, resource.RLIMIT_FSIZE)
+    resource.prlimit(rig.process.pid, resource.RLIMIT_FSIZE, (len(before) // 2, hard))
+    try:
+        failed = rig.probe.call(Trigger, "/convbki_mapper/save_map")
+    finally:
+        resource.prlimit(rig.process.pid, resource.RLIMIT_FSIZE, (hard, hard))
+    assert not failed.success
+    assert failed.message == f"could not save {rig.map_file}: File too large", failed.message
+    assert rig.map_file.read_bytes() == before
+    assert sorted(p.name for p in rig.map_file.parent.iterdir()) == ["map.npz"]
+    stats = rig.integrate_good_cloud()
+    saved = rig.probe.call(Trigger, "/convbki_mapper/save_map")
+    assert saved.success and saved.message == f"saved {stats.voxels} voxels to {rig.map_file}", saved.message
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_a_save_into_a_read_only_folder_answers_why(rig):
+    from std_srvs.srv import Trigger
+
+    saved = rig.probe.call(Trigger, "/convbki_mapper/save_map")
+    assert saved.success, saved.message
+    before = rig.map_file.read_bytes()
+    rig.integrate_good_cloud()
+    rig.map_file.parent.chmod(0o555)
+    try:
+        failed = rig.probe.call(Trigger, "/convbki_mapper/save_map")
+    finally:
+        rig.map_file.parent.chmod(0o755)
+    assert not failed.success and failed.message == f"could not save {rig.map_file}: Permission denied"
+    assert rig.map_file.read_bytes() == before
+    assert rig.integrate_good_cloud().integrated > 0
+
+
+# ----------------------------------------------------------------------------- node B: resets
+
+
+def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp_path):
+    rig = Rig(tmp_path, "-p", "reset_on_pose_jump:=true", "-p", "reset_on_stamp_backwards:=true",
+              "-p", "odometry_timeout:=1.0", "-p", "autosave_period:=1.0")
+    try:
+        # Clouds and no odometry at all: a warning every odometry_timeout, and nothing mapped.
+        mark = rig.log.mark()
+        for _ in range(3):
+            rig.publish(cloud(rig.next_stamp(0.1)))
+        warning = r"\[WARN\].*no odometry at all on /odom for [\d.]+ s while clouds arrive on /cloud_in"
+        rig.wait_log(warning, mark)
+        for _ in range(int(WAIT / 0.2)):  # clouds keep coming until the warning came back
+            if len(rig.log.find(warning, mark)) >= 2:
+                break
+            rig.publish(cloud(rig.next_stamp(0.1)))
+            rig.probe.spin_until(lambda: False, 0.2)
+        assert len(rig.log.find(warning, mark)) == 2, rig.log.text(mark)
+        stats = rig.wait_stats(lambda s: s.dropped == s.scans_in)
+        assert stats.integrated == 0 and stats.voxels == 0 and stats.reasons.get("no pose", 0) > 0, stats
+
+        # Autosave writes the map when it has changed.
+        mark = rig.log.mark()
+        stats = rig.integrate_good_cloud()
+        autosave = rig.wait_log(r"autosave: saved (\d+) voxels", mark)[0]
+        assert int(autosave.group(1)) == stats.voxels == len(offline_map(1))
+        reloaded = offline_map(0)
+        reloaded.load(rig.map_file)
+        assert len(reloaded) == stats.voxels
+
+        # A pose jump resets the map; mapping resumes at the new pose.
+        mark = rig.log.mark()
+        far = TRANSLATION + [0.0, 80.0, 0.0]
+        rig.publish(odometry(rig.next_stamp(), translation=far))
+        rig.wait_log(r"\[WARN\].*odometry jumped 80.00 m .*map reset \(reset_on_pose_jump\)", mark)
+        assert rig.wait_stats(lambda s: s.voxels == 0).integrated == stats.integrated
+        rig.map_message(0)
+        assert rig.integrate_good_cloud(translation=far).voxels > 0
+
+        # Time going backwards resets the map too.
+        mark = rig.log.mark()
+        rig.stamp -= 100 * SECOND
+        rig.publish(odometry(rig.next_stamp()))
+        rig.wait_log(r"\[WARN\].*time went backwards by 9\d\.\d+ s .*map reset \(reset_on_stamp_backwards\)", mark)
+        rig.wait_stats(lambda s: s.voxels == 0)
+        rig.map_message(0)
+        final = rig.integrate_good_cloud()
+        rig.integrate_good_cloud()
+        assert final.voxels == stats.voxels
+
+        # SIGINT: the map on disk is the last map (saved now, or by autosave if nothing changed since).
+        rig.process.send_signal(signal.SIGINT)
+        assert rig.process.wait(timeout=WAIT) == 0
+    finally:
+        output = rig.close()
+    assert re.search(rf"on shutdown: (saved {final.voxels} voxels to {re.escape(str(rig.map_file))}|the map is "
+                     "unchanged since it was last saved)", output), output
+    assert "Traceback" not in output, output
+    expect_file_holds(rig.map_file, offline_map(2))
+
+
+def expect_file_holds(path: Path, expected: ConvBKIMapper) -> None:
+    reloaded = offline_map(0)
+    reloaded.load(path)
+    indices, alpha = reloaded.items()
+    want_indices, want_alpha = expected.items()
+    order, want_order = np.lexsort(indices.T), np.lexsort(want_indices.T)
+    np.testing.assert_array_equal(indices[order], want_indices[want_order])
+    np.testing.assert_allclose(alpha[order], want_alpha[want_order], rtol=1e-6)
+
+
+# ----------------------------------------------------------------------------- node C, D: bad map files
+
+
+def test_an_unreadable_map_file_gives_an_empty_map_or_a_refusal(tmp_path):
+    good = tmp_path / "good.npz"
+    offline_map(1).save(good)
+    truncated = tmp_path / "truncated" / "maps" / "map.npz"
+    truncated.parent.mkdir(parents=True)
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    foreign = tmp_path / "foreign.npz"
+    np.savez(foreign, points=np.zeros((10, 3)))  # a valid archive, not a map
+
+    # Refusing: exits 2 naming the file and the problem (runs beside the next node).
+    refusing = start("convbki_ros.mapper", domain_id(), "--ros-args", "-p", "device:=cpu",
+                     "-p", f"map_file:={foreign}", "-p", "refuse_bad_map_file:=true")
+    rig = Rig(tmp_path / "truncated")
+    try:
+        code = refusing.wait(timeout=60)
+        output = refusing.communicate()[0]
+        assert code == 2, output
+        assert re.search(rf"mapper: error: {re.escape(str(foreign))}: not a ConvBKI map file .*"
+                         r"\(refuse_bad_map_file is true: not starting\)", output), output
+        assert "Traceback" not in output
+
+        # Not refusing: says so, starts empty, maps, and keeps the unreadable file aside on save.
+        assert re.search(rf"\[ERROR\].*{re.escape(str(truncated))}: not a readable ConvBKI map file.*starting "
+                         r"with an EMPTY map", rig.log.text()), rig.log.text()
+        assert rig.stats().voxels == 0
+        rig.integrate_good_cloud()
+        from std_srvs.srv import Trigger
+
+        saved = rig.probe.call(Trigger, "/convbki_mapper/save_map")
+        assert saved.success, saved.message
+        assert Path(f"{truncated}.unreadable").read_bytes() == good.read_bytes()[: good.stat().st_size // 2]
+        expect_file_holds(truncated, offline_map(1))
+
+        # SIGTERM saves what changed since.
+        final = rig.integrate_good_cloud()
+        rig.process.send_signal(signal.SIGTERM)
+        assert rig.process.wait(timeout=WAIT) == 0
+    finally:
+        if refusing.poll() is None:
+            refusing.kill()
+        output = rig.close()
+    assert f"on shutdown: saved {final.voxels} voxels to {truncated}" in output, output
+    assert "Traceback" not in output, output
+    expect_file_holds(truncated, offline_map(2))
