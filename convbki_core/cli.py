@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
 import sys
+import tempfile
 from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -51,6 +55,73 @@ def positive(kind: type, name: str) -> Callable[[str], int | float]:
     return parse
 
 
+def output_folder(path: str | Path, what: str = "output") -> Path:
+    """``path``'s folder, which must exist: a command checks this before it does any work."""
+    folder = Path(path).parent if str(Path(path).parent) else Path(".")
+    if not folder.is_dir():
+        raise UserError(f"{folder}: {what} folder does not exist" if not folder.exists()
+                        else f"{folder}: not a folder (for {path})")
+    return folder
+
+
+class NewOutputs:
+    """What a command creates, so that a failure part-way leaves nothing of it behind.
+
+    ``folder`` / ``file`` record paths that did not exist before; ``staging`` makes a hidden
+    folder whose contents ``commit`` moves into place once everything succeeded. ``discard``
+    (called on any failure) removes the staging folders and everything recorded. Files that
+    existed before are never recorded, so a failed run never deletes a user's older results.
+    """
+
+    def __init__(self) -> None:
+        self.created: list[Path] = []
+        self.staged: list[tuple[Path, Path]] = []
+
+    def folder(self, path: str | Path) -> Path:
+        """Create ``path`` and its missing parents, recording the top-most one created."""
+        path = Path(path)
+        missing = [p for p in (path, *path.parents) if not p.exists()]
+        path.mkdir(parents=True, exist_ok=True)
+        if missing:
+            self.created.append(missing[-1])
+        return path
+
+    def file(self, path: str | Path) -> Path:
+        """Record ``path`` (about to be written) when it is new."""
+        path = Path(path)
+        if not path.exists():
+            self.created.append(path)
+        return path
+
+    def staging(self, final: str | Path) -> Path:
+        """A hidden folder beside ``final`` to write into; ``commit`` moves its files into ``final``."""
+        final = Path(final)
+        self.folder(final.parent)
+        stage = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}.partial-{os.getpid()}-"))
+        self.staged.append((stage, final))
+        return stage
+
+    def commit(self) -> None:
+        """Move every staged file into its final folder (each move atomic), then drop the staging folders."""
+        for stage, final in self.staged:
+            self.folder(final)
+            for entry in sorted(stage.iterdir()):
+                os.replace(entry, final / entry.name)
+            stage.rmdir()
+        self.staged.clear()
+
+    def discard(self) -> None:
+        for stage, _ in self.staged:
+            shutil.rmtree(stage, ignore_errors=True)
+        self.staged.clear()
+        for path in reversed(self.created):
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
+        self.created.clear()
+
+
 def progress(items: Iterable[T], total: int | None = None, description: str = "") -> Iterable[T]:
     """A tqdm progress bar on stderr (plain iteration when tqdm is missing)."""
     try:
@@ -68,15 +139,19 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], parser: argparse.A
     from convbki_core.kernels import KernelFileError
     from convbki_core.mapfile import MapFileError
 
+    # argparse prints the whole usage before its error; one line is easier to read in a log.
+    parser.error = lambda message: parser.exit(2, f"{prog}: error: {message} (see {prog} --help)\n")
     args = parser.parse_args(argv)
     try:
         return body(args)
     except (UserError, DatasetError, KernelFileError, MapFileError) as error:
-        print(f"{prog}: error: {error}", file=sys.stderr)
+        one_line = " ".join(str(error).split())  # a quoted file name may carry a newline
+        print(f"{prog}: error: {one_line}", file=sys.stderr)
         return 2
     except OSError as error:
         where = f"{error.filename}: " if error.filename else ""
-        print(f"{prog}: error: {where}{error.strerror or error}", file=sys.stderr)
+        text = str(error.strerror or error).strip().splitlines()
+        print(f"{prog}: error: {where}{text[0] if text else error.__class__.__name__}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)

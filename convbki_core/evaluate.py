@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.cli import UserError, frames_arg, progress, run, sequence_arg
+from convbki_core.cli import NewOutputs, UserError, frames_arg, output_folder, progress, run, sequence_arg
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.fileio import atomic_write_bytes
@@ -57,16 +57,21 @@ def map_frame_labels(mapper: ConvBKIMapper, points: np.ndarray, pose: np.ndarray
 
 
 def write_label_file(path: Path, learning_labels: np.ndarray, label_map) -> None:
-    """One submission file: uint32 raw ids (learning_map_inv), file order kept."""
-    atomic_write_bytes(path, label_map.to_raw(learning_labels).astype("<u4").tobytes())
+    """One submission file: uint32 raw ids (learning_map_inv), file order kept.
+
+    Written plainly: the command writes into a staging folder that becomes visible only
+    when the whole run succeeded (``NewOutputs``).
+    """
+    path.write_bytes(label_map.to_raw(learning_labels).astype("<u4").tobytes())
 
 
 def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], kernel_file: str | Path, device: str,
-                    prior: float, input_scores: ConfusionMatrix | None, write_labels: Path | None,
+                    prior: float, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
                     show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto") -> KernelRun:
     """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
 
-    ``input_scores`` (when given) also receives the input segmentation's confusion counts.
+    ``input_scores`` (when given) also receives the input segmentation's confusion counts;
+    ``labels_folder`` (when given, an existing folder) receives one NNNNNN.label per frame.
     """
     config = load_kernel_file(kernel_file)
     label_map = dataset.label_map
@@ -76,10 +81,7 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
                            ignore_classes=label_map.ignore_classes, update_path=update_path)
     run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
                                                                              label_map.ignore_classes), mapper=mapper)
-    out_folder = None
-    if write_labels is not None:
-        out_folder = write_labels / "sequences" / dataset.sequence / "predictions"
-        out_folder.mkdir(parents=True, exist_ok=True)
+    out_folder = labels_folder
     frames = (dataset[position] for position in positions)
     if show_progress:
         frames = progress(frames, total=len(positions), description=f"{Path(kernel_file).stem}")
@@ -179,6 +181,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    outputs = NewOutputs()
+    try:
+        return _evaluate_into(args, outputs)
+    except BaseException:
+        outputs.discard()  # a failed run leaves none of its outputs (older results are kept)
+        raise
+
+
+def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     kernels = args.kernel or [str(kernel_path(DEFAULT_KERNEL))]
     for kernel_file in kernels:
         load_kernel_file(kernel_file)  # fail before any work on a bad kernel file
@@ -189,25 +200,37 @@ def _evaluate(args: argparse.Namespace) -> int:
         bounds = (tuple(args.local_bounds[:3]), tuple(args.local_bounds[3:]))
         if any(not low < high for low, high in zip(*bounds)):
             raise UserError(f"--local-bounds must have each minimum below its maximum, got {args.local_bounds}")
+    report_path = Path(args.report)
+    output_folder(report_path, "report")
+    if report_path.is_dir():
+        raise UserError(f"{report_path}: is a folder; --report names a JSON file")
+    if args.picture:
+        output_folder(args.picture, "picture")
     dataset = SemanticKittiSequence(args.dataset, args.sequence, args.predictions_dir, args.probabilities_dir)
     if dataset.predictions_folder is None and dataset.probabilities_folder is None:
         raise UserError("no input segmentation: give --predictions-dir or --probabilities-dir")
+    if not dataset.has_ground_truth:
+        raise DatasetError(f"{dataset.folder}: no labels/ folder, so there is no ground truth to score against")
     try:
         positions = parse_frames(args.frames, len(dataset))
     except ValueError as error:
         raise UserError(str(error)) from None
+    dataset.check_files(positions)  # every file there and sized right, before anything is written
+    labels_folder = None
+    if args.write_labels:
+        if Path(args.write_labels).exists() and not Path(args.write_labels).is_dir():
+            raise UserError(f"{args.write_labels}: not a folder (--write-labels names a dataset root to write)")
+        labels_folder = outputs.staging(Path(args.write_labels) / "sequences" / dataset.sequence / "predictions")
     label_map = dataset.label_map
     input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
     runs = []
     for number, kernel_file in enumerate(kernels):
         runs.append(evaluate_kernel(dataset, positions, kernel_file, args.device, args.prior,
                                     input_scores if number == 0 else None,
-                                    Path(args.write_labels) if args.write_labels and number == 0 else None,
+                                    labels_folder if number == 0 else None,
                                     show_progress=not args.quiet, local_bounds=bounds,
                                     update_path=args.update_path))
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs)
-    report_path = Path(args.report)
-    atomic_write_bytes(report_path, (json.dumps(report, indent=2) + "\n").encode())
 
     from convbki_core.plots import save_map_picture
 
@@ -221,8 +244,11 @@ def _evaluate(args: argparse.Namespace) -> int:
         voxels = run_result.mapper.voxels()
         title = (f"sequence {dataset.sequence}, {len(positions)} frames, {Path(run_result.kernel_file).stem}: "
                  f"map mIoU {run_result.map_scores.miou():.3f} (input {input_scores.miou():.3f})")
-        save_map_picture(voxels, label_map, run_result.mapper.resolution, picture, title)
+        save_map_picture(voxels, label_map, run_result.mapper.resolution, outputs.file(picture), title)
         pictures.append(picture)
+    # The report and the labels last: they are what scripts look for to tell that a run finished.
+    atomic_write_bytes(outputs.file(report_path), (json.dumps(report, indent=2) + "\n").encode())
+    outputs.commit()
 
     print(f"sequence {dataset.sequence}, {len(positions)} frames: IoU per class (%)")
     print(format_table(label_map.class_names, input_scores, runs))

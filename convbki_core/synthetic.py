@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shutil
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -124,6 +125,12 @@ def _summary(result, names) -> str:
     return "\n".join(lines)
 
 
+def _remove_created(folder: Path | None) -> None:
+    """Remove the folder this run created (none when every folder already existed)."""
+    if folder is not None and folder.is_dir():
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     args = build_parser().parse_args(argv)
@@ -141,6 +148,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                          probabilities=args.probabilities, beams=args.beams, azimuth_steps=args.azimuth_steps,
                          speed=args.speed, max_range=args.max_range, range_noise=args.range_noise, force=args.force)
     bar = None
+    # The top-most folder of ROOT/sequences/SS that this run creates: removed again on failure.
+    sequence_folder = Path(args.out) / "sequences" / args.sequence
+    created = next((p for p in reversed((sequence_folder, *sequence_folder.parents)) if not p.exists()), None)
     try:
         # Before the progress bar, so that a refusal is one clean line.
         require_numba()
@@ -155,6 +165,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SynthError as error:
         if bar is not None:
             bar.close()
+        _remove_created(created)
         print(f"{PROG}: error: {error}", file=sys.stderr)
         return 2
     except MissingDependency as error:
@@ -165,8 +176,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as error:
         if bar is not None:
             bar.close()
-        print(f"{PROG}: error: cannot write the drive: {error}", file=sys.stderr)
-        return 1
+        _remove_created(created)
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"{PROG}: error: cannot write the drive: {where}{error.strerror or error}", file=sys.stderr)
+        return 2
+    except BaseException:
+        if bar is not None:
+            bar.close()
+        _remove_created(created)  # Ctrl-C or a bug: no half-written drive in a folder this run made
+        raise
     bar.close()
     if not args.quiet:
         print(_summary(result, load_label_map().class_names))

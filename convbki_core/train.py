@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.cli import UserError, frames_arg, positive, progress, run, sequence_arg
+from convbki_core.cli import NewOutputs, UserError, frames_arg, output_folder, positive, progress, run, sequence_arg
 from convbki_core.datasets import Frame, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
 from convbki_core.kernels import ConvBKIKernel, save_kernel_file
@@ -191,31 +191,48 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _train(args: argparse.Namespace) -> int:
+    outputs = NewOutputs()
+    try:
+        return _train_into(args, outputs)
+    except BaseException:
+        outputs.discard()  # a failed run leaves no kernel file or picture of its own
+        raise
+
+
+def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     if args.filter_size < 1 or args.filter_size % 2 == 0:
         raise UserError(f"--filter-size must be a positive odd integer, got {args.filter_size}")
+    out = Path(args.out)
+    output_folder(out, "output")
+    if out.is_dir():
+        raise UserError(f"{out}: is a folder; --out names the kernel file to write")
     datasets = [SemanticKittiSequence(args.dataset, sequence, args.predictions_dir, args.probabilities_dir)
                 for sequence in args.sequences]
+    for dataset in datasets:
+        if not dataset.has_ground_truth:
+            raise UserError(f"{dataset.folder}: no labels/ folder: training needs ground truth")
+        if dataset.predictions_folder is None and dataset.probabilities_folder is None:
+            raise UserError(f"{dataset.folder}: no input segmentation (give --predictions-dir or --probabilities-dir)")
     try:
         positions = [parse_frames(args.frames, len(dataset)) for dataset in datasets]
     except ValueError as error:
         raise UserError(str(error)) from None
-    out = Path(args.out)
-    if not out.parent.is_dir():
-        raise UserError(f"{out.parent}: output folder does not exist")
+    for dataset, chosen in zip(datasets, positions):
+        dataset.check_files(chosen)  # before hours of training, not at the scan that is broken
     started = time.perf_counter()
     kernel, losses = train_kernel(datasets, positions, args.kernel, args.frames_per_sample, args.epochs, args.lr,
                                   args.resolution, args.filter_size, seed=args.seed, show_progress=not args.quiet)
     if not losses:
         raise UserError("no training sample had scored points (check labels and predictions)")
-    save_kernel_file(kernel.to_config(), out)
+    save_kernel_file(kernel.to_config(), outputs.file(out))
 
     from convbki_core.plots import save_kernel_picture, save_loss_curve
 
     names = datasets[0].label_map.class_names
     loss_png = out.with_name(out.stem + "_loss.png")
     kernels_png = out.with_name(out.stem + "_kernels.png")
-    save_loss_curve(losses, loss_png, f"{args.kernel} kernel, sequences {' '.join(args.sequences)}")
-    save_kernel_picture(kernel, [names.index("road"), names.index("pole")], names, kernels_png)
+    save_loss_curve(losses, outputs.file(loss_png), f"{args.kernel} kernel, sequences {' '.join(args.sequences)}")
+    save_kernel_picture(kernel, [names.index("road"), names.index("pole")], names, outputs.file(kernels_png))
     elapsed = time.perf_counter() - started
     tenth = max(1, len(losses) // 10)
     print(f"{len(losses)} steps in {elapsed:.0f} s ({elapsed / len(losses):.2f} s a step); loss "

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.cli import UserError, run
+from convbki_core.cli import UserError, positive, run
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
@@ -72,6 +72,10 @@ def score_final_map(map_file: Path, dataset: SemanticKittiSequence) -> dict:
 
 def _demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
+    if args.dataset:  # a wrong --dataset is reported before anything is created
+        SemanticKittiSequence(args.dataset, args.sequence).check_files()
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: not a folder (--out names the results folder)")
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     if args.dataset:
@@ -216,9 +220,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0] + ".",
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="out/demo", help="results folder (default: %(default)s)")
-    p.add_argument("--frames", type=int, default=150, help="scans of the synthetic drive (default: %(default)s)")
+    p.add_argument("--frames", type=positive(int, "frames"), default=150,
+                   help="scans of the synthetic drive (default: %(default)s)")
     p.add_argument("--seed", type=int, default=11, help="seed of the synthetic drive (default: %(default)s)")
-    p.add_argument("--rate", type=float, default=1.0, help="bag replay rate (default: %(default)s = real time)")
+    p.add_argument("--rate", type=positive(float, "rate"), default=1.0,
+                   help="bag replay rate (default: %(default)s = real time)")
     p.add_argument("--dataset", default=None, metavar="ROOT",
                    help="map this SemanticKITTI-layout dataset instead of a synthetic drive (e.g. the real one)")
     p.add_argument("--sequence", default="08", help="sequence of --dataset (default: %(default)s)")

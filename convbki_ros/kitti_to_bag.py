@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.cli import UserError, frames_arg, progress, run, sequence_arg
+from convbki_core.cli import NewOutputs, UserError, frames_arg, progress, run, sequence_arg
 
 PROG = "kitti_to_bag"
 
@@ -160,14 +160,21 @@ def convert(args: argparse.Namespace) -> int:
         positions = parse_frames(args.frames, len(sequence))
     except ValueError as error:
         raise UserError(str(error)) from None
+    sequence.check_files(positions)  # a broken scan found now, not after half the bag is written
 
-    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.parent.exists() and not out.parent.is_dir():
+        raise UserError(f"{out.parent}: not a folder (for {out})")
+    parents = NewOutputs()  # folders made for --out are removed again if the bag cannot be written
+    parents.folder(out.parent)
     staging = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
     try:
         counts = write_bag(sequence, positions, staging / out.name, args.storage, probabilities)
         _replace(staging / out.name, out, args.force)
-    finally:
+    except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
+        parents.discard()
+        raise
+    shutil.rmtree(staging, ignore_errors=True)
 
     first, last = sequence.times[positions[0]], sequence.times[positions[-1]]
     size = _folder_size(out)

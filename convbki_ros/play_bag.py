@@ -220,8 +220,35 @@ def open_bag(path: str) -> Any:
     except FileNotFoundError:
         raise UserError(f"{path}: no such bag (a rosbag2 folder with metadata.yaml, or a .mcap/.db3 file)") from None
     except ReaderError as error:
-        raise UserError(f"{path}: cannot read the bag ({error})") from None
+        raise UserError(f"{path}: cannot read the bag ({_one_line(error)})") from None
+    except Exception as error:  # a damaged file makes the reader fail in many ways (bad UTF-8, sizes, ...)
+        raise UserError(f"{path}: cannot read the bag, damaged ({error.__class__.__name__}: {_one_line(error)})") \
+            from None
     return reader
+
+
+def _one_line(error: BaseException, limit: int = 200) -> str:
+    text = " ".join(str(error).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def checked_messages(messages: Iterator[Any], path: str) -> Iterator[Any]:
+    """The reader's messages; a failure inside the reader (a damaged bag) becomes a UserError.
+
+    Only the reading is guarded: errors of the code consuming the messages pass unchanged.
+    """
+    iterator = iter(messages)
+    count = 0
+    while True:
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        except Exception as error:  # whatever the damaged bytes made the reader trip over
+            raise UserError(f"{path}: damaged bag, reading stopped after {count} messages "
+                            f"({error.__class__.__name__}: {_one_line(error)})") from None
+        count += 1
+        yield item
 
 
 def grouped(messages: Iterator[tuple[Any, int, bytes]]) -> Iterator[tuple[int, list[tuple[Any, bytes]]]]:
@@ -366,7 +393,8 @@ class BagPlayer:
         first_stamp = None
         previous = None
         try:
-            for timestamp, group in grouped(self.reader.messages(connections=wanted)):
+            messages = checked_messages(self.reader.messages(connections=wanted), str(self.args.bag))
+            for timestamp, group in grouped(messages):
                 if start_wall is None:
                     start_wall, first_stamp = time.monotonic(), timestamp
                 if previous is None or timestamp >= previous:

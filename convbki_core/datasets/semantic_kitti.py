@@ -16,13 +16,42 @@ says (never assumed to be identity).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from convbki_core.datasets import DatasetError, Frame
 from convbki_core.labels import LabelMap, load_label_map
+
+
+def _first_line(error: BaseException) -> str:
+    text = str(error).strip()
+    return text.splitlines()[0][:200] if text else error.__class__.__name__
+
+
+def _file_size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError as error:
+        raise DatasetError(f"{path}: cannot read ({error.strerror or error})") from None
+
+
+def _npy_shape(path: Path) -> tuple[int, ...]:
+    """The array shape an .npy file declares, from its header alone."""
+    if not path.exists():
+        raise DatasetError(f"{path}: probabilities file missing")
+    try:
+        with path.open("rb") as handle:
+            version = np.lib.format.read_magic(handle)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) \
+                else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read_header(handle)
+    except (OSError, ValueError, EOFError, SyntaxError) as error:
+        raise DatasetError(f"{path}: not a readable .npy file ({_first_line(error)})") from None
+    if dtype.kind != "f":
+        raise DatasetError(f"{path}: probabilities must be float16/float32, found {dtype}")
+    return tuple(shape)
 
 
 def read_points(path: Path) -> np.ndarray:
@@ -117,7 +146,8 @@ class SemanticKittiSequence:
 
         self.calibration = read_calibration(self.folder / "calib.txt")
         self.poses = read_poses(self.folder / "poses.txt", self.calibration)
-        if len(self.poses) < len(self.scan_files):
+        # One pose per scan, exactly: a longer or shorter file belongs to another sequence or cut.
+        if len(self.poses) != len(self.scan_files):
             raise DatasetError(f"{self.folder / 'poses.txt'}: {len(self.poses)} poses for {len(self.scan_files)} scans")
         self.times = self._read_times()
 
@@ -142,12 +172,46 @@ class SemanticKittiSequence:
             times = np.array([float(line) for line in path.read_text().split()], dtype=np.float64)
         except ValueError:
             raise DatasetError(f"{path}: holds something that is not a number") from None
-        if len(times) < len(self.scan_files):
+        if len(times) != len(self.scan_files):
             raise DatasetError(f"{path}: {len(times)} times for {len(self.scan_files)} scans")
         return times
 
     def __len__(self) -> int:
         return len(self.scan_files)
+
+    def check_files(self, positions: Iterable[int] | None = None) -> None:
+        """Check, before any work, that the files of the frames at ``positions`` (default: all) exist
+        and agree in size: one label per point in labels/ and the input segmentation, one row of
+        C probabilities per point. Only sizes and .npy headers are read, so a whole sequence
+        takes a moment; a command calls this first and fails before writing anything.
+        """
+        for position in range(len(self)) if positions is None else positions:
+            name, scan = self.names[position], self.scan_files[position]
+            if not scan.is_file():
+                raise DatasetError(f"{scan}: not a file")
+            size = _file_size(scan)
+            if size % 16:
+                raise DatasetError(f"{scan}: size {size} bytes is not a whole number of 16-byte points")
+            count = size // 16
+            folders = [self.labels_folder] if self.has_ground_truth else []
+            folders += [self.predictions_folder] if self.predictions_folder is not None else []
+            for folder in folders:
+                path = folder / f"{name}.label"
+                if not path.exists():
+                    raise DatasetError(f"{path}: label file missing")
+                if not path.is_file():
+                    raise DatasetError(f"{path}: not a file")
+                size = _file_size(path)
+                if size % 4:
+                    raise DatasetError(f"{path}: size {size} bytes is not a whole number of uint32 labels")
+                if size // 4 != count:
+                    raise DatasetError(f"{path}: {size // 4} labels for {count} points")
+            if self.probabilities_folder is not None:
+                path = self.probabilities_folder / f"{name}.npy"
+                shape = _npy_shape(path)
+                expected = (count, self.label_map.num_classes)
+                if shape != expected:
+                    raise DatasetError(f"{path}: probabilities of shape {shape}, expected {expected}")
 
     def __iter__(self) -> Iterator[Frame]:
         for position in range(len(self)):
@@ -180,10 +244,14 @@ class SemanticKittiSequence:
         return words
 
     def _probabilities(self, path: Path, count: int) -> np.ndarray:
+        if not path.exists():
+            raise DatasetError(f"{path}: probabilities file missing")
         try:
             data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as error:
-            raise DatasetError(f"{path}: cannot read probabilities ({error})") from None
+        except (OSError, ValueError, EOFError) as error:
+            raise DatasetError(f"{path}: cannot read probabilities ({_first_line(error)})") from None
+        if not isinstance(data, np.ndarray):
+            raise DatasetError(f"{path}: not a single .npy array of probabilities")
         expected = self.label_map.num_classes
         if data.ndim != 2 or data.shape != (count, expected):
             raise DatasetError(f"{path}: probabilities of shape {data.shape}, expected ({count}, {expected})")
