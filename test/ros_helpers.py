@@ -32,9 +32,11 @@ def ros_env(domain: int) -> dict:
                 PYTHONUNBUFFERED="1")
 
 
-def start(module: str, domain: int, *args: str) -> subprocess.Popen:
-    """``python -m module args`` as a separate process on ``domain``; output to pipes."""
-    return subprocess.Popen([sys.executable, "-m", module, *map(str, args)], cwd=REPO, env=ros_env(domain),
+def start(module: str, domain: int, *args: str, prefix: tuple[str, ...] = ()) -> subprocess.Popen:
+    """``python -m module args`` as a separate process on ``domain``; output to pipes.
+
+    ``prefix``: a command that runs it (e.g. ``setpriv ...``)."""
+    return subprocess.Popen([*prefix, sys.executable, "-m", module, *map(str, args)], cwd=REPO, env=ros_env(domain),
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
