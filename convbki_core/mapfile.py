@@ -72,9 +72,10 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
             raise MapFileError(f"{path}: is a folder, not a map file")
         if path.exists() and path.stat().st_size == 0:
             raise MapFileError(f"{path}: empty file, not a ConvBKI map file")
-        with np.load(path, allow_pickle=False) as archive:
-            if not isinstance(archive, np.lib.npyio.NpzFile):  # a bare .npy array
-                raise MapFileError(f"{path}: not a ConvBKI map file (a single NumPy array, not an .npz archive)")
+        archive = np.load(path, allow_pickle=False)
+        if not isinstance(archive, np.lib.npyio.NpzFile):  # a bare .npy array
+            raise MapFileError(f"{path}: not a ConvBKI map file (a single NumPy array, not an .npz archive)")
+        with archive:
             members = set(archive.files)
             missing = {"metadata", "voxel_index", "alpha"} - members
             if missing:
@@ -86,8 +87,6 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
         raise
     except FileNotFoundError:
         raise MapFileError(f"{path}: no such map file") from None
-    except AttributeError:  # np.load returned something without __enter__: a bare .npy array
-        raise MapFileError(f"{path}: not a ConvBKI map file (a single NumPy array, not an .npz archive)") from None
     except MemoryError:
         raise MapFileError(f"{path}: corrupted map file (array sizes beyond the memory of this machine)") from None
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError, NotImplementedError, RuntimeError,

@@ -10,6 +10,7 @@ child at a random moment, then checks the file on disk.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import random
@@ -227,6 +228,13 @@ def _saved_map(folder: Path) -> Path:
     return path
 
 
+def _npy_bytes(array: np.ndarray) -> bytes:
+    """A bare .npy file's bytes (np.save to a path would append .npy to the name)."""
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
 def _rewrite(good: Path, out: Path, change) -> Path:
     """A copy of ``good`` with its metadata changed by ``change(dict)``."""
     with np.load(good) as archive:
@@ -243,7 +251,7 @@ def _rewrite(good: Path, out: Path, change) -> Path:
     (lambda good, p: p.write_bytes(good.read_bytes()[:100]), "truncated or corrupted"),
     (lambda good, p: p.write_bytes(good.read_bytes()[:-30]), "truncated or corrupted"),
     (lambda good, p: p.write_text("# a PLY or text file\n"), "truncated or corrupted"),
-    (lambda good, p: np.save(p, np.zeros((3, 3))), "single NumPy array"),
+    (lambda good, p: p.write_bytes(_npy_bytes(np.zeros((3, 3)))), "single NumPy array"),
     (lambda good, p: np.savez(p, voxels=np.zeros(3)), "missing alpha, metadata, voxel_index"),
     (lambda good, p: zipfile.ZipFile(p, "w").writestr("readme.txt", "hello"), "missing"),
     (lambda good, p: p.mkdir(), "is a folder"),
