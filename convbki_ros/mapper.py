@@ -337,9 +337,9 @@ def make_node_class():
             self.counters.scans_in += 1
             self.last_cloud_received = time.monotonic()
             stamp = stamp_to_ns(msg.header.stamp)
-            self._check_stamp(stamp, "cloud")
             # Checks that need no decoding run here, so that a cloud that can never be used does
-            # not wait for odometry nor sit in the queue (a 5 M point cloud is 80 MB).
+            # not wait for odometry nor sit in the queue (a 5 M point cloud is 80 MB), nor count
+            # as a sign of time going backwards.
             points = int(msg.width) * int(msg.height)
             limit = int(self._param("max_points_per_cloud"))
             if limit and points > limit:
@@ -352,6 +352,7 @@ def make_node_class():
                 self.warnings.warn("empty", f"dropping empty cloud stamped {stamp / 1e9:.3f} s "
                                    f"(width {msg.width} x height {msg.height})")
                 return
+            self._check_stamp(stamp, "cloud")
             with self.queue_changed:
                 queue_limit = max(1, int(self._param("cloud_queue_size")))
                 while len(self.queue) >= queue_limit:
