@@ -136,7 +136,7 @@ class Rig:
         domain = domain_id()
         self.process = start("convbki_ros.mapper", domain, "--ros-args", "-p", f"local_bounds:={BOUNDS}",
                              "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "stats_period:=0.25",
-                             "-p", "pose_wait_timeout:=0.5", "-p", f"map_file:={self.map_file}", *parameters,
+                             "-p", "pose_wait_timeout:=1.5", "-p", f"map_file:={self.map_file}", *parameters,
                              prefix=prefix)
         self.log = NodeLog(self.process)
         self.probe = Probe(domain)
