@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -35,10 +36,32 @@ class MapFileError(ValueError):
     """A map file that cannot be loaded; the message names the file and the problem."""
 
 
-def save_map(mapper: ConvBKIMapper, path: str | Path) -> None:
+@dataclass
+class MapSnapshot:
+    """A copy of a map's contents, taken quickly; writing it to disk can then happen unlocked."""
+
+    metadata: dict
+    indices: np.ndarray  # (N, 3) int64
+    alpha: np.ndarray  # (N, C) float32
+
+    def __len__(self) -> int:
+        return int(self.indices.shape[0])
+
+    def write(self, path: str | Path) -> None:
+        """Write the map file atomically: a failed write leaves the previous file as it was."""
+        if self.indices.size and (np.abs(self.indices) > np.iinfo(np.int32).max).any():
+            raise ValueError("voxel indices exceed the int32 range of the map file")
+        arrays = {
+            "metadata": np.frombuffer(json.dumps(self.metadata).encode(), dtype=np.uint8),
+            "voxel_index": self.indices.astype(np.int32),
+            "alpha": self.alpha.astype(np.float32, copy=False),
+        }
+        atomic_write_with(path, lambda handle: np.savez(handle, **arrays))
+
+
+def snapshot_map(mapper: ConvBKIMapper) -> MapSnapshot:
+    """Copy everything a map file holds (``items()`` returns fresh arrays) with the metadata."""
     indices, alpha = mapper.items()
-    if indices.size and (np.abs(indices) > np.iinfo(np.int32).max).any():
-        raise ValueError("voxel indices exceed the int32 range of the map file")
     metadata = {
         "format": MAP_FORMAT,
         "version": MAP_VERSION,
@@ -51,12 +74,11 @@ def save_map(mapper: ConvBKIMapper, path: str | Path) -> None:
         "kernel": kernel_config_to_dict(mapper.kernel.to_config()),
         "scans_integrated": mapper.scans_integrated,
     }
-    arrays = {
-        "metadata": np.frombuffer(json.dumps(metadata).encode(), dtype=np.uint8),
-        "voxel_index": indices.astype(np.int32),
-        "alpha": alpha.astype(np.float32),
-    }
-    atomic_write_with(path, lambda handle: np.savez(handle, **arrays))
+    return MapSnapshot(metadata, indices, alpha)
+
+
+def save_map(mapper: ConvBKIMapper, path: str | Path) -> None:
+    snapshot_map(mapper).write(path)
 
 
 def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:

@@ -271,9 +271,13 @@ class ConvBKIMapper:
 
     def save(self, path: str | Path) -> None:
         """Write the whole map to one self-describing file, atomically."""
-        from convbki_core.mapfile import save_map
+        self.snapshot().write(path)
 
-        save_map(self, path)
+    def snapshot(self):
+        """A copy of the map's contents (``mapfile.MapSnapshot``): take it under a lock, ``write()`` it later."""
+        from convbki_core.mapfile import snapshot_map
+
+        return snapshot_map(self)
 
     def load(self, path: str | Path) -> None:
         """Replace the map's voxels with those of a map file (resolution and classes must match)."""

@@ -96,12 +96,13 @@ class VoxelStore:
 
     # -- chunk access ----------------------------------------------------------------------
     def _get(self, key: tuple[int, int, int]) -> _Chunk | None:
-        chunk = self._active.get(key)
+        # The active table is kept in order of last use (a used chunk moves to the end), so
+        # retiring stale chunks looks only at the front of it, not at every active chunk.
+        chunk = self._active.pop(key, None)
         if chunk is None:
             chunk = self._archive.pop(key, None)
-            if chunk is not None:
-                self._active[key] = chunk
         if chunk is not None:
+            self._active[key] = chunk
             chunk.last_used = self._clock
         return chunk
 
@@ -161,6 +162,7 @@ class VoxelStore:
             raise ValueError(f"alpha must be ({indices.shape[0]}, {self.num_classes}), got {alpha.shape}")
         self._clock += 1
         if indices.shape[0] == 0:
+            self._retire_stale()
             return
         keys = _chunk_keys(indices)
         offsets = _local_offsets(indices)
@@ -187,7 +189,11 @@ class VoxelStore:
 
     def _retire_stale(self) -> None:
         horizon = self._clock - self.stale_after
-        stale = [key for key, chunk in self._active.items() if chunk.last_used < horizon]
+        stale = []
+        for key, chunk in self._active.items():  # oldest use first (see _get)
+            if chunk.last_used >= horizon:
+                break
+            stale.append(key)
         for key in stale:
             self._archive[key] = self._active.pop(key)
 

@@ -632,10 +632,14 @@ def make_node_class():
                     os.replace(path, path + ".unreadable")
                     self.get_logger().warning(f"moved the unreadable map file {path} to {path}.unreadable")
                 self.unreadable_map_file = None
+                # Copy under the lock (a fraction of a second), write without it: updates go on
+                # while a large map is written to disk.
                 with self.map_lock:
-                    self.mapper.save(path)
-                    count = len(self.mapper)
-                    self.saved_version = self.map_version
+                    snapshot = self.mapper.snapshot()
+                    version = self.map_version
+                snapshot.write(path)
+                count = len(snapshot)
+                self.saved_version = version
             except (OSError, ValueError) as error:
                 return False, f"could not save {path}: {getattr(error, 'strerror', None) or error}"
             return True, f"saved {count} voxels to {path}"

@@ -293,3 +293,20 @@ def test_ply_export_holds_every_voxel_in_class_colours(tmp_path):
     assert road.size == 0 or ((road["red"] == 255).all() and (road["green"] == 0).all() and (road["blue"] == 255).all())
     limited = mapper.export_ply(tmp_path / "limited.ply", max_variance=float(np.median(voxels.variance)))
     assert 0 < limited < written
+
+
+@given(st.integers(0, 2**31 - 1))
+def test_store_retires_exactly_the_chunks_unused_for_stale_after_writes(seed):
+    """Active = used within the last ``stale_after`` writes, whatever the order of queries and writes."""
+    rng = np.random.default_rng(seed)
+    store = VoxelStore(3, stale_after=int(rng.integers(1, 4)))
+    dims = np.array([20, 20, 20])
+    for _ in range(30):
+        origin = rng.integers(-60, 60, 3)
+        if rng.random() < 0.5:
+            store.take_window(origin, dims) if rng.random() < 0.5 else store.query_window(origin, dims)
+        indices = origin + rng.integers(0, 20, (int(rng.integers(0, 40)), 3))
+        store.write(indices, rng.random((len(indices), 3), dtype=np.float32))
+        horizon = store._clock - store.stale_after
+        assert all(chunk.last_used >= horizon for chunk in store._active.values())
+        assert all(chunk.last_used < horizon for chunk in store._archive.values())
