@@ -32,3 +32,23 @@ def use_large_data_profile() -> str | None:
         return None
     os.environ[PROFILE_VARIABLE] = str(profile)
     return str(profile)
+
+
+PUBLICATION_MODE_VARIABLE = "RMW_FASTRTPS_PUBLICATION_MODE"
+
+
+def publish_asynchronously() -> bool:
+    """Let Fast DDS send this process's messages from its own thread (before rclpy.init).
+
+    Recent rmw_fastrtps publishes synchronously: ``publish()`` returns only once a message
+    is sent, and rclpy holds the GIL all along. For the mapper's ``/semantic_map`` (100 MB
+    for a map of 3.7 M voxels) that stalled the update thread for up to a second, long
+    enough to fill the cloud queue at 10 Hz. Asynchronous publication queues the message
+    and returns. Returns False when the user chose a mode or another middleware.
+    """
+    if os.environ.get(PUBLICATION_MODE_VARIABLE):
+        return False
+    if not os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
+        return False
+    os.environ[PUBLICATION_MODE_VARIABLE] = "ASYNCHRONOUS"
+    return True

@@ -26,7 +26,7 @@ from convbki_core.labels import load_label_map
 from convbki_core.mapfile import MapFileError
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
-from convbki_ros.dds import use_large_data_profile
+from convbki_ros.dds import publish_asynchronously, use_large_data_profile
 from convbki_ros.pointcloud import CloudError, decode_cloud, encode_cloud, encode_map_cloud, variance_cloud_fields
 from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus, pose_problem
 from convbki_ros.ros_args import strip_ros_args
@@ -60,7 +60,7 @@ PARAMETERS: tuple[tuple[str, object, str], ...] = (
     ("save_on_shutdown", True, "save the map to map_file when the node stops (SIGINT/SIGTERM); bool"),
     ("ply_file", "", "file written by ~/export_ply; \"\" = map_file with the suffix .ply, else convbki_map.ply"),
     ("publish_local", True, "publish /semantic_map/local (the window around the sensor) after each update; bool"),
-    ("cloud_queue_size", 10, "clouds waiting to be integrated; when full the oldest is dropped; count"),
+    ("cloud_queue_size", 20, "clouds waiting to be integrated (2 s at 10 Hz); when full the oldest is dropped; count"),
     ("pose_wait_timeout", 2.0, "how long a cloud waits for odometry covering its stamp before it is dropped; "
      "seconds"),
     ("stats_period", 10.0, "period of the counters line in the log (scans in, integrated, dropped); seconds"),
@@ -709,6 +709,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
     use_large_data_profile()
+    publish_asynchronously()  # a large map being sent must not stall the update thread
     rclpy.init(args=args)
     node = None
     try:
