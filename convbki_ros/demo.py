@@ -165,7 +165,12 @@ class LineReader:
         self.process = process
         self.log = log
         self.lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=self._pump, daemon=True).start()
+        self.thread = threading.Thread(target=self._pump, daemon=True)
+        self.thread.start()
+
+    def finish(self, timeout: float = 5.0) -> None:
+        """Wait (after the process ended) until its last lines are in the log; then it may be closed."""
+        self.thread.join(timeout)
 
     def _pump(self) -> None:
         for line in self.process.stdout:

@@ -26,6 +26,7 @@ import argparse
 import itertools
 import json
 import os
+import queue
 import random
 import re
 import signal
@@ -113,10 +114,12 @@ def _check(args: argparse.Namespace) -> int:
     listener = start("-c", _LISTENER)
     samples, arrivals = [], []
     counters = None
-    try:
-        with (out / "mapper.log").open("w") as mapper_log, (out / "listener.log").open("w") as listener_log:
-            node_lines = LineReader(mapper, mapper_log)
-            listener_lines = LineReader(listener, listener_log)
+    # The logs stay open until both processes have ended: they print while shutting down.
+    with (out / "mapper.log").open("w") as mapper_log, (out / "listener.log").open("w") as listener_log:
+        node_lines = LineReader(mapper, mapper_log)
+        listener_lines = LineReader(listener, listener_log)
+        readers = (node_lines, listener_lines)
+        try:
             node_lines.wait_for("mapper ready", timeout=120)
             listener_lines.wait_for("listener ready", timeout=60)
             played = time.monotonic()
@@ -141,20 +144,23 @@ def _check(args: argparse.Namespace) -> int:
             while True:
                 try:
                     line = listener_lines.lines.get_nowait()
-                except Exception:  # queue.Empty: everything read
+                except queue.Empty:  # everything read
                     break
                 if line.startswith("map "):
                     _, at, width, size = line.split()
                     arrivals.append((float(at), int(width), int(size)))
-    finally:
-        for process in (mapper, listener):
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-        for process in (mapper, listener):
-            try:
-                process.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                process.kill()
+        finally:
+            for process in (mapper, listener):
+                if process.poll() is None:
+                    process.send_signal(signal.SIGINT)
+            for process in (mapper, listener):
+                try:
+                    process.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait()
+            for reader in readers:
+                reader.finish()
     return _report(args, out, scans, counters, samples, arrivals, replay_s)
 
 
