@@ -183,7 +183,7 @@ def kernel_config_from_dict(data: dict) -> KernelConfig:
     if not isinstance(data, dict):
         raise KernelFileError(f"a kernel file is a mapping, found {type(data).__name__}")
     known = {"kernel", "resolution", "filter_size", "num_classes", "ell", "ell_h", "ell_z"}
-    unknown = sorted(_shown(key, 30) if not isinstance(key, str) else key for key in data if key not in known)
+    unknown = sorted(_shown(key, 30) for key in data if key not in known)  # quoted: a key may hold a newline
     if unknown:
         raise KernelFileError(f"unknown key(s) {', '.join(unknown[:5])}{' ...' if len(unknown) > 5 else ''}")
     for key in ("kernel", "resolution", "filter_size", "num_classes"):

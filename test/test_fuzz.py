@@ -338,7 +338,9 @@ def test_valid_kernel_files_survive_the_fuzzers_checks(tmp_path):
                           ("[" * 5000 + "]" * 5000, "kernel file"),
                           ("kernel: single\nresolution: 0.2\nfilter_size: 101\nnum_classes: 1\nell: 1", "up to 63"),
                           ("kernel: single\nresolution: 0.2\nfilter_size: 5\nnum_classes: 1\nell: 1\n1: 2",
-                           "unknown key(s) 1")]:
+                           "unknown key(s) 1"),
+                          ('kernel: single\nresolution: 0.2\nfilter_size: 5\nnum_classes: 1\nell: 1\n"\\n": 2',
+                           "unknown key(s) '\\n'")]:  # a key that is a newline, quoted: the message stays one line
         try:
             parse_kernel_text(text, "k.yaml")
         except KernelFileError as error:
