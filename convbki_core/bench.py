@@ -23,7 +23,9 @@ against filter size.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
+import io
 import json
 import os
 import platform
@@ -66,11 +68,17 @@ def ensure_drive(folder: Path, scans: int, seed: int) -> SemanticKittiSequence:
     if not (sequence_folder / "poses.txt").exists() or len(list((sequence_folder / "velodyne").glob("*.bin"))) < scans:
         from convbki_core.synthetic import main as synth
 
+        if folder.exists() and not folder.is_dir():
+            raise UserError(f"--drive-dir {folder}: exists and is not a folder")
+
         print(f"{PROG}: simulating a {scans}-scan drive into {folder} (cached for later runs)", file=sys.stderr)
-        code = synth(["--out", str(folder), "--sequence", "00", "--frames", str(scans), "--seed", str(seed),
-                      "--noise-strength", "0.35", "--force", "--quiet"])
+        errors = io.StringIO()
+        with contextlib.redirect_stderr(errors):  # synth's own error line becomes part of bench's one line
+            code = synth(["--out", str(folder), "--sequence", "00", "--frames", str(scans), "--seed", str(seed),
+                          "--noise-strength", "0.35", "--force", "--quiet"])
         if code != 0:
-            raise UserError("the synthetic drive could not be written")
+            reason = (errors.getvalue().strip().splitlines() or ["synth failed"])[-1].removeprefix("synth: error: ")
+            raise UserError(f"the synthetic drive could not be written: {reason}")
     return SemanticKittiSequence(folder, "00")
 
 

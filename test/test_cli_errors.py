@@ -18,7 +18,7 @@ import pytest
 import yaml
 from kitti_fixture import write_drive
 
-from convbki_core import evaluate, synthetic, train
+from convbki_core import bench, evaluate, synthetic, train
 from convbki_ros import demo, kitti_to_bag, play_bag
 
 REPO = Path(__file__).resolve().parents[1]
@@ -346,6 +346,14 @@ def test_synth_write_failure_is_one_line_exit_2_without_temp_files(tmp_path, cap
                            "--noise-strength", "0.3", "--force", "--quiet"])
     one_line_error(capsys, code, "synth", "000001.bin", after_progress=True)
     assert not [p for p in tmp_path.rglob("*.tmp")]
+
+
+def test_bench_drive_folder_that_is_a_file(tmp_path, capsys):
+    target = tmp_path / "a_file"
+    target.write_text("mine")
+    code = bench.main(["--drive-dir", str(target), "--scans", "3", "--skip-ablation"])
+    one_line_error(capsys, code, "bench", "a_file", "not a folder")
+    assert target.read_text() == "mine" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
 
 
 def test_demo_missing_dataset_creates_nothing(tmp_path, capsys):
