@@ -2,21 +2,22 @@
 # Map-quality study (issue 3): train the three kernel variants on one synthetic drive and
 # score every kernel on another drive with its own seed and layout.
 #
-#   scripts/quality_study.sh [OUT=out/quality] [FRAMES=100] [TRAIN_FRAMES=300] [EPOCHS=2]
+#   scripts/quality_study.sh [OUT=out/quality] [FRAMES=300] [TRAIN_FRAMES=300] [EPOCHS=2] [TEST_SEED=2]
 #
-# Writes OUT/train (drive, seed 1), OUT/test (drive, seed 2), OUT/kernels/*.yaml (+ PNGs)
+# Writes OUT/train (drive, seed 1), OUT/test (drive, seed TEST_SEED), OUT/kernels/*.yaml (+ PNGs)
 # and OUT/report.json with the per-class table printed at the end.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 OUT="${1:-out/quality}"
-FRAMES="${2:-100}"
+FRAMES="${2:-300}"
 TRAIN_FRAMES="${3:-300}"
 EPOCHS="${4:-2}"
+TEST_SEED="${5:-2}"
 PY=.venv/bin/python
 mkdir -p "$OUT/kernels"
 
 [[ -d "$OUT/train/sequences/00" ]] || $PY -m convbki_core.synthetic --out "$OUT/train" --sequence 00 --frames "$TRAIN_FRAMES" --seed 1
-[[ -d "$OUT/test/sequences/08" ]] || $PY -m convbki_core.synthetic --out "$OUT/test" --sequence 08 --frames "$FRAMES" --seed 2
+[[ -d "$OUT/test/sequences/08" ]] || $PY -m convbki_core.synthetic --out "$OUT/test" --sequence 08 --frames "$FRAMES" --seed "$TEST_SEED"
 
 for kind in single per_class compound; do
     [[ -f "$OUT/kernels/$kind.yaml" ]] || $PY -m convbki_core.train --dataset "$OUT/train" --sequences 00 \
