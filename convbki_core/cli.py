@@ -11,6 +11,8 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
+from convbki_core.fileio import remove_stale_staging_folders, staging_prefix
+
 T = TypeVar("T")
 
 
@@ -97,7 +99,8 @@ class NewOutputs:
         """A hidden folder beside ``final`` to write into; ``commit`` moves its files into ``final``."""
         final = Path(final)
         self.folder(final.parent)
-        stage = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}.partial-{os.getpid()}-"))
+        remove_stale_staging_folders(final)
+        stage = Path(tempfile.mkdtemp(dir=final.parent, prefix=staging_prefix(final)))
         self.staged.append((stage, final))
         return stage
 

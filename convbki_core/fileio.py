@@ -22,6 +22,7 @@ machines (NFS) another machine's temporary files are treated as live and kept.
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -102,6 +103,34 @@ def remove_stale_temp_files(path: str | Path) -> int:
             pass  # another writer cleaned it first
         except OSError:
             pass  # cannot remove it (read-only folder): the save itself will report that
+    return removed
+
+
+def staging_prefix(final: str | Path) -> str:
+    """Name prefix of the hidden staging folders beside ``final``: ``.NAME.partial-PID-``."""
+    return f".{Path(final).name}.partial-{os.getpid()}-"
+
+
+def remove_stale_staging_folders(final: str | Path) -> int:
+    """Remove staging folders of ``final`` left by runs that were killed (their process is gone).
+
+    A run killed mid-way (kill -9, power loss) cannot clean up, and its staging folder may
+    hold gigabytes (a half-written bag). The next run for the same output removes it.
+    """
+    final = Path(final)
+    folder = final.parent if str(final.parent) else Path(".")
+    head = f".{final.name}.partial-"
+    removed = 0
+    try:
+        entries = [entry.name for entry in os.scandir(folder) if entry.name.startswith(head) and entry.is_dir()]
+    except OSError:
+        return 0
+    for name in entries:
+        owner = name[len(head):].split("-", 1)[0]
+        if not owner.isdigit() or _process_alive(int(owner)):
+            continue  # not named by us, or its run may still be going
+        shutil.rmtree(folder / name, ignore_errors=True)
+        removed += 1
     return removed
 
 

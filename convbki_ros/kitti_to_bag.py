@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from convbki_core.cli import NewOutputs, UserError, frames_arg, progress, run, sequence_arg
+from convbki_core.fileio import remove_stale_staging_folders, staging_prefix
 
 PROG = "kitti_to_bag"
 
@@ -166,7 +167,8 @@ def convert(args: argparse.Namespace) -> int:
         raise UserError(f"{out.parent}: not a folder (for {out})")
     parents = NewOutputs()  # folders made for --out are removed again if the bag cannot be written
     parents.folder(out.parent)
-    staging = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
+    remove_stale_staging_folders(out)  # a bag half-written by a killed run
+    staging = Path(tempfile.mkdtemp(dir=out.parent, prefix=staging_prefix(out)))
     try:
         counts = write_bag(sequence, positions, staging / out.name, args.storage, probabilities)
         _replace(staging / out.name, out, args.force)

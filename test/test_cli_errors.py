@@ -206,6 +206,25 @@ def test_kitti_to_bag_failing_mid_run_leaves_no_bag(root, tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
 
 
+def test_staging_folders_of_killed_runs_are_removed_by_the_next_run(root, tmp_path, capsys):
+    """A kill -9 leaves .NAME.partial-PID-* behind; the next run removes it unless its process lives."""
+    dead, alive = 2**22 + 12345, os.getpid()  # above any pid_max: no such process
+    leftovers = {}
+    for owner in (dead, alive):
+        leftover = tmp_path / f".b.partial-{owner}-x1y2"
+        (leftover / "b").mkdir(parents=True)
+        (leftover / "b" / "half.mcap").write_bytes(b"\0" * 1000)
+        leftovers[owner] = leftover
+    labels_leftover = tmp_path / "out" / "sequences" / "00" / f".predictions.partial-{dead}-q"
+    labels_leftover.mkdir(parents=True)
+    assert kitti_to_bag.main(["--dataset", str(root), "--sequence", "0", "--out", str(tmp_path / "b")]) == 0
+    assert evaluate.main(["--dataset", str(root), "--sequence", "0", "--report", str(tmp_path / "r.json"),
+                          "--write-labels", str(tmp_path / "out"), "--quiet", *SMALL_WINDOW]) == 0
+    assert not leftovers[dead].exists() and not labels_leftover.exists()
+    assert leftovers[alive].exists()  # a run of a live process may still be writing there
+    assert (tmp_path / "b").is_dir() and sorted(p.name for p in labels_leftover.parent.iterdir()) == ["predictions"]
+
+
 # ----------------------------------------------------------------------------- kernel files
 
 BAD_KERNELS = {
