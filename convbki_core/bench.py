@@ -67,9 +67,14 @@ def ensure_drive(folder: Path, scans: int, seed: int) -> SemanticKittiSequence:
     sequence_folder = folder / "sequences" / "00"
     if not (sequence_folder / "poses.txt").exists() or len(list((sequence_folder / "velodyne").glob("*.bin"))) < scans:
         from convbki_core.synthetic import main as synth
+        from convbki_core.synthetic import read_synth_record
 
         if folder.exists() and not folder.is_dir():
             raise UserError(f"--drive-dir {folder}: exists and is not a folder")
+        if read_synth_record(sequence_folder) is None and sequence_folder.exists() and any(sequence_folder.iterdir()):
+            # synth --force below would replace the scans: never do that to a folder synth did not write.
+            raise UserError(f"--drive-dir {folder}: {sequence_folder} holds data that is not a synthetic drive "
+                            "(no synth.yaml); pick an empty or new folder")
 
         print(f"{PROG}: simulating a {scans}-scan drive into {folder} (cached for later runs)", file=sys.stderr)
         errors = io.StringIO()

@@ -275,16 +275,6 @@ def soak(mapper: ConvBKIMapper, frames: Iterable[tuple[np.ndarray, np.ndarray, n
 
 
 # -- the drive ---------------------------------------------------------------------------------
-def _read_synth_record(sequence_folder: Path) -> dict | None:
-    import yaml
-
-    try:
-        record = yaml.safe_load((sequence_folder / "synth.yaml").read_text())
-    except (OSError, yaml.YAMLError):
-        return None
-    return record if isinstance(record, dict) else None
-
-
 def ensure_drive(folder: Path, scans: int, seed: int, beams: int = 64, azimuth_steps: int = 2083,
                  quiet: bool = False):
     """A ``synth`` drive of at least ``scans`` scans in ``folder`` (sequence 00), written when missing.
@@ -294,9 +284,10 @@ def ensure_drive(folder: Path, scans: int, seed: int, beams: int = 64, azimuth_s
     anything else is never overwritten.
     """
     from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+    from convbki_core.synthetic import read_synth_record
 
     sequence_folder = folder / "sequences" / "00"
-    record = _read_synth_record(sequence_folder)
+    record = read_synth_record(sequence_folder)
     lidar = (record or {}).get("lidar") or {}
     if (record and record.get("seed") == seed and int(record.get("frames", 0)) >= scans
             and lidar.get("beams") == beams and lidar.get("azimuth_steps") == azimuth_steps):

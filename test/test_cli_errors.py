@@ -431,3 +431,15 @@ def test_processes_print_one_line_and_no_traceback(root, tmp_path):
         assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: "), result.stderr
         assert all(needle in lines[0] for needle in needles), lines[0]
     assert tree(tmp_path) == before
+
+
+def test_bench_never_overwrites_a_dataset_it_did_not_write(tmp_path, capsys):
+    """A folder of real scans without poses.txt (a velodyne-only download) is refused, not resimulated."""
+    velodyne = tmp_path / "kitti" / "sequences" / "00" / "velodyne"
+    velodyne.mkdir(parents=True)
+    for number in range(3):
+        (velodyne / f"{number:06d}.bin").write_bytes(np.zeros(16, np.float32).tobytes())
+    before = tree(tmp_path / "kitti")
+    code = bench.main(["--drive-dir", str(tmp_path / "kitti"), "--scans", "3", "--skip-ablation"])
+    one_line_error(capsys, code, "bench", "not a synthetic drive")
+    assert tree(tmp_path / "kitti") == before
