@@ -73,8 +73,8 @@ PARAMETERS: tuple[tuple[str, object, str], ...] = (
     ("reset_on_pose_jump", False,
      "on a pose jump, also clear the map and the odometry before the jump (a new map starts there); bool"),
     ("stamp_backwards_tolerance", 1.0,
-     "an input (cloud or odometry) stamped more than this before the newest input stamp means time went "
-     "backwards (a restarted bag): the odometry history and the waiting clouds are dropped; seconds"),
+     "odometry stamped more than this before the newest odometry means time went backwards (a restarted "
+     "bag): the odometry history and the waiting clouds are dropped; seconds"),
     ("reset_on_stamp_backwards", False,
      "when time goes backwards, also clear the map; false keeps it (a replayed bag adds to it); bool"),
     ("odometry_timeout", 5.0,
@@ -232,7 +232,7 @@ def make_node_class():
             self.queue: deque[PendingCloud] = deque()
             self.queue_changed = threading.Condition()
             self.stopping = False
-            self.newest_input_stamp: int | None = None  # ns, over clouds and odometry alike
+            self.newest_odometry_stamp: int | None = None  # ns, of accepted odometry
             self.started = time.monotonic()
             self.last_cloud_received: float | None = None
             self.last_odometry_received: float | None = None
@@ -352,7 +352,6 @@ def make_node_class():
                 self.warnings.warn("empty", f"dropping empty cloud stamped {stamp / 1e9:.3f} s "
                                    f"(width {msg.width} x height {msg.height})")
                 return
-            self._check_stamp(stamp, "cloud")
             with self.queue_changed:
                 queue_limit = max(1, int(self._param("cloud_queue_size")))
                 while len(self.queue) >= queue_limit:
@@ -376,7 +375,7 @@ def make_node_class():
                                    f"ignoring odometry stamped {stamp / 1e9:.3f} s: {problem}")
                 return
             self.last_odometry_received = time.monotonic()
-            self._check_stamp(stamp, "odometry")
+            self._check_time_going_backwards(stamp)
             pose = pose_from_translation_quaternion(translation, quaternion)
             with self.queue_changed:
                 previous = self.poses.latest_stamp
@@ -395,15 +394,20 @@ def make_node_class():
             self.warnings.warn("jump", f"odometry jumped {jump:.2f} m at {stamp / 1e9:.3f} s ({after}; "
                                f"max_pose_jump = {self._param('max_pose_jump')} m): {action}")
 
-        def _check_stamp(self, stamp: int, source: str) -> None:
-            """Notice time going backwards (a bag played again, a restarted source) on either input."""
-            newest = self.newest_input_stamp
+        def _check_time_going_backwards(self, stamp: int) -> None:
+            """Notice time going backwards (a bag played again, a restarted source) on the odometry.
+
+            Only odometry that passed its checks counts. Clouds are left out on purpose: they
+            may lag the odometry by seconds (segmentation keeps the capture stamp) and arrive
+            in any order, and a malformed cloud with a wild stamp must change nothing.
+            """
+            newest = self.newest_odometry_stamp
             if newest is None or stamp > newest:
-                self.newest_input_stamp = stamp
+                self.newest_odometry_stamp = stamp
                 return
             if newest - stamp <= seconds_to_ns(self._param("stamp_backwards_tolerance")):
                 return
-            self.newest_input_stamp = stamp
+            self.newest_odometry_stamp = stamp
             # The odometry kept belongs to the old timeline: a cloud of the new one must never be
             # placed with it, and the clouds still waiting belong to the old one.
             with self.queue_changed:
@@ -414,7 +418,7 @@ def make_node_class():
             reset = self._param("reset_on_stamp_backwards")
             if reset:
                 self._reset_map()
-            self.warnings.warn("time", f"time went backwards by {(newest - stamp) / 1e9:.3f} s ({source} stamped "
+            self.warnings.warn("time", f"time went backwards by {(newest - stamp) / 1e9:.3f} s (odometry stamped "
                                f"{stamp / 1e9:.3f} s after input stamped {newest / 1e9:.3f} s; a restarted bag?): "
                                f"odometry history cleared, {stale} waiting clouds dropped, "
                                f"{'map reset (reset_on_stamp_backwards)' if reset else 'map kept'}")

@@ -390,6 +390,19 @@ def test_time_going_backwards_keeps_the_map_and_mapping_resumes(rig):
     assert after.integrated == before.integrated + 1
 
 
+def test_clouds_lagging_the_odometry_by_seconds_are_mapped(rig):
+    """Segmentation keeps the capture stamp, so clouds may arrive after odometry 2 s newer:
+    that is not time going backwards."""
+    before = rig.stats()
+    lagged = rig.next_stamp()
+    for step in range(5):  # odometry up to 2 s past the cloud's stamp, all of it before the cloud
+        rig.publish(odometry(lagged + step * SECOND // 2))
+    rig.publish(cloud(lagged + SECOND // 4))
+    after = rig.wait_stats(lambda s: s.integrated == before.integrated + 1)
+    assert after.dropped == before.dropped and "time reset" not in after.reasons, after
+    rig.stamp = lagged + 2 * SECOND
+
+
 def test_clouds_with_some_bad_points_or_big_endian_bytes_map_like_their_good_points(tmp_path_factory):
     """NaN/inf points and unknown label ids are warned about and left out; a big-endian cloud
     is read as such. The map equals the offline mapper's for the good points alone."""
