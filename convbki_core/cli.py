@@ -112,6 +112,7 @@ class NewOutputs:
                 os.replace(entry, final / entry.name)
             stage.rmdir()
         self.staged.clear()
+        self.created.clear()  # committed outputs are the user's now: a later discard() must not touch them
 
     def discard(self) -> None:
         for stage, _ in self.staged:

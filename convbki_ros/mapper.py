@@ -26,6 +26,7 @@ from convbki_core.labels import load_label_map
 from convbki_core.mapfile import MapFileError
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
+from convbki_core.ply import write_voxels_ply
 from convbki_ros.dds import publish_asynchronously, use_large_data_profile
 from convbki_ros.pointcloud import CloudError, decode_cloud, encode_cloud, encode_map_cloud, variance_cloud_fields
 from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus, pose_problem
@@ -665,8 +666,11 @@ def make_node_class():
                 map_file = self._param("map_file")
                 path = str(Path(map_file).with_suffix(".ply")) if map_file else "convbki_map.ply"
             try:
+                # Copy under the lock; statistics and the file are done without it (as for saves).
                 with self.map_lock:
-                    count = self.mapper.export_ply(path, max_variance=self._param("max_variance") or None)
+                    indices, alpha = self.mapper.items()
+                voxels = self.mapper.voxel_set(indices, alpha)
+                count = write_voxels_ply(voxels, path, max_variance=self._param("max_variance") or None)
                 response.success, response.message = True, f"wrote {count} voxels to {path}"
             except OSError as error:
                 response.success, response.message = False, f"could not write {path}: {error.strerror or error}"

@@ -6,7 +6,7 @@ runs exactly that with the package's own programs, each in its own process over 
 
 * a drive in SemanticKITTI layout (``--dataset``; by default a synthetic one is simulated),
   turned into a bag with ``kitti_to_bag``;
-* the ``mapper`` node with ``config/mapper.yaml`` (default queue of 10 clouds, simulated
+* the ``mapper`` node with ``config/mapper.yaml`` (its default queue of 20 clouds, simulated
   time, ``publish_period`` 1 s, counters logged every second);
 * a listener that subscribes ``/semantic_map`` the way RViz does (so the node really encodes
   and sends the whole map every second) and records when each map arrives;
@@ -125,20 +125,29 @@ def _check(args: argparse.Namespace) -> int:
             played = time.monotonic()
             player = subprocess.Popen([sys.executable, "-m", "convbki_ros.play_bag", str(bag), "--clock", "--rate",
                                        str(args.rate)], env=env, stdin=subprocess.DEVNULL)
+            unchanged_since = None  # when the counters last changed after the bag ended
             while True:
                 line = node_lines.next(timeout=30)
                 match = COUNTERS.search(line)
-                if match:
-                    counters = tuple(int(v) for v in match.groups())
-                    samples.append(counters)
-                    print(f"\r[{PROG}]     {line.split(']: ')[-1].strip()}", end="", flush=True)
-                    scans_in, integrated, dropped, queued = counters[:4]
-                    if player.poll() is not None and scans_in >= scans and integrated + dropped == scans_in \
-                            and queued == 0:
-                        break
+                if not match:
+                    continue
+                previous, counters = counters, tuple(int(v) for v in match.groups())
+                samples.append(counters)
+                print(f"\r[{PROG}]     {line.split(']: ')[-1].strip()}", end="", flush=True)
+                if player.poll() is None:
+                    continue
+                if player.returncode != 0:
+                    print()
+                    raise UserError(f"play_bag failed with exit code {player.returncode}")
+                scans_in, integrated, dropped, queued = counters[:4]
+                if scans_in >= scans and integrated + dropped == scans_in and queued == 0:
+                    break
+                # Clouds lost on the way never arrive: stop once nothing has changed for 10 s.
+                if unchanged_since is None or counters[:4] != (previous or ())[:4]:
+                    unchanged_since = time.monotonic()
+                elif time.monotonic() - unchanged_since > 10.0:
+                    break
             print()
-            if player.wait() != 0:
-                raise UserError("play_bag failed")
             replay_s = time.monotonic() - played
             time.sleep(2 * args.publish_period)  # the last map
             while True:

@@ -443,3 +443,17 @@ def test_bench_never_overwrites_a_dataset_it_did_not_write(tmp_path, capsys):
     code = bench.main(["--drive-dir", str(tmp_path / "kitti"), "--scans", "3", "--skip-ablation"])
     one_line_error(capsys, code, "bench", "not a synthetic drive")
     assert tree(tmp_path / "kitti") == before
+
+
+def test_outputs_committed_survive_a_later_failure(tmp_path):
+    """After commit() the outputs are the user's: a failure afterwards (Ctrl-C while printing) keeps them."""
+    from convbki_core.cli import NewOutputs
+
+    outputs = NewOutputs()
+    report = outputs.file(outputs.folder(tmp_path / "new" / "reports") / "r.json")
+    report.write_text("{}")
+    stage = outputs.staging(tmp_path / "new" / "labels")
+    (stage / "000000.label").write_bytes(b"\0" * 4)
+    outputs.commit()
+    outputs.discard()
+    assert report.read_text() == "{}" and (tmp_path / "new" / "labels" / "000000.label").exists()
