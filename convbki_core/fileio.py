@@ -7,29 +7,45 @@ moment leaves either the old file or the new one, never a mix.
 
 Temporary files and what happens to them when a writer is killed (``kill -9``, power cut):
 
-* they are named ``.NAME.PID.RANDOM.tmp`` next to ``NAME``: hidden, obviously temporary,
-  and carrying the id of the process that writes them;
+* they are named ``.NAME.PID.HOST.RANDOM.tmp`` next to ``NAME``: hidden, obviously
+  temporary, and carrying the id of the process that writes them;
 * a writer that fails with an exception removes its own temporary file;
 * one that is killed cannot, so every save of ``NAME`` first removes the temporary files
   of ``NAME`` whose writer process no longer exists. Stale files therefore never pile up:
   there is at most one per killed writer until the next save of the same file. Files of a
   live process (a concurrent save from another process or thread) are left alone.
 
-Caveat: liveness is judged by process id on this machine, so on a folder shared between
-machines (NFS) another machine's temporary files are treated as live and kept.
+On a folder shared between machines (NFS) a process id means nothing to another machine,
+so names also carry a tag of the writer's host (``.NAME.PID.HOST.RANDOM.tmp``) and only
+files written on this host are ever removed; another machine's are left alone.
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+import socket
 import tempfile
+import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO
 
 TEMP_SUFFIX = ".tmp"
+# This machine, in temporary names: a short hash of the host name (names stay short and safe).
+HOST_TAG = f"{zlib.crc32(socket.gethostname().encode()):08x}"
+
+
+def writer_tag(pid: int | None = None) -> str:
+    """``PID.HOST`` of a writer (default: this process), as temporary names carry it."""
+    return f"{os.getpid() if pid is None else pid}.{HOST_TAG}"
+
+
+def _stale_writer(tag: str) -> bool:
+    """True when ``tag`` (``PID.HOST``) names a process of this host that no longer exists."""
+    pid, _, host = tag.partition(".")
+    return host == HOST_TAG and pid.isdigit() and not _process_alive(int(pid))
 
 
 def temp_prefix(path: str | Path) -> str:
@@ -46,7 +62,7 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     remove_stale_temp_files(path)
-    handle = tempfile.NamedTemporaryFile(mode="wb", dir=folder, prefix=f"{temp_prefix(path)}{os.getpid()}.",
+    handle = tempfile.NamedTemporaryFile(mode="wb", dir=folder, prefix=f"{temp_prefix(path)}{writer_tag()}.",
                                          suffix=TEMP_SUFFIX, delete=False)
     temp_path = Path(handle.name)
     try:
@@ -93,9 +109,9 @@ def remove_stale_temp_files(path: str | Path) -> int:
     removed = 0
     prefix = temp_prefix(path)
     for candidate in temp_files(path):
-        owner = candidate.name[len(prefix):].split(".", 1)[0]
-        if not owner.isdigit() or _process_alive(int(owner)):
-            continue  # not one of ours, or its writer may still be writing it
+        owner = ".".join(candidate.name[len(prefix):].split(".")[:2])
+        if not _stale_writer(owner):
+            continue  # not one of ours, another host's, or its writer may still be writing it
         try:
             candidate.unlink()
             removed += 1
@@ -107,8 +123,8 @@ def remove_stale_temp_files(path: str | Path) -> int:
 
 
 def staging_prefix(final: str | Path) -> str:
-    """Name prefix of the hidden staging folders beside ``final``: ``.NAME.partial-PID-``."""
-    return f".{Path(final).name}.partial-{os.getpid()}-"
+    """Name prefix of the hidden staging folders beside ``final``: ``.NAME.partial-PID.HOST-``."""
+    return f".{Path(final).name}.partial-{writer_tag()}-"
 
 
 def remove_stale_staging_folders(final: str | Path) -> int:
@@ -126,9 +142,8 @@ def remove_stale_staging_folders(final: str | Path) -> int:
     except OSError:
         return 0
     for name in entries:
-        owner = name[len(head):].split("-", 1)[0]
-        if not owner.isdigit() or _process_alive(int(owner)):
-            continue  # not named by us, or its run may still be going
+        if not _stale_writer(name[len(head):].split("-", 1)[0]):
+            continue  # not named by us, another host's, or its run may still be going
         shutil.rmtree(folder / name, ignore_errors=True)
         removed += 1
     return removed

@@ -28,7 +28,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError
-from convbki_core.fileio import atomic_write_bytes, remove_stale_temp_files, temp_files
+from convbki_core.fileio import atomic_write_bytes, remove_stale_temp_files, temp_files, writer_tag
 from convbki_core.mapfile import MAP_VERSION, read_map
 
 REPO = Path(__file__).resolve().parents[1]
@@ -192,15 +192,16 @@ def test_stale_temp_files_of_live_processes_and_other_names_are_kept(tmp_path):
     path = tmp_path / "map.npz"
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    stale = tmp_path / f".map.npz.{dead.pid}.abc.tmp"
-    mine = tmp_path / f".map.npz.{os.getpid()}.def.tmp"  # this process: maybe another thread mid-save
-    parent = tmp_path / f".map.npz.{os.getppid()}.ghi.tmp"  # a live process
-    other = tmp_path / f".other.npz.{dead.pid}.abc.tmp"  # another file's
-    for p in (stale, mine, parent, other):
+    stale = tmp_path / f".map.npz.{writer_tag(dead.pid)}.abc.tmp"
+    mine = tmp_path / f".map.npz.{writer_tag()}.def.tmp"  # this process: maybe another thread mid-save
+    parent = tmp_path / f".map.npz.{writer_tag(os.getppid())}.ghi.tmp"  # a live process
+    other = tmp_path / f".other.npz.{writer_tag(dead.pid)}.abc.tmp"  # another file's
+    remote = tmp_path / f".map.npz.{dead.pid}.0badc0de.jkl.tmp"  # another host's (NFS): its pid means nothing here
+    for p in (stale, mine, parent, other, remote):
         p.write_bytes(b"partial")
     atomic_write_bytes(path, b"complete")
     assert path.read_bytes() == b"complete"
-    assert not stale.exists() and mine.exists() and parent.exists() and other.exists()
+    assert not stale.exists() and mine.exists() and parent.exists() and other.exists() and remote.exists()
 
 
 def test_failed_save_leaves_the_old_file_and_no_temp_file(tmp_path):

@@ -19,6 +19,7 @@ import yaml
 from kitti_fixture import write_drive
 
 from convbki_core import bench, evaluate, synthetic, train
+from convbki_core.fileio import writer_tag
 from convbki_ros import demo, kitti_to_bag, play_bag
 
 REPO = Path(__file__).resolve().parents[1]
@@ -211,17 +212,19 @@ def test_staging_folders_of_killed_runs_are_removed_by_the_next_run(root, tmp_pa
     dead, alive = 2**22 + 12345, os.getpid()  # above any pid_max: no such process
     leftovers = {}
     for owner in (dead, alive):
-        leftover = tmp_path / f".b.partial-{owner}-x1y2"
+        leftover = tmp_path / f".b.partial-{writer_tag(owner)}-x1y2"
         (leftover / "b").mkdir(parents=True)
         (leftover / "b" / "half.mcap").write_bytes(b"\0" * 1000)
         leftovers[owner] = leftover
-    labels_leftover = tmp_path / "out" / "sequences" / "00" / f".predictions.partial-{dead}-q"
+    remote = tmp_path / f".b.partial-{dead}.0badc0de-z9"  # another host's (NFS): never touched
+    remote.mkdir()
+    labels_leftover = tmp_path / "out" / "sequences" / "00" / f".predictions.partial-{writer_tag(dead)}-q"
     labels_leftover.mkdir(parents=True)
     assert kitti_to_bag.main(["--dataset", str(root), "--sequence", "0", "--out", str(tmp_path / "b")]) == 0
     assert evaluate.main(["--dataset", str(root), "--sequence", "0", "--report", str(tmp_path / "r.json"),
                           "--write-labels", str(tmp_path / "out"), "--quiet", *SMALL_WINDOW]) == 0
     assert not leftovers[dead].exists() and not labels_leftover.exists()
-    assert leftovers[alive].exists()  # a run of a live process may still be writing there
+    assert leftovers[alive].exists() and remote.exists()  # a live run, or one on another machine
     assert (tmp_path / "b").is_dir() and sorted(p.name for p in labels_leftover.parent.iterdir()) == ["predictions"]
 
 
