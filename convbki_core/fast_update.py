@@ -294,7 +294,7 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
 if HAVE_NUMBA:
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _gather_window_numba(alpha, mask, origin, dims):  # pragma: no cover - compiled; tested via items()
+    def _gather_window_numba(alpha, mask, origin, dims, indices, values):  # pragma: no cover - compiled
         size_x, size_y, size_z = mask.shape
         num_classes = alpha.shape[0]
         counts = np.zeros(size_x + 1, np.int64)
@@ -306,8 +306,8 @@ if HAVE_NUMBA:
                         found += 1
             counts[x + 1] = found
         starts = np.cumsum(counts)
-        indices = np.empty((starts[-1], 3), np.int64)
-        values = np.empty((starts[-1], num_classes), np.float32)
+        if starts[-1] != indices.shape[0]:
+            return -1  # the caller's count of the mask was wrong: write nothing
         for x in prange(size_x):
             row = starts[x]
             global_x = origin[0] + (x - origin[0]) % dims[0]
@@ -321,25 +321,35 @@ if HAVE_NUMBA:
                         for c in range(num_classes):
                             values[row, c] = alpha[c, x, y, z]
                         row += 1
-        return indices, values
+        return starts[-1]
 
 
-def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray):
+def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray,
+                  indices: np.ndarray | None = None, values: np.ndarray | None = None):
     """Voxels of the torus window whose mask is set: (global indices (n, 3), alpha (n, C)), torus order.
 
     One compiled pass instead of ``alpha[:, argwhere(mask)]``, which gathers each of the C
     class planes separately (about 10x slower for a million voxels); the node does this
-    for every map it publishes.
+    for every map it publishes. ``indices``/``values`` (n rows, n = voxels in the mask):
+    write into these (e.g. slices of a larger array) instead of new arrays.
     """
     origin = np.ascontiguousarray(origin, np.int64)
     dims = np.ascontiguousarray(dims, np.int64)
+    if indices is None or values is None:
+        count = int(np.count_nonzero(mask))
+        indices = np.empty((count, 3), np.int64)
+        values = np.empty((count, alpha.shape[0]), np.float32)
     if HAVE_NUMBA:
-        return _gather_window_numba(alpha, mask, origin, dims)
+        if _gather_window_numba(alpha, mask, origin, dims, indices, values) != indices.shape[0]:
+            raise ValueError(f"output has {indices.shape[0]} rows, the window {int(np.count_nonzero(mask))} voxels")
+        return indices, values
     physical = np.argwhere(mask)
-    values = alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
+    if physical.shape[0] != indices.shape[0]:
+        raise ValueError(f"output has {indices.shape[0]} rows, the window {physical.shape[0]} voxels")
+    values[:] = alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
     # Unwrap the torus: the global index is the one in [origin, origin + dims) with this remainder.
-    return origin + (physical - origin) % dims, np.ascontiguousarray(values)
-
+    indices[:] = origin + (physical - origin) % dims
+    return indices, values
 
 _warmed_up = False
 

@@ -241,9 +241,14 @@ class ConvBKIMapper:
 
     def items(self) -> tuple[np.ndarray, np.ndarray]:
         """Every voxel with evidence: (global indices (N, 3) int64, alpha (N, C) float32)."""
-        stored_indices, stored_alpha = self.store.items()
-        window_indices, window_alpha = self.window.items()
-        return np.concatenate([stored_indices, window_indices]), np.concatenate([stored_alpha, window_alpha])
+        # One allocation filled by both parts: a map of millions of voxels is hundreds of MB,
+        # and the node does this for every map it publishes.
+        stored, in_window = len(self.store), self.window.count()
+        indices = np.empty((stored + in_window, 3), np.int64)
+        alpha = np.empty((stored + in_window, self.num_classes), np.float32)
+        self.store.items(indices[:stored], alpha[:stored])
+        self.window.items(indices[stored:], alpha[stored:])
+        return indices, alpha
 
     def voxels(self) -> VoxelSet:
         """Every voxel that ever received evidence, with its statistics."""

@@ -227,14 +227,23 @@ class VoxelStore:
         return alpha, found
 
     # -- whole map -------------------------------------------------------------------------
-    def items(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every stored voxel: (global indices (N, 3) int64, alpha (N, C) float32), chunk order."""
-        parts_index, parts_alpha = [], []
+    def items(self, indices: np.ndarray | None = None,
+              alpha: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every stored voxel: (global indices (N, 3) int64, alpha (N, C) float32), chunk order.
+
+        ``indices``/``alpha`` of ``len(self)`` rows: fill these instead of new arrays (the
+        map's ``items()`` fills one array for store and window, with no second copy).
+        """
+        if indices is None or alpha is None:
+            indices = np.empty((len(self), 3), np.int64)
+            alpha = np.empty((len(self), self.num_classes), np.float32)
+        row = 0
         for table in (self._active, self._archive):
             for key, chunk in table.items():
-                base = np.asarray(key, np.int64) << CHUNK_SHIFT
-                parts_index.append(_decode_offsets(chunk.offsets) + base)
-                parts_alpha.append(chunk.alpha)
-        if not parts_index:
-            return np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32)
-        return np.concatenate(parts_index), np.concatenate(parts_alpha)
+                end = row + chunk.offsets.size
+                indices[row:end] = _decode_offsets(chunk.offsets) + (np.asarray(key, np.int64) << CHUNK_SHIFT)
+                alpha[row:end] = chunk.alpha
+                row = end
+        if row != indices.shape[0]:
+            raise RuntimeError(f"store counted {indices.shape[0]} voxels but holds {row}")
+        return indices, alpha

@@ -128,8 +128,14 @@ class RollingWindow:
         alpha = self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
         return alpha, has
 
-    def items(self) -> tuple[np.ndarray, np.ndarray]:
-        """Voxels with evidence in the window: (global indices (n, 3), alpha (n, C)), in torus order."""
+    def items(self, indices: np.ndarray | None = None,
+              alpha: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Voxels with evidence in the window: (global indices (n, 3), alpha (n, C)), in torus order.
+
+        ``indices``/``alpha`` of ``count()`` rows: fill these instead of new arrays.
+        """
         if self.origin is None:
+            if indices is not None and alpha is not None:
+                return indices, alpha
             return np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32)
-        return gather_window(self.alpha, self.mask, self.origin, self.dims)
+        return gather_window(self.alpha, self.mask, self.origin, self.dims, indices, alpha)
