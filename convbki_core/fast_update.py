@@ -68,6 +68,17 @@ class FilterPlan:
 
 if HAVE_NUMBA:
 
+    @njit(cache=True, nogil=True, inline="always")
+    def _targets_in_part(target, m, x_begin, x_end, px):  # pragma: no cover - compiled
+        """px[i]: voxel m's i-th x target if it lies in this thread's planes [x_begin, x_end), else -1.
+        Returns whether any does (else the voxel is another thread's work)."""
+        any_x = False
+        for i in range(px.size):
+            p = target[m, 0, i]
+            px[i] = p if x_begin <= p < x_end else -1
+            any_x = any_x or px[i] >= 0
+        return any_x
+
     @njit(cache=True, parallel=True, nogil=True)  # nogil: ROS callbacks keep running during an update
     def _scatter_numba(occupied, features, filters, k_lo, k_hi, support, origin, dims, alpha, mask,
                        parts):  # pragma: no cover - compiled; tested through scatter_update
@@ -98,12 +109,7 @@ if HAVE_NUMBA:
                     value = features[m, c]
                     if value == 0.0:
                         continue
-                    any_x = False
-                    for i in range(size):
-                        p = target[m, 0, i]
-                        px[i] = p if x_begin <= p < x_end else -1
-                        any_x = any_x or px[i] >= 0
-                    if not any_x:
+                    if not _targets_in_part(target, m, x_begin, x_end, px):
                         continue
                     for i in range(size):
                         x = px[i]
@@ -119,12 +125,7 @@ if HAVE_NUMBA:
                                     alpha[c, x, y, z] += value * filters[c, i, j, k]
             # Mark the voxels that received evidence: the union of the present classes' supports.
             for m in range(num_voxels):
-                any_x = False
-                for i in range(size):
-                    p = target[m, 0, i]
-                    px[i] = p if x_begin <= p < x_end else -1
-                    any_x = any_x or px[i] >= 0
-                if not any_x:
+                if not _targets_in_part(target, m, x_begin, x_end, px):
                     continue
                 union[:] = 0
                 for c in range(num_classes):
