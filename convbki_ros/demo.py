@@ -48,7 +48,8 @@ def _python_module(module: str, *args: str, env: dict | None = None, **kwargs) -
     return subprocess.Popen([sys.executable, "-m", module, *args], env=env, stdin=subprocess.DEVNULL, **kwargs)
 
 
-def _run_module(module: str, *args: str) -> None:
+def run_module(module: str, *args: str) -> None:
+    """``python -m module args`` to completion; a non-zero exit is a one-line UserError."""
     code = subprocess.call([sys.executable, "-m", module, *args], stdin=subprocess.DEVNULL)
     if code != 0:
         raise UserError(f"{module} {' '.join(args)} failed with exit code {code}")
@@ -84,14 +85,14 @@ def _demo(args: argparse.Namespace) -> int:
         root, sequence = out / "data", "00"
         if not (root / "sequences" / sequence / "poses.txt").exists():
             _step(f"1/5 synthetic drive: {args.frames} scans -> {root} (about 2 s a scan)")
-            _run_module("convbki_core.synthetic", "--out", str(root), "--sequence", sequence, "--frames",
+            run_module("convbki_core.synthetic", "--out", str(root), "--sequence", sequence, "--frames",
                         str(args.frames), "--seed", str(args.seed), "--force")
         else:
             _step(f"1/5 synthetic drive: reusing {root / 'sequences' / sequence}")
     dataset = SemanticKittiSequence(root, sequence)
     bag = out / "bag"
     _step(f"2/5 kitti_to_bag -> {bag}")
-    _run_module("convbki_ros.kitti_to_bag", "--dataset", str(root), "--sequence", sequence, "--out", str(bag),
+    run_module("convbki_ros.kitti_to_bag", "--dataset", str(root), "--sequence", sequence, "--out", str(bag),
                 "--force")
 
     domain = os.environ.get("ROS_DOMAIN_ID") or str(random.randint(1, 100))

@@ -40,6 +40,7 @@ from pathlib import Path
 from convbki_core.cli import UserError, positive, run
 from convbki_core.fileio import atomic_write_bytes
 from convbki_core.paths import config_dir
+from convbki_ros.demo import LineReader, run_module
 
 PROG = "realtime_check"
 COUNTERS = re.compile(r"scans in (\d+), integrated (\d+), dropped (\d+).*queue (\d+), map voxels (\d+), "
@@ -70,12 +71,6 @@ def _step(message: str) -> None:
     print(f"[{PROG}] {message}", flush=True)
 
 
-def _run_module(module: str, *args: str) -> None:
-    code = subprocess.call([sys.executable, "-m", module, *args], stdin=subprocess.DEVNULL)
-    if code != 0:
-        raise UserError(f"{module} {' '.join(args)} failed with exit code {code}")
-
-
 def _prepare_bag(args: argparse.Namespace, out: Path) -> tuple[Path, int]:
     if args.dataset:
         root, sequence = Path(args.dataset), args.sequence
@@ -83,18 +78,16 @@ def _prepare_bag(args: argparse.Namespace, out: Path) -> tuple[Path, int]:
         root, sequence = out / "data", "00"
         if not (root / "sequences" / sequence / "poses.txt").exists():
             _step(f"simulating a {args.frames}-scan drive into {root} (about 0.3 s a scan)")
-            _run_module("convbki_core.synthetic", "--out", str(root), "--sequence", sequence, "--frames",
+            run_module("convbki_core.synthetic", "--out", str(root), "--sequence", sequence, "--frames",
                         str(args.frames), "--seed", str(args.seed), "--force", "--quiet")
     bag = out / "bag"
     _step(f"kitti_to_bag: scans 0:{args.frames} of {root / 'sequences' / sequence} -> {bag}")
-    _run_module("convbki_ros.kitti_to_bag", "--dataset", str(root), "--sequence", sequence, "--out", str(bag),
+    run_module("convbki_ros.kitti_to_bag", "--dataset", str(root), "--sequence", sequence, "--out", str(bag),
                 "--frames", f"0:{args.frames}", "--force")
     return bag, args.frames
 
 
 def _check(args: argparse.Namespace) -> int:
-    from convbki_ros.demo import LineReader  # reads a process's output on a thread, with timeouts
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     bag, scans = _prepare_bag(args, out)
