@@ -42,6 +42,18 @@ def frames_arg(text: str) -> str:
     return text
 
 
+def device_arg(text: str) -> str:
+    """argparse type: a torch device this machine has (``auto``, ``cpu``, ``cuda[:N]``), checked
+    while the arguments are parsed, before any work; returns ``text`` unchanged."""
+    from convbki_core.mapper import resolve_device
+
+    try:
+        resolve_device(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
 def positive(kind: type, name: str) -> Callable[[str], int | float]:
     """argparse type: a positive int or float."""
 

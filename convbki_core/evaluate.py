@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.cli import NewOutputs, UserError, frames_arg, output_folder, progress, run, sequence_arg
+from convbki_core.cli import NewOutputs, UserError, device_arg, frames_arg, output_folder, progress, run, sequence_arg
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.fileio import atomic_write_bytes
@@ -169,8 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--local-bounds", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX",
                    "YMAX", "ZMAX"), help="local window around the sensor in metres (default: the paper's "
                    "-40 -40 -2.6 40 40 2.6)")
-    p.add_argument("--device", default="auto", help="torch device: auto (CUDA when present), cpu, cuda "
-                   "(default: %(default)s)")
+    p.add_argument("--device", default="auto", type=device_arg,
+                   help="torch device: auto (CUDA when present), cpu, cuda or cuda:N (default: %(default)s)")
     p.add_argument("--update-path", default="auto", choices=("auto", "fast", "dense"),
                    help="how the update is computed: fast (compiled sparse scatter, the CPU default), dense (the "
                    "paper's depthwise conv3d, the CUDA default and the reference) (default: %(default)s)")

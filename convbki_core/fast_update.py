@@ -208,7 +208,7 @@ if HAVE_NUMBA:
         point_slot = np.full(count, -1, np.int64)
         point_linear = np.full(count, -1, np.int64)
         occupied = np.empty(count, np.int64)
-        stats = np.zeros(4, np.int64)  # non-finite, unknown label, ignored class, outside window
+        stats = np.zeros(5, np.int64)  # non-finite, unknown label, ignored class, outside window, bad probabilities
         used = 0
         for i in range(count):
             x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
@@ -216,12 +216,23 @@ if HAVE_NUMBA:
                 stats[0] += 1
                 continue
             if use_probabilities:
-                finite = True
+                # One pass over the row decides what voxelize.bad_probability_rows decides. A
+                # float64 sum of float32 values cannot overflow, so it is finite exactly when
+                # every value is; with no negative value it is positive exactly when one value is.
+                total = 0.0
+                lowest = np.float32(0.0)
                 for c in range(num_classes):
-                    if not np.isfinite(probabilities[i, c]):
-                        finite = False
+                    p = probabilities[i, c]
+                    total += p
+                    lowest = min(lowest, p)
+                finite = np.isfinite(total)
+                negative = lowest < 0
+                positive = total > 0
                 if not finite:
                     stats[0] += 1
+                    continue
+                if negative or not positive:
+                    stats[4] += 1
                     continue
             else:
                 label = labels[i]
@@ -267,8 +278,9 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
     """``voxelize(transform_points(points, pose), values, ...)`` in one compiled pass.
 
     ``slot`` is a scratch int32 table of the window's size, all -1 (left so on return): it
-    finds each voxel's row without sorting the points. Returns a ``voxelize.SparseVolume``
-    equal to the numpy path's (same voxels, same sums, same counts).
+    finds each voxel's row without sorting the points. Probabilities are judged and summed
+    in float32, as ``voxelize`` does. Returns a ``voxelize.SparseVolume`` equal to the numpy
+    path's (same voxels, same sums, same counts).
     """
     from convbki_core.voxelize import SparseVolume, VoxelizeStats
 
@@ -276,8 +288,9 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
     ignored = np.zeros(num_classes, np.bool_)
     ignored[[c for c in ignore_classes if 0 <= c < num_classes]] = True
     labels = np.zeros(0, np.int64) if with_probabilities else np.ascontiguousarray(values, np.int64)
-    probabilities = (np.ascontiguousarray(values, np.float32) if with_probabilities
-                     else np.zeros((0, num_classes), np.float32))
+    with np.errstate(over="ignore"):  # beyond float32: inf, then dropped (as voxelize.check_scan does)
+        probabilities = (np.ascontiguousarray(values, np.float32) if with_probabilities
+                         else np.zeros((0, num_classes), np.float32))
     points = np.ascontiguousarray(points)
     if points.dtype not in (np.float32, np.float64):
         points = points.astype(np.float64)
@@ -286,8 +299,10 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
         np.ascontiguousarray(origin, np.int64), np.ascontiguousarray(dims, np.int64), float(resolution), ignored, slot)
     order = np.argsort(occupied)
     stats = VoxelizeStats(points_in=len(points), non_finite=int(counts[0]), unknown_label=int(counts[1]),
-                          ignored_class=int(counts[2]), outside_window=int(counts[3]))
-    stats.used = stats.points_in - stats.non_finite - stats.unknown_label - stats.ignored_class - stats.outside_window
+                          ignored_class=int(counts[2]), outside_window=int(counts[3]),
+                          bad_probabilities=int(counts[4]))
+    stats.used = (stats.points_in - stats.non_finite - stats.bad_probabilities - stats.unknown_label
+                  - stats.ignored_class - stats.outside_window)
     return SparseVolume(np.asarray(origin, np.int64), np.asarray(dims, np.int64), occupied[order], features[order],
                         point_linear, stats)
 

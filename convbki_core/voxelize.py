@@ -103,7 +103,8 @@ class VoxelizeStats:
 
     points_in: int = 0
     used: int = 0
-    non_finite: int = 0  # NaN or inf coordinates (or probabilities)
+    non_finite: int = 0  # NaN or inf coordinates, or (coordinates finite) a NaN or inf probability
+    bad_probabilities: int = 0  # finite probability rows with a negative value or summing to zero
     outside_window: int = 0
     ignored_class: int = 0  # labels in the ignore set (e.g. 0, unlabeled)
     unknown_label: int = 0  # labels outside 0 .. C-1
@@ -143,9 +144,32 @@ class SparseVolume:
         return dense.view(num_classes, *(int(d) for d in self.dims))
 
 
+def bad_probability_rows(probabilities: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows of (N, C) class ``probabilities`` that are no evidence, as three disjoint (N,) bool masks:
+    rows holding a NaN/inf; finite rows holding a negative value; finite non-negative rows
+    summing to zero (all zero)."""
+    # Each row's minimum and maximum (with 0) find all three: NaN propagates through both,
+    # -inf shows in the minimum and +inf in the maximum, and a non-negative row sums to zero
+    # exactly when its maximum is zero. Column by column, because numpy reduces a short
+    # inner axis (C classes) one row at a time, far slower than elementwise passes over N.
+    lowest = np.zeros(probabilities.shape[0], probabilities.dtype)
+    highest = np.zeros(probabilities.shape[0], probabilities.dtype)
+    for column in probabilities.T:
+        np.minimum(lowest, column, out=lowest)
+        np.maximum(highest, column, out=highest)
+    non_finite = ~(np.isfinite(lowest) & np.isfinite(highest))
+    negative = ~non_finite & (lowest < 0)
+    zero_sum = ~non_finite & ~negative & (highest <= 0)
+    return non_finite, negative, zero_sum
+
+
 def check_scan(points: np.ndarray, values: np.ndarray, num_classes: int) -> tuple[np.ndarray, np.ndarray]:
     """Raise ``ValueError`` naming the problem unless points are (N, 3) and values (N,) integer
-    labels or (N, C) probabilities; returns both as arrays."""
+    labels or (N, C) probabilities; returns both as arrays, probabilities as float32.
+
+    Float32 is the precision of the evidence on every path, so both voxelisers judge the
+    same values: a probability beyond float32's range becomes inf (its row is then dropped),
+    one below its smallest subnormal becomes 0."""
     points = np.asarray(points)
     values = np.asarray(values)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -159,6 +183,11 @@ def check_scan(points: np.ndarray, values: np.ndarray, num_classes: int) -> tupl
         raise ValueError(f"labels must have shape (N,), got {values.shape}")
     if values.ndim == 1 and values.dtype.kind not in "iu":
         raise ValueError(f"labels must be integers, got dtype {values.dtype}")
+    if values.ndim == 2 and values.dtype != np.float32:
+        if values.dtype.kind not in "biuf":
+            raise ValueError(f"probabilities must be numbers, got dtype {values.dtype}")
+        with np.errstate(over="ignore"):
+            values = values.astype(np.float32)
     return points, values
 
 
@@ -169,8 +198,9 @@ def voxelize(points: np.ndarray, values: np.ndarray, origin: np.ndarray, dims: n
     ``values`` is either (N,) integer learning labels or (N, C) class probabilities.
     Points with non-finite coordinates, points outside the window, labels in
     ``ignore_classes`` and labels outside 0..C-1 are dropped and counted. With
-    probabilities, the columns of ``ignore_classes`` are zeroed (they carry no evidence)
-    and rows that are non-finite are dropped.
+    probabilities, rows holding a NaN/inf (counted as ``non_finite``) and rows holding a
+    negative value or summing to zero (``bad_probabilities``) are dropped, and the columns
+    of ``ignore_classes`` are zeroed (they carry no evidence).
     """
     points, values = check_scan(points, values, num_classes)
     origin = np.asarray(origin, dtype=np.int64)
@@ -181,8 +211,14 @@ def voxelize(points: np.ndarray, values: np.ndarray, origin: np.ndarray, dims: n
     stats = VoxelizeStats(points_in=count)
     keep = np.isfinite(points).all(axis=1)
     if with_probabilities:
-        keep &= np.isfinite(values).all(axis=1)
-    stats.non_finite = int(count - keep.sum())
+        non_finite, negative, zero_sum = bad_probability_rows(values)
+        keep &= ~non_finite
+        bad = keep & (negative | zero_sum)
+        stats.bad_probabilities = int(bad.sum())
+        stats.non_finite = int(count - keep.sum())
+        keep &= ~bad
+    else:
+        stats.non_finite = int(count - keep.sum())
 
     if not with_probabilities:
         labels = values.astype(np.int64, copy=False)

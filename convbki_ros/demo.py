@@ -162,9 +162,10 @@ def _demo(args: argparse.Namespace) -> int:
 class LineReader:
     """Reads a process's output on a thread, so waiting for a line can time out."""
 
-    def __init__(self, process: subprocess.Popen, log):
+    def __init__(self, process: subprocess.Popen, log, name: str = "the mapper node"):
         self.process = process
         self.log = log
+        self.name = name  # who is waited for, in error messages
         self.lines: queue.Queue[str] = queue.Queue()
         self.thread = threading.Thread(target=self._pump, daemon=True)
         self.thread.start()
@@ -184,15 +185,15 @@ class LineReader:
             return self.lines.get(timeout=timeout)
         except queue.Empty:
             if self.process.poll() is not None:
-                raise UserError(f"the mapper node stopped (exit code {self.process.returncode}); see its log") \
+                raise UserError(f"{self.name} stopped (exit code {self.process.returncode}); see its log") \
                     from None
-            raise UserError(f"the mapper node said nothing for {timeout:.0f} s; see its log") from None
+            raise UserError(f"{self.name} said nothing for {timeout:.0f} s; see its log") from None
 
     def wait_for(self, text: str, timeout: float) -> None:
         deadline = time.monotonic() + timeout
         while text not in self.next(max(0.1, deadline - time.monotonic())):
             if time.monotonic() > deadline:
-                raise UserError(f"the mapper node did not say '{text}' within {timeout:.0f} s")
+                raise UserError(f"{self.name} did not say '{text}' within {timeout:.0f} s")
 
 
 def _call_services(env: dict) -> None:

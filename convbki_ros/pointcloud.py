@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from convbki_core.voxelize import bad_probability_rows
 from convbki_ros.transforms import TypeResolver, make_header, message_types, stamp_to_ns
 
 # sensor_msgs/PointField datatype constants.
@@ -46,20 +47,27 @@ MAX_POINT_STEP = 1 << 24
 MAX_PROBABILITY_FIELDS = 1024
 
 
+# Why a point is dropped, in the order the checks apply: a point is counted once, under the first.
+BAD_POINT_REASONS = ("NaN/inf coordinates", "NaN/inf probabilities", "negative probabilities",
+                     "probabilities summing to zero")
+
+
 @dataclass
 class DecodedCloud:
-    """The usable content of a PointCloud2, finite points only.
+    """The usable content of a PointCloud2: points with finite coordinates and valid probabilities.
 
     ``points`` are in the cloud's frame (m): float32 when x, y, z are all float32, else
     float64. ``labels`` (int64, as stored: raw or learning ids, the caller knows which) or
-    ``probabilities`` ((N, C) float32) holds the semantics, the other is None.
+    ``probabilities`` ((N, C) float32, every row finite, non-negative, with a positive sum)
+    holds the semantics, the other is None. ``bad_points`` counts the dropped points under
+    each of ``BAD_POINT_REASONS`` (every reason present, 0 when none).
     """
 
     points: np.ndarray  # (N, 3) float32 | float64
     labels: np.ndarray | None  # (N,) int64
     probabilities: np.ndarray | None  # (N, C) float32
     raw_label_dtype: np.dtype | None  # the label field's dtype as sent (None for probabilities)
-    dropped_non_finite: int  # points dropped for NaN/inf coordinates (or probabilities)
+    bad_points: dict[str, int]  # reason (one of BAD_POINT_REASONS) -> points dropped for it
     total_points: int  # width * height
     intensity: np.ndarray | None = None  # (N,) float32 when the cloud has an `intensity` field
     frame_id: str = ""
@@ -67,6 +75,20 @@ class DecodedCloud:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
+
+    @property
+    def dropped(self) -> int:
+        """Points dropped, all reasons together (``total_points - len(self)``)."""
+        return sum(self.bad_points.values())
+
+    def bad_points_text(self) -> str:
+        """One line such as "100 of 5100 points dropped: 60 with NaN/inf coordinates, 40 with
+        negative probabilities" (reasons with a count only); "" when no point was dropped."""
+        reasons = [f"{self.bad_points[reason]} with {reason}" for reason in BAD_POINT_REASONS
+                   if self.bad_points.get(reason)]
+        if not reasons:
+            return ""
+        return f"{self.dropped} of {self.total_points} points dropped: {', '.join(reasons)}"
 
 
 # ----------------------------------------------------------------------------- decoding
@@ -165,9 +187,10 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
 
     ``num_classes``: when given, probability fields must be exactly ``prob_0 .. prob_{C-1}``;
     when None, C is taken from the fields present (they must still be contiguous from 0).
-    Probabilities win when a cloud has both ``label`` and ``prob_*`` fields. Points whose
-    coordinates (or probabilities) are NaN/inf are dropped and counted. Raises
-    ``CloudError`` naming the problem for a cloud that cannot be read.
+    Probabilities win when a cloud has both ``label`` and ``prob_*`` fields. Points with
+    NaN/inf coordinates, and points whose probability row holds a NaN/inf or a negative
+    value or sums to zero, are dropped and counted by reason (``DecodedCloud.bad_points``).
+    Raises ``CloudError`` naming the problem for a cloud that cannot be read.
     """
     try:
         fields = list(msg.fields)
@@ -224,21 +247,25 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
     for column, name in enumerate(("x", "y", "z")):
         points[:, column] = view[name]
     keep = np.isfinite(points).all(axis=1)
+    bad_points = dict.fromkeys(BAD_POINT_REASONS, 0)
+    bad_points[BAD_POINT_REASONS[0]] = int(count - np.count_nonzero(keep))
 
     probabilities = labels = raw_label_dtype = None
     if probability_names:
         with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf, then dropped
             probabilities = _gather_probabilities(view, table, probability_names, used, order, point_step, raw,
                                                   count)
-        keep &= np.isfinite(probabilities).all(axis=1)
+        for reason, bad in zip(BAD_POINT_REASONS[1:], bad_probability_rows(probabilities)):
+            bad &= keep  # a point is counted under its first reason only
+            bad_points[reason] = int(np.count_nonzero(bad))
+            keep &= ~bad
     elif "label" in used:
         raw_label_dtype = used["label"]
         labels = view["label"].astype(np.int64)
     with np.errstate(over="ignore", invalid="ignore"):  # a float64 beyond float32's range becomes inf, as a cast should
         intensity = view["intensity"].astype(np.float32) if "intensity" in used else None
 
-    dropped = int(count - np.count_nonzero(keep))
-    if dropped:
+    if count - np.count_nonzero(keep):
         points = points[keep]
         labels = labels[keep] if labels is not None else None
         probabilities = probabilities[keep] if probabilities is not None else None
@@ -250,7 +277,7 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
     except (TypeError, ValueError, AttributeError, OverflowError):
         raise CloudError("header has no usable stamp") from None
     return DecodedCloud(points=points, labels=labels, probabilities=probabilities, raw_label_dtype=raw_label_dtype,
-                        dropped_non_finite=dropped, total_points=count, intensity=intensity,
+                        bad_points=bad_points, total_points=count, intensity=intensity,
                         frame_id=frame_id, stamp_ns=stamp_ns)
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from kitti_fixture import write_drive
 
@@ -401,6 +402,38 @@ def test_bad_arguments_are_one_line_exit_2(module, argv, capsys, tmp_path, monke
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
     assert len(lines) == 1 and ": error: " in lines[0] and "Traceback" not in err, err
+    assert sorted(tmp_path.iterdir()) == []
+
+
+def _missing_devices() -> list:
+    """--device values this machine lacks, with what the one line must name."""
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    no_cuda = pytest.mark.skipif(count > 0, reason="this machine has a CUDA device, so --device cuda is valid here")
+    return [pytest.param("cuda", ("'cuda' requested", "has no CUDA device", "use device auto or cpu"), marks=no_cuda),
+            pytest.param(f"cuda:{count}", (f"'cuda:{count}' requested",)),
+            pytest.param("tpu", ("unknown device 'tpu'", "use auto, cpu or cuda[:N]"))]
+
+
+@pytest.mark.parametrize("device, needles", _missing_devices())
+def test_evaluate_refuses_a_device_it_cannot_use_before_any_work(clean_root, tmp_path, capsys, device, needles):
+    before = tree(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:  # refused while the arguments are parsed
+        evaluate.main(["--dataset", str(clean_root), "--sequence", "0", "--report", str(tmp_path / "r.json"),
+                       "--write-labels", str(tmp_path / "out"), "--quiet", "--device", device])
+    one_line_error(capsys, exit_info.value.code, "evaluate", "argument --device:", *needles)
+    assert tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("module, argv", [
+    (train, ["--dataset", "d", "--sequences", "0", "--out", "k.yaml"]),
+    (bench, []),
+])
+def test_train_and_bench_have_no_device_flag(module, argv, capsys, tmp_path, monkeypatch):
+    """Both run on the CPU only: --device is an unknown argument, refused in one line."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        module.main([*argv, "--device", "cuda"])
+    one_line_error(capsys, exit_info.value.code, module.PROG, "unrecognized arguments: --device cuda")
     assert sorted(tmp_path.iterdir()) == []
 
 

@@ -131,6 +131,14 @@ def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities):
     if probabilities:
         values = rng.dirichlet(np.ones(NUM_CLASSES), count).astype(np.float32)
         values[rng.random(count) < 0.03, 2] = np.nan
+        values[rng.random(count) < 0.03, 3] = -np.inf
+        values[rng.random(count) < 0.05, 1] = -rng.uniform(0, 1)  # negative, with or without a positive sum
+        values[rng.random(count) < 0.02, 4] = -0.0
+        values[rng.random(count) < 0.05] = 0.0  # rows summing to zero
+        if rng.random() < 0.5:  # float64 input: judged after the cast to float32 on both paths
+            values = values.astype(np.float64)
+            values[rng.random(count) < 0.03, 0] = 1e300  # inf in float32
+            values[rng.random(count) < 0.03] = np.where(rng.random(NUM_CLASSES) < 0.5, 1e-300, 0.0)  # 0 in float32
     else:
         values = rng.integers(-1, NUM_CLASSES + 2, count)  # negative and unknown labels too
     pose = np.eye(4)
@@ -146,6 +154,15 @@ def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities):
     np.testing.assert_array_equal(fast.point_linear, reference.point_linear)
     np.testing.assert_allclose(fast.features, reference.features, rtol=1e-6, atol=1e-6)
     assert fast.stats == reference.stats
+    if probabilities:
+        with np.errstate(over="ignore", invalid="ignore"):  # float32 overflow and inf - inf in the sums
+            judged = values.astype(np.float32)
+            sums = judged.sum(axis=1, dtype=np.float64)
+        rows_ok = np.isfinite(points).all(axis=1) & np.isfinite(judged).all(axis=1)
+        bad = rows_ok & ((judged < 0).any(axis=1) | (sums <= 0))
+        assert fast.stats.non_finite == int(count - rows_ok.sum())
+        assert fast.stats.bad_probabilities == int(bad.sum())
+        assert (fast.point_linear[bad | ~rows_ok] == -1).all()
 
 
 @given(seed=st.integers(0, 2**31 - 1), filter_size=st.sampled_from([1, 3, 5]), probabilities=st.booleans())

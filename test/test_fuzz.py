@@ -26,7 +26,7 @@ from convbki_core.kernels import (
     load_kernel_file,
     parse_kernel_text,
 )
-from convbki_ros.pointcloud import CloudError, DecodedCloud, decode_cloud
+from convbki_ros.pointcloud import BAD_POINT_REASONS, CloudError, DecodedCloud, decode_cloud
 
 
 def fuzz(examples: int) -> settings:
@@ -145,14 +145,16 @@ def check_decoded(msg, num_classes) -> str:
     n = len(cloud)
     assert cloud.points.ndim == 2 and cloud.points.shape == (n, 3)
     assert cloud.points.dtype in (np.float32, np.float64) and np.isfinite(cloud.points).all()
-    assert cloud.total_points == int(msg.width) * int(msg.height) == n + cloud.dropped_non_finite
+    assert cloud.total_points == int(msg.width) * int(msg.height) == n + cloud.dropped
+    assert set(cloud.bad_points) == set(BAD_POINT_REASONS) and cloud.dropped == sum(cloud.bad_points.values())
+    assert (cloud.bad_points_text() == "") == (cloud.dropped == 0)
     assert cloud.labels is not None or cloud.probabilities is not None or num_classes == -1
     if cloud.labels is not None:
         assert cloud.probabilities is None and cloud.labels.shape == (n,) and cloud.labels.dtype == np.int64
     if cloud.probabilities is not None:
         p = cloud.probabilities
         assert p.ndim == 2 and p.shape[0] == n and p.shape[1] >= 1 and p.dtype == np.float32
-        assert np.isfinite(p).all()
+        assert np.isfinite(p).all() and (p >= 0).all() and (p.max(axis=1, initial=0) > 0).all()
         if num_classes not in (None, -1):
             assert p.shape[1] == num_classes
     if cloud.intensity is not None:

@@ -5,10 +5,12 @@ import json
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError, dirichlet_statistics
+from convbki_core.mapper import resolve_device
 from convbki_core.paths import kernel_path
 from convbki_core.ply import read_ply
 from convbki_core.store import VoxelStore
@@ -105,6 +107,75 @@ def test_voxelize_counts_every_dropped_point():
     assert s.dropped == 5
 
 
+def bad_probability_scan(rng, count):
+    """A scan of good probability rows with every kind of bad row mixed in: (points, probabilities,
+    (N,) bool good rows)."""
+    points = rng.uniform(-2.0, 2.0, (count, 3)) * [1, 1, 0.3]
+    probabilities = rng.dirichlet(np.ones(NUM_CLASSES), count).astype(np.float32)
+    kinds = rng.integers(0, 8, count)  # about half the rows bad, of each kind
+    probabilities[kinds == 1, 2] = -5.0  # negative: would drive concentrations below zero
+    probabilities[kinds == 2, 1] = -0.01  # negative, still a positive sum
+    probabilities[kinds == 3, 3] = np.nan
+    probabilities[kinds == 4, 0] = np.inf
+    probabilities[kinds == 5] = 0.0  # sums to zero
+    probabilities[kinds == 6, 4] = -np.inf
+    return points, probabilities, (kinds == 0) | (kinds == 7)
+
+
+def sorted_items(mapper):
+    indices, alpha = mapper.items()
+    order = np.lexsort(indices.T)
+    return indices[order], alpha[order]
+
+
+@pytest.mark.parametrize("update_path", ["fast", "dense"])
+@pytest.mark.parametrize("voxeliser", ["compiled", "numpy"])
+def test_bad_probability_rows_leave_the_map_of_the_good_rows(update_path, voxeliser, tmp_path, monkeypatch):
+    """Rows with a NaN/inf, a negative value or a zero sum are dropped and counted; the map is
+    exactly the map of the good rows alone, and it saves and loads."""
+    if voxeliser == "numpy":
+        monkeypatch.setattr("convbki_core.mapper.HAVE_NUMBA", False)  # the voxeliser used without numba
+    rng = np.random.default_rng(12)
+    with_bad, good_only = small_mapper(update_path=update_path), small_mapper(update_path=update_path)
+    for _ in range(3):
+        pose = random_pose(rng, 0.5)
+        points, probabilities, good = bad_probability_scan(rng, 400)
+        result = with_bad.integrate(points, probabilities, pose)
+        reference = good_only.integrate(points[good], probabilities[good], pose)
+        finite = np.isfinite(probabilities).all(axis=1)
+        assert result.stats.non_finite == int((~finite).sum()) > 0
+        assert result.stats.bad_probabilities == int((finite & ~good).sum()) > 0
+        assert result.stats.used == reference.stats.used > 0
+        assert result.new_voxels == reference.new_voxels
+    indices, alpha = sorted_items(with_bad)
+    want_indices, want_alpha = sorted_items(good_only)
+    assert len(indices) > 100
+    np.testing.assert_array_equal(indices, want_indices)
+    np.testing.assert_array_equal(alpha, want_alpha)
+    assert (alpha > 0).all()
+
+    with_bad.save(tmp_path / "map.npz")
+    loaded = small_mapper(update_path=update_path)
+    loaded.load(tmp_path / "map.npz")
+    loaded_indices, loaded_alpha = sorted_items(loaded)
+    np.testing.assert_array_equal(loaded_indices, indices)
+    np.testing.assert_array_equal(loaded_alpha, alpha)
+
+
+def test_a_scan_of_only_bad_probabilities_changes_nothing():
+    mapper = small_mapper()
+    mapper.integrate(*random_scan(np.random.default_rng(2), 100), np.eye(4))
+    before = sorted_items(mapper)
+    probabilities = np.array([[-1.0, 2, 0, 0, 0, 0], [0] * 6, [np.nan, 1, 0, 0, 0, 0]], np.float32)
+    result = mapper.integrate(np.zeros((3, 3)), probabilities, np.eye(4))
+    s = result.stats
+    assert (s.points_in, s.used, s.non_finite, s.bad_probabilities, s.dropped) == (3, 0, 1, 2, 3)
+    assert result.occupied_voxels == 0
+    after = sorted_items(mapper)
+    np.testing.assert_array_equal(before[0], after[0])
+    np.testing.assert_array_equal(before[1], after[1])
+
+
 def test_bad_inputs_raise_and_leave_the_map_untouched():
     mapper = small_mapper()
     mapper.integrate(*random_scan(np.random.default_rng(0), 100), np.eye(4))
@@ -122,6 +193,48 @@ def test_bad_inputs_raise_and_leave_the_map_untouched():
             mapper.integrate(*args)
     after = voxel_dict(mapper)
     assert set(before) == set(after) and all(np.array_equal(before[k], after[k]) for k in before)
+
+
+def test_resolve_device_accepts_auto_and_cpu():
+    assert resolve_device("auto") == resolve_device("") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device(torch.device("cpu")) == torch.device("cpu")
+
+
+@pytest.mark.parametrize("name", ["tpu", "abc", "CUDA", "cuda:x", "cuda:-1", " cpu"])
+def test_resolve_device_names_an_unknown_device(name):
+    with pytest.raises(ValueError) as error:
+        resolve_device(name)
+    assert str(error.value) == f"unknown device {name!r}: use auto, cpu or cuda[:N]"
+    with pytest.raises(ValueError, match="unknown device"):
+        small_mapper(device=name)
+
+
+@pytest.mark.parametrize("name", ["meta", "mps", "xpu"])
+def test_resolve_device_refuses_device_types_other_than_cpu_and_cuda(name):
+    with pytest.raises(ValueError) as error:
+        resolve_device(name)
+    assert str(error.value) == f"device {name!r} is not supported: use auto, cpu or cuda[:N]"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a CUDA device, so 'cuda' is valid here")
+@pytest.mark.parametrize("name", ["cuda", "cuda:0", "cuda:3"])
+def test_resolve_device_without_cuda_is_one_clear_error(name):
+    with pytest.raises(ValueError) as error:
+        resolve_device(name)
+    message = str(error.value)
+    assert message.startswith(f"device {name!r} requested, but this torch ({torch.__version__}) has no CUDA device")
+    assert message.endswith("; use device auto or cpu") and "\n" not in message
+    with pytest.raises(ValueError, match="no CUDA device"):
+        small_mapper(device=name)
+
+
+def test_resolve_device_refuses_a_cuda_index_beyond_the_devices_present():
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    with pytest.raises(ValueError, match=rf"^device 'cuda:{count}' requested, but "):
+        resolve_device(f"cuda:{count}")
+    if count:
+        assert resolve_device(f"cuda:{count - 1}") == torch.device(f"cuda:{count - 1}")
 
 
 def test_statistics_follow_the_dirichlet_formulas():

@@ -38,16 +38,20 @@ EXECUTABLES: dict[str, tuple[str, tuple[str, ...]]] = {
         "--lr")),
     "synth": ("convbki_core.synthetic", ("--out", "--sequence", "--frames", "--seed")),
     "bench": ("convbki_core.bench", ("--config", "--repeat", "--json")),
-    "realtime_check": ("convbki_ros.realtime_check", ("--frames", "--rate", "--publish-period", "--dataset")),
+    "realtime_check": ("convbki_ros.realtime_check", (
+        "--frames", "--rate", "--publish-period", "--dataset", "--listeners", "--busy-cores",
+        "--publication-mode")),
 }
 
-# INTERFACE.md section 4: parameters of the mapper node, with the paper's defaults.
-MAPPER_DEFAULTS = {
+# The contract's parameters of the mapper node, with the paper's defaults (the kernel file
+# holds resolution, filter_size and num_classes).
+PAPER_DEFAULTS = {
     "kernel_file": "", "num_classes": 20, "resolution": 0.2, "filter_size": 5,
     "local_bounds": [-40.0, -40.0, -2.6, 40.0, 40.0, 2.6], "prior": 0.001,
-    "label_space": "raw", "map_frame": "map", "max_variance": 0.0, "publish_period": 1.0,
-    "device": "auto", "input_qos": "reliable", "map_file": "", "autosave_period": 0.0,
+    "label_space": "raw", "map_frame": "", "max_variance": 0.0, "publish_period": 1.0,
+    "device": "auto", "update_path": "auto", "input_qos": "reliable", "map_file": "", "autosave_period": 0.0,
 }
+KERNEL_DECIDES = ("num_classes", "resolution", "filter_size")
 
 # Arguments that parse (used with a bad flag added).
 VALID_ARGS = {
@@ -58,7 +62,7 @@ VALID_ARGS = {
     "train": ["--dataset", "ds", "--sequences", "0", "--out", "k.yaml"],
     "synth": ["--out", "ds"],
     "bench": ["--repeat", "1"],
-    "realtime_check": ["--frames", "10"],
+    "realtime_check": ["--frames", "10", "--listeners", "map,variance", "--busy-cores", "1"],
 }
 
 # Top-level entries of the repo that are not part of the package source.
@@ -191,7 +195,7 @@ def test_installed_executable_help(exe: str, ros_env: dict[str, str], tmp_path: 
     for flag in EXECUTABLES[exe][1]:
         assert flag in result.stdout, f"{exe} --help does not mention {flag}"
     if exe == "mapper":
-        for name in MAPPER_DEFAULTS:
+        for name in [*PAPER_DEFAULTS, "base_to_sensor"]:
             assert name in result.stdout, f"mapper --help does not explain parameter {name}"
 
 
@@ -256,35 +260,39 @@ def test_venv_runs_modules_from_any_directory(tmp_path: Path) -> None:
 
 
 def test_mapper_params_file_documents_every_declared_parameter() -> None:
-    from convbki_ros.mapper import PARAMETERS
+    """config/mapper.yaml sets every parameter to its declared default, with the declared type (a
+    ROS parameter declared as double rejects an int), except those it must leave unset: the
+    kernel's grid (set, they would override the kernel file) and the optional sensor mount.
+    Both are documented there as comments."""
+    from convbki_ros.params import KERNEL_DECIDES as DECIDED
+    from convbki_ros.params import NOT_SET, PARAMETERS
 
-    params = yaml.safe_load((REPO / "config" / "mapper.yaml").read_text())["/**"]["ros__parameters"]
-    declared = {name: default for name, default, _ in PARAMETERS}
-    assert set(params) == set(declared)
-    for name, default in declared.items():
-        assert params[name] == default and type(params[name]) is type(default), name
-
-
-def test_mapper_params_file_has_paper_defaults() -> None:
-    path = REPO / "config" / "mapper.yaml"
-    params = yaml.safe_load(path.read_text())["/**"]["ros__parameters"]
-    for name, default in MAPPER_DEFAULTS.items():
-        assert name in params, f"config/mapper.yaml lacks {name}"
-        value = params[name]
-        # Same YAML type as the default: a ROS parameter declared as double rejects an int.
-        assert type(value) is type(default), f"{name}: {value!r} is not a {type(default)}"
-        if isinstance(default, str):
-            assert value == default, name
-        else:
-            assert value == pytest.approx(default), name
-        if isinstance(default, list):
+    text = (REPO / "config" / "mapper.yaml").read_text()
+    params = yaml.safe_load(text)["/**"]["ros__parameters"]
+    declared = {spec.name: spec.default for spec in PARAMETERS}
+    left_unset = {name for name, default in declared.items() if default is NOT_SET} | set(DECIDED)
+    assert set(DECIDED) == set(KERNEL_DECIDES)
+    assert set(params) == set(declared) - left_unset
+    for name in left_unset:
+        assert f"# {name}: " in text, f"config/mapper.yaml does not document {name}"
+    for name, value in params.items():
+        assert value == declared[name] and type(value) is type(declared[name]), name
+        if isinstance(value, list):
             assert all(type(v) is float for v in value), name
-    # rclpy's own parser (the one --params-file uses) accepts it for the node.
+
+
+def test_mapper_defaults_are_the_papers() -> None:
+    from convbki_core.kernels import load_kernel_file
+    from convbki_core.paths import kernel_path
+    from convbki_ros.params import SPECS, kernel_defaults
+
+    for name, default in PAPER_DEFAULTS.items():
+        assert SPECS[name].default == (default if isinstance(default, str) else pytest.approx(default)), name
+    shipped = kernel_defaults(load_kernel_file(kernel_path("semantic_kitti_compound")))
+    assert shipped == {name: PAPER_DEFAULTS[name] for name in KERNEL_DECIDES}
+    # rclpy's own parser (the one --params-file uses) accepts the shipped file for the node.
     from rclpy.parameter import parameter_dict_from_yaml_file
 
-    parsed = parameter_dict_from_yaml_file(str(path), use_wildcard=True,
-                                           target_nodes=["/convbki_mapper"])
-    assert set(MAPPER_DEFAULTS) <= set(parsed)
-    assert parsed["resolution"].value.double_value == pytest.approx(0.2)
-    assert list(parsed["local_bounds"].value.double_array_value) == pytest.approx(
-        MAPPER_DEFAULTS["local_bounds"])
+    parsed = parameter_dict_from_yaml_file(str(REPO / "config" / "mapper.yaml"), use_wildcard=True)
+    assert set(PAPER_DEFAULTS) - set(KERNEL_DECIDES) <= set(parsed)
+    assert list(parsed["local_bounds"].value.double_array_value) == pytest.approx(PAPER_DEFAULTS["local_bounds"])

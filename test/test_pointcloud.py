@@ -76,9 +76,11 @@ def layouts(draw):
     else:
         num_classes = draw(st.integers(1, 5))
         probability_type = draw(st.sampled_from(["<f4", "<f4", "<f8"]))
+        table = np.array([draw(st.lists(st.floats(0, 1, width=32), min_size=count, max_size=count))
+                          for _ in range(num_classes)], dtype=np.float32).reshape(num_classes, count)
+        table[0, ~table.any(axis=0)] = 1.0  # an all-zero row is a bad point: see test_bad_probability_rows_*
         for k in range(num_classes):
-            values = draw(st.lists(st.floats(0, 1, width=32), min_size=count, max_size=count))
-            columns[f"prob_{k}"] = np.array(values, dtype=np.float32).astype(probability_type)
+            columns[f"prob_{k}"] = table[k].astype(probability_type)
     if draw(st.booleans()):
         values = draw(st.lists(finite32, min_size=count, max_size=count))
         columns["intensity"] = np.array(values, dtype="<f4")
@@ -107,7 +109,8 @@ def test_decode_any_layout_to_the_bit(layout) -> None:
     points = expected_points(layout.columns)
     assert decoded.points.dtype == points.dtype
     assert decoded.points.tobytes() == points.tobytes()
-    assert decoded.dropped_non_finite == 0
+    assert decoded.bad_points == dict.fromkeys(pc.BAD_POINT_REASONS, 0)
+    assert decoded.dropped == 0 and decoded.bad_points_text() == ""
     assert decoded.total_points == len(points)
     assert decoded.frame_id == "velo_link"
     assert decoded.stamp_ns == 5_000_000_006
@@ -184,19 +187,91 @@ def test_non_finite_points_are_dropped_and_counted(count: int, data) -> None:
     msg = pc.encode_cloud(0, "velo_link", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "label": labels})
     assert msg.is_dense == (not bad.any())
     decoded = pc.decode_cloud(msg)
-    assert decoded.dropped_non_finite == int(bad.sum())
+    assert decoded.bad_points == {**dict.fromkeys(pc.BAD_POINT_REASONS, 0), "NaN/inf coordinates": int(bad.sum())}
+    assert decoded.dropped == int(bad.sum())
+    assert decoded.bad_points_text() == (f"{bad.sum()} of {count} points dropped: {bad.sum()} with NaN/inf "
+                                         "coordinates" if bad.any() else "")
     assert decoded.total_points == count
     assert np.array_equal(decoded.labels, labels[~bad].astype(np.int64))
     assert decoded.points.tobytes() == xyz[~bad].tobytes()
 
 
-def test_non_finite_probabilities_are_dropped() -> None:
-    xyz = np.zeros((3, 3), np.float32)
-    probs = np.array([[0.5, 0.5], [np.nan, 1.0], [1.0, 0.0]], np.float32)
+def test_bad_probability_rows_are_dropped_and_counted_by_reason() -> None:
+    rows = [  # (x, probabilities as float64, the reason it is dropped or None)
+        (0.0, [0.5, 0.5, 0.0], None),
+        (1.0, [0.2, -0.1, 0.9], "negative probabilities"),
+        (2.0, [np.nan, 0.5, 0.5], "NaN/inf probabilities"),
+        (3.0, [0.0, 0.0, 0.0], "probabilities summing to zero"),
+        (4.0, [0.0, 1.0, 0.0], None),
+        (5.0, [np.inf, 0.0, 0.0], "NaN/inf probabilities"),
+        (6.0, [-0.0, 0.0, -0.0], "probabilities summing to zero"),  # signed zeros are zero
+        (7.0, [-np.inf, 1.0, 1.0], "NaN/inf probabilities"),  # -inf is non-finite before it is negative
+        (8.0, [-1.0, np.nan, 1.0], "NaN/inf probabilities"),  # counted once, under its first reason
+        (np.nan, [-1.0, 0.0, 0.0], "NaN/inf coordinates"),  # coordinates come first
+        (10.0, [1e300, 0.5, 0.5], "NaN/inf probabilities"),  # float64 beyond float32's range: inf
+        (11.0, [1e-300, 0.0, 0.0], "probabilities summing to zero"),  # below float32's subnormals: 0
+        (12.0, [-1e-30, 1.0, 1.0], "negative probabilities"),
+        (13.0, [1e-45, 0.0, 0.0], None),  # float32's smallest subnormal: a positive sum
+    ]
+    xyz = np.array([[x, 0.0, 0.0] for x, _, _ in rows], np.float32)
+    probs = np.array([p for _, p, _ in rows], np.float64)
+    msg = pc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "prob": probs})
+    decoded = pc.decode_cloud(msg, 3)
+    assert decoded.bad_points == {"NaN/inf coordinates": 1, "NaN/inf probabilities": 5, "negative probabilities": 2,
+                                  "probabilities summing to zero": 3}
+    assert decoded.dropped == 11 and decoded.total_points == 14 and len(decoded) == 3
+    assert decoded.bad_points_text() == ("11 of 14 points dropped: 1 with NaN/inf coordinates, 5 with NaN/inf "
+                                         "probabilities, 2 with negative probabilities, 3 with probabilities "
+                                         "summing to zero")
+    good = [i for i, (_, _, reason) in enumerate(rows) if reason is None]
+    assert decoded.points[:, 0].tolist() == [0.0, 4.0, 13.0]
+    assert decoded.probabilities.tobytes() == probs[good].astype(np.float32).tobytes()
+
+
+def test_bad_points_text_names_only_the_reasons_present() -> None:
+    xyz = np.zeros((5, 3), np.float32)
+    probs = np.array([[0.5, 0.5], [-0.5, 1.5], [0.0, 0.0], [-2.0, 0.0], [1.0, 0.0]], np.float32)
     decoded = pc.decode_cloud(pc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
                                                        "prob": probs}), 2)
-    assert decoded.dropped_non_finite == 1
-    assert np.array_equal(decoded.probabilities, probs[[0, 2]])
+    assert decoded.bad_points_text() == ("3 of 5 points dropped: 2 with negative probabilities, 1 with "
+                                         "probabilities summing to zero")
+    assert np.array_equal(decoded.probabilities, probs[[0, 4]])
+
+
+@given(st.integers(0, 2**31 - 1))
+def test_bad_probability_rows_any_mix(seed: int) -> None:
+    """Counts per reason and the surviving rows equal a row-by-row classification in plain Python."""
+    import math
+
+    rng = np.random.default_rng(seed)
+    count, classes = int(rng.integers(0, 60)), int(rng.integers(1, 5))
+    xyz = rng.normal(size=(count, 3)).astype(np.float32)
+    probs = rng.random((count, classes)).astype(np.float32)
+    poisons = np.array([np.nan, np.inf, -np.inf, -0.5, -0.0, 0.0, 0.0, 0.0], np.float32)
+    mask = rng.random((count, classes)) < 0.15
+    probs[mask] = poisons[rng.integers(0, len(poisons), int(mask.sum()))]
+    probs[rng.random(count) < 0.1] = 0.0
+    xyz[rng.random(count) < 0.1, 1] = np.nan
+
+    def reason(point, row) -> str | None:
+        if not all(math.isfinite(float(v)) for v in point):
+            return "NaN/inf coordinates"
+        if not all(math.isfinite(float(v)) for v in row):
+            return "NaN/inf probabilities"
+        if any(float(v) < 0 for v in row):
+            return "negative probabilities"
+        if sum(float(v) for v in row) <= 0:
+            return "probabilities summing to zero"
+        return None
+
+    reasons = [reason(point, row) for point, row in zip(xyz, probs)]
+    decoded = pc.decode_cloud(pc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                                                       "prob": probs}), classes)
+    assert decoded.bad_points == {r: reasons.count(r) for r in pc.BAD_POINT_REASONS}
+    assert decoded.dropped + len(decoded) == decoded.total_points == count
+    good = np.array([r is None for r in reasons], bool)
+    assert decoded.points.tobytes() == xyz[good].tobytes()
+    assert decoded.probabilities.tobytes() == probs[good].tobytes()
 
 
 def _good(**changes) -> SimpleNamespace:

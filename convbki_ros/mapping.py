@@ -1,0 +1,342 @@
+"""The node's mapping side: inputs in, the map updated, on its own thread.
+
+``MappingCore`` builds the ``ConvBKIMapper`` from the node's parameters, takes clouds and
+odometry from the executor (cheap checks only: a cloud that can never be used is refused
+on arrival, before it waits or fills the queue), and runs the update thread, which places
+each cloud at its sensor pose (odometry interpolated at the cloud's stamp, times the
+sensor's mount) and integrates it. Bad input never touches the map: every rejection is
+counted and warned about once per problem (throttled).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from convbki_core.kernels import load_kernel_file
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.paths import kernel_path
+from convbki_ros.params import (
+    KERNEL_DECIDES,
+    SPECS,
+    StartupError,
+    check_choice,
+    check_local_bounds,
+    check_mount,
+    declare,
+    explicitly_set,
+    kernel_defaults,
+    unknown_parameters,
+)
+from convbki_ros.pointcloud import CloudError, decode_cloud
+from convbki_ros.pose_buffer import PoseStatus, pose_problem
+from convbki_ros.status import problem_key
+from convbki_ros.sync import CloudQueue, Decision, SensorMount, Verdict
+from convbki_ros.transforms import pose_from_translation_quaternion, seconds_to_ns, stamp_to_ns
+
+NO_POSE_REASONS = {
+    PoseStatus.EMPTY: "no odometry received yet",
+    PoseStatus.TOO_OLD: "the cloud is older than the odometry kept",
+    PoseStatus.JUMP: "the odometry jumped between the poses around its stamp",
+}
+
+
+class MappingCore:
+    """Inputs, the cloud queue, the update thread and the map, for ``MapperNode``."""
+
+    def __init__(self, node, status, warnings, label_map):
+        self.node, self.status, self.warnings, self.label_map = node, status, warnings, label_map
+        self.mapper = self._make_mapper()
+        self.mount = SensorMount(check_mount(self._optional("base_to_sensor")))
+        self.tf_mount = self.mount.attach_tf(node)
+        self.queue = CloudQueue(max_pose_jump=node.param("max_pose_jump"))
+        self.map_lock = threading.Lock()
+        self.map_version = 0  # bumped by every change of the map
+        self.published_version = -1
+        self.newest_odometry_stamp: int | None = None  # ns, of accepted odometry
+        self.odometry_frame: str | None = None
+        self.last_stamp = None  # header stamp of the last integrated cloud
+        self.on_integrated = lambda: None  # set by the node: the local window may be published
+
+    @property
+    def stopping(self) -> bool:
+        return self.queue.stopping
+
+    # -- set-up ----------------------------------------------------------------------------
+    def _make_mapper(self) -> ConvBKIMapper:
+        node = self.node
+        declare(node, SPECS["kernel_file"])
+        kernel_file = node.param("kernel_file") or str(kernel_path("semantic_kitti_compound"))
+        config = load_kernel_file(kernel_file)
+        from_kernel = kernel_defaults(config)
+        node.declare_all(from_kernel)
+        unknown = unknown_parameters(node)
+        if unknown:
+            node.get_logger().warning(f"unknown parameters ignored (misspelt?): {', '.join(unknown)}; the node "
+                                      f"declares: {', '.join(sorted(SPECS))}")
+        if node.param("num_classes") != config.num_classes:
+            raise StartupError(f"{kernel_file}: kernel has {config.num_classes} classes, num_classes is "
+                               f"{node.param('num_classes')}")
+        explicit = explicitly_set(node)
+        overridden = [f"{name} {node.param(name)} (kernel: {from_kernel[name]})" for name in KERNEL_DECIDES
+                      if name in explicit and node.param(name) != from_kernel[name]]
+        if overridden:
+            node.get_logger().warning(f"set explicitly, overriding the kernel file {kernel_file}: "
+                                      f"{', '.join(overridden)}; the kernel's lengths were trained for its grid")
+        check_choice("label_space", node.param("label_space"))
+        check_choice("update_path", node.param("update_path"))
+        return ConvBKIMapper(config, local_bounds=check_local_bounds(node.param("local_bounds")),
+                             prior=node.param("prior"), resolution=node.param("resolution"),
+                             filter_size=node.param("filter_size"), device=node.param("device"),
+                             frame_id=node.param("map_frame") or "map", update_path=node.param("update_path"),
+                             ignore_classes=self.label_map.ignore_classes)
+
+    def _optional(self, name: str):
+        from rclpy.exceptions import ParameterUninitializedException
+
+        try:
+            return self.node.param(name)
+        except ParameterUninitializedException:
+            return None
+
+    def mount_text(self) -> str:
+        if self.mount.fixed is not None:
+            return "sensor mount from base_to_sensor"
+        return "sensor mount from TF" if self.tf_mount else "clouds in the odometry's child frame"
+
+    def set_max_pose_jump(self, metres: float) -> None:
+        with self.queue.changed:
+            self.queue.poses.max_jump = float(metres)
+
+    @property
+    def frame(self) -> str:
+        """The frame the map is built and published in: the odometry's, once known."""
+        return self.odometry_frame or self.mapper.frame_id
+
+    # -- inputs (executor thread: cheap, no maths) -------------------------------------------
+    def on_cloud(self, msg) -> None:
+        self.status.cloud_received()
+        stamp = stamp_to_ns(msg.header.stamp)
+        points = int(msg.width) * int(msg.height)
+        limit = int(self.node.param("max_points_per_cloud"))
+        if limit and points > limit:
+            self.status.drop("too large")
+            self.warnings.warn("too large", f"dropping cloud stamped {stamp / 1e9:.3f} s: {points} points "
+                               f"({len(msg.data) / 1e6:.0f} MB), more than max_points_per_cloud = {limit}")
+            return
+        if points == 0:
+            self.status.drop("empty")
+            self.warnings.warn("empty", f"dropping empty cloud stamped {stamp / 1e9:.3f} s "
+                               f"(width {msg.width} x height {msg.height})")
+            return
+        queue_limit = int(self.node.param("cloud_queue_size"))
+        dropped = self.queue.push(msg, queue_limit)
+        self.status.queued(len(self.queue))
+        if dropped:
+            self.status.drop("queue full", dropped)
+            self.warnings.warn("queue", f"update queue full ({queue_limit} clouds waiting): dropping the oldest "
+                               "cloud; the map update is slower than the input rate")
+
+    def on_odometry(self, msg) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        position, orientation = msg.pose.pose.position, msg.pose.pose.orientation
+        translation = [position.x, position.y, position.z]
+        quaternion = [orientation.x, orientation.y, orientation.z, orientation.w]
+        problem = pose_problem(translation, quaternion)
+        self.status.odometry_received(usable=problem is None)
+        if problem:
+            self.warnings.warn("odometry " + problem_key(problem),
+                               f"ignoring odometry stamped {stamp / 1e9:.3f} s: {problem}")
+            return
+        self._note_odometry_frame(msg.header.frame_id)
+        self._check_time_going_backwards(stamp)
+        jump, previous = self.queue.add_odometry(stamp, pose_from_translation_quaternion(translation, quaternion),
+                                                 msg.child_frame_id)
+        if jump is None:
+            return
+        after = f"after {previous / 1e9:.3f} s" if previous is not None and previous < stamp else "out of order"
+        if self.node.param("reset_on_pose_jump"):
+            self.queue.forget_odometry(before=stamp)
+            action = "map reset (reset_on_pose_jump): a new map starts at the new pose"
+            self.reset_map()
+        else:
+            action = "map kept; clouds stamped inside the jump are dropped"
+        self.warnings.warn("jump", f"odometry jumped {jump:.2f} m at {stamp / 1e9:.3f} s ({after}; "
+                           f"max_pose_jump = {self.node.param('max_pose_jump')} m): {action}")
+
+    def _note_odometry_frame(self, frame: str) -> None:
+        """The map is built in the odometry's frame; a different map_frame cannot be honoured
+        without a transform between the two, so it is said once and not used."""
+        if not frame or frame == self.odometry_frame:
+            return
+        wanted = self.node.param("map_frame")
+        if self.odometry_frame is not None:
+            self.node.get_logger().warning(f"the odometry's frame changed from '{self.odometry_frame}' to "
+                                           f"'{frame}'; the map stays in '{self.odometry_frame}'")
+            return
+        self.odometry_frame = frame
+        with self.map_lock:
+            loaded_frame = self.mapper.frame_id if len(self.mapper) else None
+            self.mapper.frame_id = frame
+        if wanted and wanted != frame:
+            self.node.get_logger().warning(
+                f"map_frame is '{wanted}' but the odometry is in '{frame}': the map is built and published in "
+                f"'{frame}' (no transform between the two is applied); set map_frame to '' or '{frame}'")
+        if loaded_frame and loaded_frame != frame:
+            self.node.get_logger().warning(f"the map loaded at start was built in '{loaded_frame}'; the odometry "
+                                           f"is in '{frame}': the new scans are added as if they were the same")
+
+    def _check_time_going_backwards(self, stamp: int) -> None:
+        """Notice time going backwards (a bag played again, a restarted source) on the odometry.
+
+        Only odometry that passed its checks counts. Clouds are left out on purpose: they
+        may lag the odometry by seconds (segmentation keeps the capture stamp) and arrive
+        in any order, and a malformed cloud with a wild stamp must change nothing.
+        """
+        newest = self.newest_odometry_stamp
+        if newest is None or stamp > newest:
+            self.newest_odometry_stamp = stamp
+            return
+        if newest - stamp <= seconds_to_ns(self.node.param("stamp_backwards_tolerance")):
+            return
+        self.newest_odometry_stamp = stamp
+        stale = self.queue.forget_odometry()
+        self.status.drop("time reset", stale)
+        reset = self.node.param("reset_on_stamp_backwards")
+        if reset:
+            self.reset_map()
+        self.warnings.warn("time", f"time went backwards by {(newest - stamp) / 1e9:.3f} s (odometry stamped "
+                           f"{stamp / 1e9:.3f} s after input stamped {newest / 1e9:.3f} s; a restarted bag?): "
+                           f"odometry history cleared, {stale} waiting clouds dropped, "
+                           f"{'map reset (reset_on_stamp_backwards)' if reset else 'map kept'}")
+
+    def watch_odometry(self) -> None:
+        """Warn every odometry_timeout seconds while clouds come in and odometry does not."""
+        timeout = self.node.param("odometry_timeout")
+        now = time.monotonic()
+        last_cloud = self.status.last_cloud_received
+        if last_cloud is None or now - last_cloud > timeout:
+            return  # no input at all (nothing played yet, or the bag ended): nothing to say
+        since = now - (self.status.last_odometry_received or self.status.started)
+        if since < timeout:
+            return
+        what = "no usable odometry" if self.status.odometry_in else "no odometry at all"
+        topics = self.node.resolve_topic_name("odom"), self.node.resolve_topic_name("cloud_in")
+        self.warnings.warn("no odometry", f"{what} on {topics[0]} for {since:.1f} s while clouds arrive on "
+                           f"{topics[1]}: clouds cannot be placed (check the odom remapping, its QoS and its "
+                           "publisher)", period=timeout)
+
+    def reset_map(self) -> None:
+        """Clear the map; clouds received before now are stale (their poses may be too)."""
+        self.queue.new_generation()
+        with self.map_lock:
+            self.mapper.reset()
+            self.map_version += 1
+
+    # -- the update thread ---------------------------------------------------------------------
+    def run(self) -> None:
+        """Integrate queued clouds as their poses become known, until ``stop()``."""
+        while True:
+            decision = self.queue.next(self.node.param("pose_wait_timeout"))
+            if decision is None:
+                return
+            try:
+                self._integrate(decision)
+            except Exception as error:  # never let one scan stop the mapping thread
+                self.status.drop("error")
+                self.node.get_logger().error(f"scan not integrated: {error.__class__.__name__}: {error}")
+
+    def stop(self) -> None:
+        self.queue.stop()
+
+    def _integrate(self, decision: Decision) -> None:
+        msg, lookup = decision.pending.msg, decision.lookup
+        if decision.verdict is Verdict.STALE:
+            self.status.drop("map reset")
+            self.warnings.warn("stale", "dropping a cloud received before the map was reset")
+            return
+        if decision.verdict is Verdict.NO_POSE:
+            self._no_pose(msg, lookup.status)
+            return
+        mount, why_not = self.mount.find(lookup.child_frame_id, msg.header.frame_id)
+        if mount is None:
+            self.status.drop("no mount")
+            self.warnings.warn("mount " + msg.header.frame_id, f"dropping cloud in frame '{msg.header.frame_id}': "
+                               f"{why_not}")
+            return
+        try:
+            cloud = decode_cloud(msg, self.mapper.num_classes)
+        except CloudError as error:
+            self.status.drop("bad cloud")
+            self.warnings.warn("cloud " + problem_key(str(error)), f"dropping cloud: {error}")
+            return
+        if not len(cloud):
+            self.status.drop("no usable points")
+            text = cloud.bad_points_text()
+            self.warnings.warn("no usable " + problem_key(text), f"dropping cloud: no usable point ({text})")
+            return
+        if cloud.dropped:
+            self.warnings.warn("bad points " + problem_key(cloud.bad_points_text()),
+                               f"{cloud.bad_points_text()}; the rest are integrated")
+        values = cloud.probabilities
+        if values is None:
+            values = self._learning_labels(cloud.labels)
+            if values is None:
+                self.status.drop("unknown labels")
+                return
+        with self.map_lock:
+            if decision.pending.generation != self.queue.generation:  # a reset came while it was decoded
+                self.status.drop("map reset")
+                return
+            result = self.mapper.integrate(cloud.points, values, lookup.pose @ mount)
+            self.map_version += 1
+            self.last_stamp = msg.header.stamp
+        self.status.integrated_one(result.timing_ms["total"])
+        self.on_integrated()
+
+    def _no_pose(self, msg, status: PoseStatus) -> None:
+        reason = NO_POSE_REASONS.get(status) or \
+            f"no odometry covered its stamp within {self.node.param('pose_wait_timeout')} s"
+        self.status.drop("pose jump" if status is PoseStatus.JUMP else "no pose")
+        latest = self.queue.poses.latest_stamp
+        latest_text = f"; latest odometry {latest / 1e9:.3f} s" if latest is not None else ""
+        self.warnings.warn(f"pose {status.value}", f"dropping cloud stamped {stamp_to_ns(msg.header.stamp) / 1e9:.3f}"
+                           f" s: {reason}{latest_text}")
+
+    def _learning_labels(self, labels: np.ndarray) -> np.ndarray | None:
+        """The cloud's labels as learning ids; unknown ids are warned about and become ignored
+        class 0. None (and a warning) when no label is known: the cloud would add nothing, and
+        such a cloud usually means a wrong label_space."""
+        space = self.node.param("label_space")
+        num_classes = self.mapper.num_classes
+        unknown = self.label_map.unknown_raw(labels) if space == "raw" else (labels < 0) | (labels >= num_classes)
+        count = int(np.count_nonzero(unknown))
+        if count:
+            examples = ", ".join(str(v) for v in np.unique(labels[unknown])[:5])
+            known = f"{self.label_map.name} label map" if space == "raw" else f"learning ids 0..{num_classes - 1}"
+            if count == labels.size:
+                self.warnings.warn("all unknown", f"dropping cloud: all {count} label ids are unknown to the "
+                                   f"{known} (e.g. {examples}); is label_space ({space}) right?")
+                return None
+            self.warnings.warn("unknown", f"{count} of {labels.size} points carry label ids unknown to the "
+                               f"{known} (e.g. {examples}); they are ignored")
+        return self.label_map.to_learning(labels) if space == "raw" else np.where(unknown, 0, labels)
+
+    # -- copies for the outputs (taken under the lock, used without it) ------------------------
+    def map_copy_if_changed(self):
+        """(VoxelSet of the whole map, its version), or None when it is as last published."""
+        with self.map_lock:
+            if self.map_version == self.published_version:
+                return None
+            version = self.map_version
+            indices, alpha = self.mapper.items()
+        return self.mapper.voxel_set(indices, alpha), version
+
+    def local_copy(self):
+        """(VoxelSet of the window around the sensor, stamp of the cloud last integrated)."""
+        with self.map_lock:
+            indices, alpha = self.mapper.window.items()
+            stamp = self.last_stamp
+        return self.mapper.voxel_set(indices, alpha), stamp

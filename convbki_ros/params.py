@@ -1,0 +1,237 @@
+"""The mapper node's parameters: one table, declared with descriptors, checked at start.
+
+Every parameter has a meaning with its unit, a range where it is a number, and says whether
+it may change at run time. The run-time ones take effect at once (timers are re-created);
+the others are read-only, since changing them would need a new map. ``resolution``,
+``filter_size`` and ``num_classes`` default to the kernel file's values: a kernel is trained
+for its grid, so a parameter only overrides it when it is set explicitly (and a differing
+value is said once at start).
+
+A bad start-up value becomes one ``StartupError`` line; the node's ``main`` exits with
+code 2 on it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from convbki_core.kernels import KernelConfig
+
+NODE_NAME = "convbki_mapper"
+KERNEL_DECIDES = ("num_classes", "resolution", "filter_size")  # defaults come from the kernel file
+NOT_SET = None  # default of an optional list parameter (declared typed, without a value)
+# Parameters every rclpy node declares or reads itself: never "unknown".
+ROS_OWN = ("use_sim_time", "start_type_description_service")
+
+
+class StartupError(ValueError):
+    """A bad parameter or input at start: one line, exit code 2."""
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One parameter: default, meaning with unit, range, and whether it may change at run time."""
+
+    name: str
+    default: object
+    meaning: str
+    low: float | None = None
+    high: float | None = None
+    step: int = 0  # integer ranges: 2 with an odd low = odd values only
+    choices: tuple[str, ...] = ()
+    run_time: bool = False  # may change while the node runs
+
+    def describe(self) -> str:
+        text = self.meaning
+        if self.low is not None:
+            text += f" [{self.low:g} .. {self.high:g}]"
+        if self.choices:
+            text += f" (one of: {', '.join(self.choices)})"
+        return text + ("" if self.run_time else " (read-only at run time)")
+
+
+PARAMETERS: tuple[Spec, ...] = (
+    Spec("kernel_file", "", "kernel file (YAML); \"\" = the shipped compound kernel "
+         "(share/convbki_ros/config/kernels/semantic_kitti_compound.yaml)"),
+    Spec("num_classes", 20, "number of semantic classes C, class 0 = unlabeled; count; default: the kernel's",
+         2, 1024),
+    Spec("resolution", 0.2, "voxel edge length; metres; default: the kernel file's", 0.01, 10.0),
+    Spec("filter_size", 5, "convolution filter edge f (odd); voxels; default: the kernel file's", 1, 31, step=2),
+    Spec("local_bounds", [-40.0, -40.0, -2.6, 40.0, 40.0, 2.6],
+         "local map window around the sensor, [min_x, min_y, min_z, max_x, max_y, max_z]; metres"),
+    Spec("prior", 0.001, "Dirichlet prior concentration of every class in every voxel; unitless", 1e-9, 1e6),
+    Spec("label_space", "raw",
+         "meaning of the input `label` field: raw (SemanticKITTI raw ids) or learning (0..num_classes-1)",
+         choices=("raw", "learning")),
+    Spec("map_frame", "", "frame of the published map; \"\" = the odometry's frame (header.frame_id), the "
+         "only frame the map can be built in; a different value is warned about and not used"),
+    Spec("base_to_sensor", NOT_SET,
+         "mount of the cloud's frame on the odometry's child frame, [x, y, z, qx, qy, qz, qw] (metres, unit "
+         "quaternion): what a tf2 static transform child_frame_id -> cloud frame holds; used when a cloud's "
+         "frame is not the odometry's child frame; unset = from TF where tf2_ros exists"),
+    Spec("max_variance", 0.0,
+         "leave out voxels whose variance of the expected class exceeds this; unitless; 0.0 = no filter",
+         0.0, 0.25, run_time=True),
+    Spec("publish_period", 1.0, "period of the semantic_map publisher; seconds", 0.05, 3600.0, run_time=True),
+    Spec("device", "auto", "torch device: auto (CUDA when present, else CPU), cpu, cuda[:N]"),
+    Spec("update_path", "auto", "how the update runs: auto, fast (compiled sparse scatter, CPU) or dense "
+         "(depthwise conv3d, the paper's formulation)", choices=("auto", "fast", "dense")),
+    Spec("input_qos", "reliable",
+         "QoS of cloud_in and odom: reliable (bag replay) or sensor_data (live, best effort)",
+         choices=("reliable", "sensor_data")),
+    Spec("map_file", "", "map file loaded at start when present, written by ~/save_map; \"\" = none; path"),
+    Spec("autosave_period", 0.0, "save the map to map_file every this many seconds; 0.0 = never", 0.0, 1e6,
+         run_time=True),
+    Spec("save_on_shutdown", True, "save the map to map_file when the node stops (SIGINT/SIGTERM); bool",
+         run_time=True),
+    Spec("ply_file", "", "file written by ~/export_ply; \"\" = map_file with the suffix .ply, else "
+         "convbki_map.ply", run_time=True),
+    Spec("publish_local", True, "publish semantic_map/local (the window around the sensor) after updates; bool",
+         run_time=True),
+    Spec("cloud_queue_size", 20, "clouds waiting to be integrated (2 s at 10 Hz); when full the oldest is "
+         "dropped; count", 1, 10000, run_time=True),
+    Spec("pose_wait_timeout", 2.0, "how long a cloud waits for odometry covering its stamp before it is "
+         "dropped; seconds", 0.0, 600.0, run_time=True),
+    Spec("stats_period", 10.0, "period of the counters line in the log (scans in, integrated, dropped); "
+         "seconds", 0.1, 3600.0, run_time=True),
+    Spec("diagnostics_period", 1.0, "period of the /diagnostics report (counters, queue, timings, health); "
+         "seconds", 0.05, 3600.0, run_time=True),
+    Spec("max_points_per_cloud", 2_000_000,
+         "clouds with more points (width * height) are dropped on arrival with a warning, before any decoding, "
+         "so that a runaway source cannot exhaust memory; count; 0 = no limit", 0, 1_000_000_000, run_time=True),
+    Spec("max_pose_jump", 10.0,
+         "two consecutive odometry poses further apart than this are a jump: warned, and clouds stamped between "
+         "them are dropped rather than placed half way; metres; 0.0 = no check", 0.0, 1e6, run_time=True),
+    Spec("reset_on_pose_jump", False,
+         "on a pose jump, also clear the map and the odometry before the jump (a new map starts there); bool",
+         run_time=True),
+    Spec("stamp_backwards_tolerance", 1.0,
+         "odometry stamped more than this before the newest odometry means time went backwards (a restarted "
+         "bag): the odometry history and the waiting clouds are dropped; seconds", 0.0, 1e6, run_time=True),
+    Spec("reset_on_stamp_backwards", False,
+         "when time goes backwards, also clear the map; false keeps it (a replayed bag adds to it); bool",
+         run_time=True),
+    Spec("odometry_timeout", 5.0,
+         "while clouds arrive but no usable odometry has for this long, warn (and report ERROR on /diagnostics) "
+         "every this many seconds; seconds", 0.1, 3600.0, run_time=True),
+    Spec("refuse_bad_map_file", False,
+         "exit (code 2) when map_file exists but cannot be loaded, instead of starting with an empty map; bool"),
+)
+SPECS = {spec.name: spec for spec in PARAMETERS}
+
+
+def descriptor(spec: Spec, default_text: str | None = None):
+    """The rcl ParameterDescriptor of ``spec`` (meaning, unit, range, read-only)."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+
+    result = ParameterDescriptor(description=spec.describe(), read_only=not spec.run_time)
+    if spec.default is NOT_SET:
+        result.type = ParameterType.PARAMETER_DOUBLE_ARRAY
+    if spec.low is not None and isinstance(spec.default, float):
+        result.floating_point_range = [FloatingPointRange(from_value=float(spec.low), to_value=float(spec.high))]
+    elif spec.low is not None:
+        result.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=spec.step)]
+    if default_text:
+        result.additional_constraints = default_text
+    return result
+
+
+def declare(node, spec: Spec, default: object = None):
+    """Declare one parameter on ``node``; a value given on the command line or in a params
+    file that has the wrong type or is out of range becomes one ``StartupError`` line."""
+    from rclpy.exceptions import InvalidParameterTypeException, ParameterException
+    from rclpy.parameter import Parameter
+
+    value = spec.default if default is None else default
+    if value is NOT_SET:
+        value = Parameter.Type.DOUBLE_ARRAY
+    given = _integers_as_doubles(node, spec)
+    try:
+        return node.declare_parameter(spec.name, value, descriptor(spec))
+    except InvalidParameterTypeException:
+        expected = "a list of numbers" if isinstance(spec.default, list) or spec.default is NOT_SET else \
+            {bool: "true or false", int: "an integer", float: "a number", str: "a string"}[type(spec.default)]
+        raise StartupError(f"parameter {spec.name}: {given.value!r} is {_type_name(given)}, expected "
+                           f"{expected}") from None
+    except ParameterException:
+        odd = " (odd values only)" if spec.step == 2 else ""
+        raise StartupError(f"parameter {spec.name}: {given.value!r} is out of range {spec.low:g} .. "
+                           f"{spec.high:g}{odd}") from None
+
+
+def _type_name(parameter) -> str:
+    from rclpy.parameter import Parameter
+
+    return {Parameter.Type.STRING: "a string", Parameter.Type.INTEGER: "an integer", Parameter.Type.DOUBLE: "a number",
+            Parameter.Type.BOOL: "a boolean"}.get(parameter.type_, f"of type {parameter.type_.name.lower()}")
+
+
+def _integers_as_doubles(node, spec: Spec):
+    """The value given for ``spec`` (None when none), with integers given for a double made
+    doubles: ``-p publish_period:=2`` means 2.0, while rcl types a bare integer as INTEGER and
+    rclpy then refuses it for a double parameter, a surprise to every ROS user."""
+    from rclpy.parameter import Parameter
+
+    overrides = getattr(node, "_parameter_overrides", None) or {}
+    given = overrides.get(spec.name)
+    if given is None:
+        return None
+    if isinstance(spec.default, float) and given.type_ == Parameter.Type.INTEGER:
+        given = overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE, float(given.value))
+    elif (isinstance(spec.default, list) or spec.default is NOT_SET) and given.type_ == Parameter.Type.INTEGER_ARRAY:
+        given = overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE_ARRAY,
+                                                 [float(v) for v in given.value])
+    return given
+
+
+def explicitly_set(node) -> set[str]:
+    """Names given on the command line or in a params file for this node."""
+    return set(getattr(node, "_parameter_overrides", {}) or {})
+
+
+def unknown_parameters(node) -> list[str]:
+    """Names given for this node that it does not declare (a misspelt name, a removed option)."""
+    declared = set(SPECS) | set(ROS_OWN)
+    return sorted(name for name in explicitly_set(node)
+                  if name not in declared and not name.startswith("qos_overrides."))
+
+
+def kernel_defaults(config: KernelConfig) -> dict[str, object]:
+    return {"num_classes": int(config.num_classes), "resolution": float(config.resolution),
+            "filter_size": int(config.filter_size)}
+
+
+def check_choice(name: str, value: str) -> str:
+    choices = SPECS[name].choices
+    if value not in choices:
+        raise StartupError(f"parameter {name}: {value!r} is not one of {', '.join(choices)}")
+    return value
+
+
+def check_local_bounds(bounds) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    bounds = [float(v) for v in bounds]
+    if len(bounds) != 6:
+        raise StartupError(f"parameter local_bounds needs 6 numbers (min xyz, max xyz), got {len(bounds)}")
+    low, high = bounds[:3], bounds[3:]
+    if not all(np.isfinite(bounds)) or not all(a < b for a, b in zip(low, high, strict=True)):
+        raise StartupError(f"parameter local_bounds: each min must be below its max, got {bounds}")
+    return tuple(low), tuple(high)
+
+
+def check_mount(values) -> np.ndarray | None:
+    """``base_to_sensor`` as a 4x4 pose (child frame <- cloud frame), None when unset."""
+    if values is None:
+        return None
+    from convbki_ros.pose_buffer import pose_problem
+    from convbki_ros.transforms import pose_from_translation_quaternion
+
+    values = [float(v) for v in values]
+    if len(values) != 7:
+        raise StartupError(f"parameter base_to_sensor needs 7 numbers [x, y, z, qx, qy, qz, qw], got {len(values)}")
+    problem = pose_problem(values[:3], values[3:])
+    if problem:
+        raise StartupError(f"parameter base_to_sensor: {problem}")
+    quaternion = np.asarray(values[3:]) / np.linalg.norm(values[3:])
+    return pose_from_translation_quaternion(values[:3], quaternion)

@@ -1,0 +1,184 @@
+"""What the mapper node has done, safe to update from its threads, and how it is reported.
+
+The node has three kinds of threads: the executor's (clouds and odometry arrive, services
+run), the update thread and the publishing thread. Each of them counts something, so every
+change goes through one lock. Two reports read the same numbers: the counters line in the
+log (every ``stats_period``) and ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``,
+about once a second), whose level says whether the node is healthy:
+
+* OK: every cloud that came was integrated or is on its way;
+* WARN: clouds were dropped since the last report, or clouds wait for odometry;
+* ERROR: clouds arrive but no usable odometry has come for ``odometry_timeout`` seconds.
+"""
+
+from __future__ import annotations
+
+import re
+import statistics
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
+TIMING_HISTORY = 100  # update and publish times kept for the medians
+
+
+def problem_key(message: str) -> str:
+    """A throttling key for a problem described in words: the message with its numbers blanked,
+    so "data holds 10 bytes" and "data holds 12 bytes" are one problem, while a missing field and
+    a wrong datatype are two (each gets its own warning)."""
+    return re.sub(r"[-+]?\d[\d.eE+-]*", "#", message)
+
+
+class WarningThrottle:
+    """One warning per problem per ``period`` seconds; counts what it held back."""
+
+    def __init__(self, logger, period: float = 5.0):
+        self.logger = logger
+        self.period = period
+        self._last: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def warn(self, key: str, message: str, period: float | None = None) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(key, -1e9) < (self.period if period is None else period):
+                self._held[key] = self._held.get(key, 0) + 1
+                return
+            held = self._held.pop(key, 0)
+            self._last[key] = now
+        self.logger.warning(message + (f" ({held} more like this since the last warning)" if held else ""))
+
+
+@dataclass
+class Snapshot:
+    """The counters at one instant (a consistent copy, read without the lock)."""
+
+    scans_in: int
+    integrated: int
+    dropped: dict[str, int]
+    odometry_in: int
+    odometry_rejected: int
+    queue: int
+    queue_peak: int
+    waiting_for_pose: int
+    map_voxels: int
+    last_update_ms: float
+    median_update_ms: float
+    last_publish_ms: float
+    median_publish_ms: float
+    maps_published: int
+    map_version: int  # bumped by every change of the map (an update, a load, a reset)
+
+    @property
+    def dropped_total(self) -> int:
+        return sum(self.dropped.values())
+
+    def line(self) -> str:
+        """The counters line of the log."""
+        reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(self.dropped.items()))
+        return (f"scans in {self.scans_in}, integrated {self.integrated}, dropped {self.dropped_total}"
+                f"{f' ({reasons})' if reasons else ''}, odometry in {self.odometry_in} "
+                f"(rejected {self.odometry_rejected}), queue {self.queue}, map voxels {self.map_voxels}, "
+                f"last update {self.last_update_ms:.0f} ms, last map publish {self.last_publish_ms:.0f} ms, "
+                f"queue peak {self.queue_peak}")
+
+
+@dataclass
+class MapperStatus:
+    """Counters of the node, changed from several threads under one lock."""
+
+    scans_in: int = 0
+    integrated: int = 0
+    dropped: dict[str, int] = field(default_factory=dict)
+    odometry_in: int = 0
+    odometry_rejected: int = 0
+    queue_peak: int = 0
+    maps_published: int = 0
+    update_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))
+    publish_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))
+    last_cloud_received: float | None = None  # time.monotonic()
+    last_odometry_received: float | None = None
+    started: float = field(default_factory=time.monotonic)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    _dropped_at_last_report: int = 0
+
+    def cloud_received(self) -> None:
+        with self._lock:
+            self.scans_in += 1
+            self.last_cloud_received = time.monotonic()
+
+    def odometry_received(self, usable: bool) -> None:
+        with self._lock:
+            self.odometry_in += 1
+            if usable:
+                self.last_odometry_received = time.monotonic()
+            else:
+                self.odometry_rejected += 1
+
+    def drop(self, reason: str, count: int = 1) -> None:
+        if count:
+            with self._lock:
+                self.dropped[reason] = self.dropped.get(reason, 0) + count
+
+    def queued(self, length: int) -> None:
+        with self._lock:
+            self.queue_peak = max(self.queue_peak, length)
+
+    def integrated_one(self, update_ms: float) -> None:
+        with self._lock:
+            self.integrated += 1
+            self.update_ms.append(update_ms)
+
+    def published(self, publish_ms: float) -> None:
+        with self._lock:
+            self.maps_published += 1
+            self.publish_ms.append(publish_ms)
+
+    def snapshot(self, queue: int, waiting_for_pose: int, map_voxels: int, map_version: int) -> Snapshot:
+        with self._lock:
+            return Snapshot(
+                self.scans_in, self.integrated, dict(self.dropped), self.odometry_in, self.odometry_rejected,
+                queue, self.queue_peak, waiting_for_pose, map_voxels,
+                self.update_ms[-1] if self.update_ms else 0.0,
+                statistics.median(self.update_ms) if self.update_ms else 0.0,
+                self.publish_ms[-1] if self.publish_ms else 0.0,
+                statistics.median(self.publish_ms) if self.publish_ms else 0.0,
+                self.maps_published, map_version)
+
+    def health(self, snapshot: Snapshot, odometry_timeout: float) -> tuple[int, str]:
+        """Level and message of the next diagnostics report (it remembers the drops reported)."""
+        now = time.monotonic()
+        with self._lock:
+            new_drops = snapshot.dropped_total - self._dropped_at_last_report
+            self._dropped_at_last_report = snapshot.dropped_total
+            clouds_recent = self.last_cloud_received is not None and \
+                now - self.last_cloud_received <= odometry_timeout
+            without_odometry = now - (self.last_odometry_received or self.started)
+        if clouds_recent and without_odometry >= odometry_timeout:
+            what = "no usable odometry" if snapshot.odometry_in else "no odometry at all"
+            return ERROR, f"{what} for {without_odometry:.1f} s while clouds arrive"
+        if new_drops > 0:
+            return WARN, f"dropped {new_drops} clouds since the last report"
+        if snapshot.waiting_for_pose:
+            return WARN, f"{snapshot.waiting_for_pose} clouds wait for odometry covering their stamps"
+        return OK, "mapping" if snapshot.integrated else "waiting for clouds"
+
+
+def diagnostic_values(snapshot: Snapshot) -> list[tuple[str, str]]:
+    """The key-value pairs of the node's diagnostic status (names stable: tools read them)."""
+    values = [
+        ("scans_in", snapshot.scans_in), ("integrated", snapshot.integrated),
+        ("dropped", snapshot.dropped_total),
+        *((f"dropped.{reason}", count) for reason, count in sorted(snapshot.dropped.items())),
+        ("odometry_in", snapshot.odometry_in), ("odometry_rejected", snapshot.odometry_rejected),
+        ("queue", snapshot.queue), ("queue_peak", snapshot.queue_peak),
+        ("waiting_for_pose", snapshot.waiting_for_pose), ("map_voxels", snapshot.map_voxels),
+        ("update_ms_last", f"{snapshot.last_update_ms:.1f}"), ("update_ms_median", f"{snapshot.median_update_ms:.1f}"),
+        ("publish_ms_last", f"{snapshot.last_publish_ms:.1f}"),
+        ("publish_ms_median", f"{snapshot.median_publish_ms:.1f}"),
+        ("maps_published", snapshot.maps_published), ("map_version", snapshot.map_version),
+    ]
+    return [(key, str(value)) for key, value in values]

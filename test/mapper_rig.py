@@ -1,0 +1,189 @@
+"""A mapper node under test: a small scene, its inputs, and a rig that runs the node in its own
+process and talks to it over DDS (publishes clouds and odometry, reads /semantic_map and
+/diagnostics, calls its services)."""
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from ros_helpers import NodeLog, Probe, domain_id, start
+
+from convbki_core.labels import load_label_map
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.paths import kernel_path
+from convbki_ros.pointcloud import encode_cloud
+from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_odometry
+
+BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]
+FRAME = "velo_link"
+SECOND = 1_000_000_000
+START = 1_000 * SECOND  # stamp of the first input (ns); not 0, so that time can go back
+TRANSLATION = np.array([1.0, 2.0, 0.5])
+QUATERNION = np.array([0.0, 0.0, np.sin(0.15), np.cos(0.15)])  # yaw 0.3 rad: not the identity
+POSE = pose_from_translation_quaternion(TRANSLATION, QUATERNION)
+WAIT = 30.0  # seconds any one thing may take on a loaded CI machine before the test gives up
+def good_points() -> tuple[np.ndarray, np.ndarray]:
+    """A small scene in the sensor frame: road (raw 40) on the ground, a building wall (50),
+    a car (10); float32 points (m) and uint32 raw labels."""
+    grid = np.stack(np.meshgrid(np.arange(-10.0, 10.0, 0.4), np.arange(-6.0, 6.0, 0.4)), -1).reshape(-1, 2)
+    ground = np.column_stack([grid, np.full(len(grid), -1.6)])
+    wall_grid = np.stack(np.meshgrid(np.arange(-6.0, 6.0, 0.3), np.arange(-1.5, 2.0, 0.3)), -1).reshape(-1, 2)
+    wall = np.column_stack([np.full(len(wall_grid), 8.0), wall_grid])
+    car = np.random.default_rng(5).uniform([3.0, -3.0, -1.5], [7.0, -1.4, -0.2], (400, 3))
+    points = np.concatenate([ground, wall, car]).astype(np.float32)
+    labels = np.concatenate([np.full(len(ground), 40), np.full(len(wall), 50), np.full(len(car), 10)])
+    return points, labels.astype(np.uint32)
+
+
+POINTS, LABELS = good_points()
+
+
+def fields(points=POINTS, labels=LABELS, **extra) -> dict:
+    return {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], "label": labels, **extra}
+
+
+def cloud(stamp: int, frame: str = FRAME, **columns):
+    return encode_cloud(stamp, frame, columns or fields())
+
+
+def odometry(stamp: int, translation=TRANSLATION, quaternion=QUATERNION, child: str = FRAME):
+    msg = pose_to_odometry(np.eye(4), stamp, "map", child)
+    position, orientation = msg.pose.pose.position, msg.pose.pose.orientation
+    position.x, position.y, position.z = (float(v) for v in translation)
+    orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in quaternion)
+    return msg
+
+
+def offline_map(scans: int) -> ConvBKIMapper:
+    """The good cloud integrated ``scans`` times at POSE by the mapper object the node uses."""
+    label_map = load_label_map("semantic_kitti")
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
+                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes)
+    for _ in range(scans):
+        mapper.integrate(POINTS, label_map.to_learning(LABELS), POSE)
+    return mapper
+
+
+@dataclass(frozen=True)
+class Stats:
+    """The node's counters, as one /diagnostics report gives them."""
+
+    scans_in: int
+    integrated: int
+    dropped: int
+    reasons: dict
+    odometry_in: int
+    odometry_rejected: int
+    voxels: int
+    map_version: int
+    level: int
+
+    @classmethod
+    def parse(cls, array) -> "Stats":
+        status = array.status[0]
+        values = {item.key: item.value for item in status.values}
+        reasons = {key.removeprefix("dropped."): int(value) for key, value in values.items()
+                   if key.startswith("dropped.")}
+        return cls(int(values["scans_in"]), int(values["integrated"]), int(values["dropped"]), reasons,
+                   int(values["odometry_in"]), int(values["odometry_rejected"]), int(values["map_voxels"]),
+                   int(values["map_version"]), status.level[0])
+
+
+class Rig:
+    """A running mapper node, a probe that publishes its inputs and reads its map, and its log."""
+
+    def __init__(self, folder: Path, *parameters: str, prefix: tuple[str, ...] = (), namespace: str = ""):
+        """``namespace``: run the node in it ("/robot1"); its topics and services move there."""
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import PointCloud2
+
+        self.folder = folder
+        self.namespace = namespace
+        self.map_file = folder / "maps" / "map.npz"
+        self.map_file.parent.mkdir(parents=True, exist_ok=True)
+        domain = domain_id()
+        remap = ("-r", f"__ns:={namespace}") if namespace else ()
+        self.process = start("convbki_ros.mapper", domain, "--ros-args", *remap, "-p", f"local_bounds:={BOUNDS}",
+                             "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "diagnostics_period:=0.2",
+                             "-p", "pose_wait_timeout:=1.5", "-p", f"map_file:={self.map_file}", *parameters,
+                             prefix=prefix)
+        self.log = NodeLog(self.process)
+        self.probe = Probe(domain)
+        self.maps = self.probe.subscribe(PointCloud2, f"{namespace}/semantic_map", latched=True)
+        self.diagnostics = self.probe.subscribe(DiagnosticArray, "/diagnostics")
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.cloud_publisher = self.probe.node.create_publisher(PointCloud2, f"{namespace}/cloud_in", qos)
+        self.odometry_publisher = self.probe.node.create_publisher(Odometry, f"{namespace}/odom", qos)
+        self.stamp = START
+        connected = self.probe.spin_until(lambda: self.cloud_publisher.get_subscription_count()
+                                          and self.odometry_publisher.get_subscription_count()
+                                          and self.log.find("mapper ready"), timeout=60)
+        assert connected, self.log.text()
+
+    # -- inputs --------------------------------------------------------------------------
+    def next_stamp(self, step: float = 1.0) -> int:
+        self.stamp += round(step * SECOND)
+        return self.stamp
+
+    def publish(self, *messages) -> None:
+        for msg in messages:
+            (self.cloud_publisher if hasattr(msg, "point_step") else self.odometry_publisher).publish(msg)
+
+    def integrate_good_cloud(self, translation=TRANSLATION) -> "Stats":
+        """Odometry and the good cloud at a new stamp; waits until the node integrated it."""
+        before = self.stats()
+        stamp = self.next_stamp()
+        self.publish(odometry(stamp, translation), cloud(stamp))
+        return self.wait_stats(lambda s: s.integrated == before.integrated + 1)
+
+    # -- observations --------------------------------------------------------------------
+    def wait_log(self, pattern: str, since: int, count: int = 1) -> list[re.Match]:
+        """Spin the probe (so maps keep arriving) until ``pattern`` shows up ``count`` times."""
+        assert self.probe.spin_until(lambda: len(self.log.find(pattern, since)) >= count, WAIT), \
+            f"no {pattern!r} in the node's output:\n{self.log.text(since)}"
+        return self.log.find(pattern, since)
+
+    def stats(self) -> Stats:
+        """The node's counters as of now: the first /diagnostics report received after this call."""
+        seen = len(self.diagnostics)
+        assert self.probe.spin_until(lambda: len(self.diagnostics) > seen, WAIT), "no /diagnostics report"
+        return Stats.parse(self.diagnostics[seen])
+
+    def wait_stats(self, done) -> Stats:
+        found: list[Stats] = []
+
+        def check() -> bool:
+            found.append(self.stats())
+            return done(found[-1])
+
+        assert self.probe.spin_until(check, WAIT), f"counters never reached the expected state: {found[-1]}"
+        return found[-1]
+
+    def map_message(self, voxels: int):
+        """The latest /semantic_map once it holds ``voxels`` voxels."""
+        assert self.probe.spin_until(lambda: self.maps and self.maps[-1].width == voxels, WAIT), \
+            f"/semantic_map has {self.maps[-1].width if self.maps else None} voxels, expected {voxels}"
+        return self.maps[-1]
+
+    def call(self, service: str):
+        """Call the node's Trigger service ``service`` ("save_map", "reset", "export_ply")."""
+        from std_srvs.srv import Trigger
+
+        return self.probe.call(Trigger, f"{self.namespace}/convbki_mapper/{service}")
+
+    def close(self) -> str:
+        self.probe.close()
+        return self.log.close()
+
+
+def expect_file_holds(path: Path, expected: ConvBKIMapper) -> None:
+    reloaded = offline_map(0)
+    reloaded.load(path)
+    indices, alpha = reloaded.items()
+    want_indices, want_alpha = expected.items()
+    order, want_order = np.lexsort(indices.T), np.lexsort(want_indices.T)
+    np.testing.assert_array_equal(indices[order], want_indices[want_order])
+    np.testing.assert_allclose(alpha[order], want_alpha[want_order], rtol=1e-6)

@@ -1,0 +1,103 @@
+"""A robot's frames over DDS: odometry of base_link, a LiDAR on a mount, a namespaced node.
+
+On a robot the odometry is the pose of ``base_link`` in ``odom``/``map`` and the LiDAR
+publishes in its own frame. The node must map such clouds exactly as it maps clouds whose
+odometry is the LiDAR's own pose, with the mount from ``base_to_sensor`` or, where tf2_ros
+exists, from ``/tf_static``.
+"""
+
+import numpy as np
+import pytest
+from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds, odometry
+
+from convbki_core.labels import load_label_map
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.paths import kernel_path
+from convbki_ros.pointcloud import decode_cloud
+from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_translation_quaternion
+
+BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]
+# The LiDAR 1.8 m above base_link, 0.4 m ahead, yawed by 0.2 rad and pitched a little.
+MOUNT_TRANSLATION = [0.4, 0.0, 1.8]
+MOUNT_QUATERNION = [0.0, 0.05, 0.1, 1.0] / np.linalg.norm([0.0, 0.05, 0.1, 1.0])
+MOUNT = pose_from_translation_quaternion(MOUNT_TRANSLATION, MOUNT_QUATERNION)
+BASE_POSES = [pose_from_translation_quaternion([1.0 + 2.0 * i, 0.5 * i, 0.0], [0.0, 0.0, np.sin(0.1 * i),
+                                                                                  np.cos(0.1 * i)])
+              for i in range(3)]
+
+
+def expected_map() -> ConvBKIMapper:
+    """The clouds integrated offline at the LiDAR's poses (base pose x mount)."""
+    label_map = load_label_map("semantic_kitti")
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
+                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes)
+    for base in BASE_POSES:
+        mapper.integrate(POINTS, label_map.to_learning(LABELS), base @ MOUNT)
+    return mapper
+
+
+def drive(rig: Rig, child: str, poses: list[np.ndarray]) -> None:
+    """Odometry of ``child`` at ``poses`` and the same cloud in frame lidar_top at each stamp."""
+    before = rig.stats().integrated
+    for pose in poses:
+        stamp = rig.next_stamp()
+        translation, quaternion = pose_to_translation_quaternion(pose)
+        rig.publish(odometry(stamp, translation, quaternion, child=child), cloud(stamp, frame="lidar_top"))
+    rig.wait_stats(lambda s: s.integrated == before + len(poses))
+
+
+def assert_same_voxels(msg, expected: ConvBKIMapper) -> None:
+    voxels = expected.voxels()
+    got = decode_cloud(msg, 20)
+    order_got, order_want = np.lexsort(got.points.T), np.lexsort(voxels.centres.T)
+    np.testing.assert_array_equal(got.points[order_got], voxels.centres[order_want])
+    np.testing.assert_array_equal(got.labels[order_got], voxels.label[order_want])
+
+
+def test_a_lidar_on_a_mount_maps_like_odometry_of_the_lidar_itself(tmp_path):
+    """Node A (namespaced /robot1): odometry of base_link, the mount from base_to_sensor.
+    Node B: odometry of the LiDAR itself. Both maps equal the offline map; node B's map_frame
+    differs from the odometry's frame, which is warned about and not used."""
+    mount = [*MOUNT_TRANSLATION, *MOUNT_QUATERNION]
+    on_base = Rig(tmp_path / "base", "-p", f"base_to_sensor:={[float(v) for v in mount]}", namespace="/robot1")
+    on_lidar = Rig(tmp_path / "lidar", "-p", "map_frame:=world")
+    try:
+        drive(on_base, "base_link", BASE_POSES)
+        drive(on_lidar, "lidar_top", [base @ MOUNT for base in BASE_POSES])
+        expected = expected_map()
+        for rig in (on_base, on_lidar):
+            msg = rig.map_message(len(expected))
+            assert msg.header.frame_id == "map"  # the odometry's frame
+            assert_same_voxels(msg, expected)
+            assert rig.call("save_map").success
+            expect_file_holds(rig.map_file, expected)
+        assert on_base.log.find(r"mapper ready.*sensor mount from base_to_sensor")
+        assert on_lidar.log.find(r"\[WARN\].*map_frame is 'world' but the odometry is in 'map': the map is built "
+                                 r"and published in 'map'")
+        report = on_base.diagnostics[-1].status[0]
+        assert report.name == "/robot1/convbki_mapper: mapping" and report.level == b"\x00", report
+    finally:
+        outputs = [rig.close() for rig in (on_base, on_lidar)]
+    assert not any("Traceback" in output for output in outputs), outputs
+
+
+def test_the_mount_from_tf_static_gives_the_same_map(tmp_path):
+    pytest.importorskip("tf2_ros", reason="tf2_ros comes with a ROS 2 install, not with the PyPI wheels: the "
+                        "TF mount is used only where it exists")
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from tf2_msgs.msg import TFMessage
+
+    from convbki_ros.transforms import pose_to_transform_stamped
+
+    rig = Rig(tmp_path)
+    try:
+        static = rig.probe.node.create_publisher(TFMessage, "/tf_static",
+                                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        transform = pose_to_transform_stamped(MOUNT, 0, "base_link", "lidar_top")
+        static.publish(TFMessage(transforms=[transform]))
+        assert rig.log.find("sensor mount from TF")
+        drive(rig, "base_link", BASE_POSES)
+        assert_same_voxels(rig.map_message(len(expected_map())), expected_map())
+    finally:
+        output = rig.close()
+    assert "Traceback" not in output, output

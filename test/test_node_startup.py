@@ -1,0 +1,105 @@
+"""The mapper node's parameters as a user meets them: bad start-up input is one line and exit
+code 2; unknown names and overrides of the kernel are said once; run-time changes take effect
+and read-only parameters refuse to change. Real processes over DDS."""
+
+import re
+
+import pytest
+import torch
+from mapper_rig import WAIT, Rig
+from ros_helpers import domain_id, start
+
+MIXED_LIST = "/**:\n  ros__parameters:\n    local_bounds: [1.0, 2, 3.0, 4.0, 5.0, 6.0]\n"
+BROKEN_YAML = "/**:\n  ros__parameters:\n    resolution: [0.2\n"
+
+# (arguments after --ros-args, or a params file's text; the one line the user must get)
+BAD_STARTS = {
+    "type": (["-p", "resolution:=abc"], r"parameter resolution: 'abc' is a string, expected a number"),
+    "range": (["-p", "resolution:=50.0"], r"parameter resolution: 50.0 is out of range 0.01 .. 10"),
+    "even filter": (["-p", "filter_size:=4"], r"parameter filter_size: 4 is out of range 1 .. 31 \(odd values only\)"),
+    "choice": (["-p", "label_space:=ids"], r"parameter label_space: 'ids' is not one of raw, learning"),
+    "bounds": (["-p", "local_bounds:=[1.0, 2.0]"], r"local_bounds needs 6 numbers \(min xyz, max xyz\), got 2"),
+    "mount": (["-p", "base_to_sensor:=[0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 2.0]"],
+              r"parameter base_to_sensor: orientation quaternion \(0, 0, 0, 2\) has norm 2, not 1"),
+    "kernel": (["-p", "kernel_file:=/nowhere/kernel.yaml"], r"/nowhere/kernel.yaml"),
+    "classes": (["-p", "num_classes:=7"], r"kernel has 20 classes, num_classes is 7"),
+    "missing params file": (["--params-file", "/nowhere/params.yaml"],
+                            r"params file /nowhere/params.yaml: No such file or directory"),
+    "broken params file": (BROKEN_YAML, r"params file .*broken_params_file.yaml is not valid YAML"),
+    "mixed list": (MIXED_LIST, r"ROS 2 could not start: .*Couldn't parse params file"),
+}
+if not torch.cuda.is_available():
+    BAD_STARTS["no cuda"] = (["-p", "device:=cuda"], r"device 'cuda' requested, but .* no CUDA")
+
+
+def test_every_bad_start_is_one_line_and_exit_2(tmp_path):
+    processes = {}
+    for case, (arguments, _) in BAD_STARTS.items():  # all at once: each takes seconds to import torch
+        if isinstance(arguments, str):
+            params = tmp_path / f"{case.replace(' ', '_')}.yaml"
+            params.write_text(arguments)
+            arguments = ["--params-file", str(params)]
+        processes[case] = start("convbki_ros.mapper", domain_id(), "--ros-args", "-p", "device:=cpu", *arguments)
+    for case, process in processes.items():
+        output, _ = process.communicate(timeout=120)
+        lines = output.strip().splitlines()
+        assert process.returncode == 2, (case, output)
+        assert len(lines) == 1 and re.fullmatch(r"mapper: error: .*" + BAD_STARTS[case][1] + ".*", lines[0]), \
+            (case, output)
+
+
+def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_effect(tmp_path):
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    resolutoin: 0.3\n    publish_period: 1000.0\n")
+    # publish_period and stats_period so long that, unless the change re-creates their timers,
+    # nothing would be published or logged while the test runs.
+    rig = Rig(tmp_path, "--params-file", str(params), "-p", "filter_size:=3", "-p", "stats_period:=1000.0")
+    try:
+        assert rig.log.find(r"\[WARN\].*unknown parameters ignored \(misspelt\?\): resolutoin;")
+        assert rig.log.find(r"\[WARN\].*set explicitly, overriding the kernel file .*: filter_size 3 \(kernel: 5\)")
+        assert rig.log.find(r"mapper ready: compound kernel, 0.2 m voxels, f = 3,")
+        rig.integrate_good_cloud()
+        assert not rig.maps and not rig.log.find(r"scans in \d+, integrated")
+
+        client = rig.probe.node.create_client(SetParameters, "/convbki_mapper/set_parameters")
+
+        def set_parameter(name: str, value: float):
+            request = SetParameters.Request(parameters=[Parameter(name=name, value=ParameterValue(
+                type=ParameterType.PARAMETER_DOUBLE, double_value=value))])
+            assert rig.probe.spin_until(client.service_is_ready, WAIT)
+            future = client.call_async(request)
+            assert rig.probe.spin_until(future.done, WAIT)
+            return future.result().results[0]
+
+        refused = set_parameter("resolution", 0.4)
+        assert not refused.successful and "read-only" in refused.reason
+        refused = set_parameter("publish_period", 0.001)
+        assert not refused.successful and "out of range" in refused.reason
+        assert set_parameter("publish_period", 0.2).successful
+        assert rig.probe.spin_until(lambda: bool(rig.maps), WAIT), "no map after publish_period became 0.2 s"
+        assert set_parameter("stats_period", 0.2).successful
+        assert rig.probe.spin_until(lambda: rig.log.find(r"scans in 1, integrated 1"), WAIT)
+    finally:
+        output = rig.close()
+    assert "Traceback" not in output, output
+
+
+@pytest.mark.parametrize("namespace", ["", "/robot1"])
+def test_output_topics_are_relative_to_the_namespace(namespace, tmp_path):
+    rig = Rig(tmp_path, namespace=namespace)
+    try:
+        rig.integrate_good_cloud()
+        wanted = {f"{namespace}/{topic}" for topic in ("semantic_map", "semantic_map/variance", "semantic_map/local")}
+        wanted.add("/diagnostics")
+
+        def names() -> set[str]:
+            return {name for name, _ in rig.probe.node.get_topic_names_and_types()}
+
+        assert rig.probe.spin_until(lambda: wanted <= names(), WAIT), sorted(names())
+        assert rig.map_message(rig.stats().voxels).width > 0
+    finally:
+        output = rig.close()
+    assert "Traceback" not in output, output
