@@ -28,6 +28,7 @@ import torch
 from convbki_core.fast_update import HAVE_NUMBA, FilterPlan, scatter_update, voxelize_scan, warm_up
 from convbki_core.kernels import ConvBKIKernel, KernelConfig, load_kernel_file
 from convbki_core.layer import ConvBKILayer
+from convbki_core.records import RECORD, window_records
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
 from convbki_core.voxelize import (
@@ -284,6 +285,17 @@ class ConvBKIMapper:
     def local_voxels(self) -> VoxelSet:
         """The voxels with evidence in the current window."""
         return self.voxel_set(*self.window.items())
+
+    def window_records(self, palette: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Records (``records.RECORD``: centre, colour, class, variance, probability) of the voxels
+        with evidence in the current window, computed from the window in place; ``out``: as
+        many records as ``window.count()`` to fill."""
+        window = self.window
+        if window.origin is None:
+            return np.empty(0, RECORD) if out is None else out
+        count = window.count() if out is None else len(out)
+        return window_records(window.alpha, window.mask, window.origin, window.dims, count, self.resolution,
+                              palette, out)
 
     def voxel_set(self, indices: np.ndarray, alpha: np.ndarray) -> VoxelSet:
         """Statistics of the given voxels (e.g. a copy taken from ``items()``)."""

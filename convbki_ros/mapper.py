@@ -26,7 +26,7 @@ from convbki_ros.params import NODE_NAME, NOT_SET, PARAMETERS, StartupError
 from convbki_ros.ros_args import strip_ros_args
 
 PROG = "mapper"
-EXECUTOR_THREADS = 4  # inputs, files, housekeeping, parameter services: one callback group each
+EXECUTOR_THREADS = 5  # clouds, odometry, files, housekeeping, parameter services: one callback group each
 
 
 def _epilog() -> str:

@@ -18,6 +18,7 @@ import numpy as np
 from convbki_core.kernels import load_kernel_file
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
+from convbki_core.records import RECORD
 from convbki_ros.params import (
     KERNEL_DECIDES,
     SPECS,
@@ -30,7 +31,7 @@ from convbki_ros.params import (
     kernel_defaults,
     unknown_parameters,
 )
-from convbki_ros.pointcloud import CloudError, decode_cloud
+from convbki_ros.pointcloud import CloudError, decode_cloud, records_cloud
 from convbki_ros.pose_buffer import PoseStatus, pose_problem
 from convbki_ros.status import problem_key
 from convbki_ros.sync import CloudQueue, Decision, SensorMount, Verdict
@@ -324,19 +325,18 @@ class MappingCore:
                                f"{known} (e.g. {examples}); they are ignored")
         return self.label_map.to_learning(labels) if space == "raw" else np.where(unknown, 0, labels)
 
-    # -- copies for the outputs (taken under the lock, used without it) ------------------------
+    # -- what the outputs show (copied or computed under the lock, sent without it) -----------
     def map_copy_if_changed(self):
-        """(VoxelSet of the whole map, its version), or None when it is as last published."""
+        """(indices, alpha, version) of the whole map, or None when it is as last published."""
         with self.map_lock:
             if self.map_version == self.published_version:
                 return None
-            version = self.map_version
             indices, alpha = self.mapper.items()
-        return self.mapper.voxel_set(indices, alpha), version
+            return indices, alpha, self.map_version
 
-    def local_copy(self):
-        """(VoxelSet of the window around the sensor, stamp of the cloud last integrated)."""
+    def local_cloud(self, frame: str, palette: np.ndarray):
+        """PointCloud2 of the window around the sensor, stamped with the cloud last integrated."""
         with self.map_lock:
-            indices, alpha = self.mapper.window.items()
-            stamp = self.last_stamp
-        return self.mapper.voxel_set(indices, alpha), stamp
+            count = self.mapper.window.count()
+            return records_cloud(self.last_stamp or 0, frame, RECORD, count,
+                                 lambda records: self.mapper.window_records(palette, records))

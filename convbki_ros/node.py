@@ -21,6 +21,7 @@ import sys
 import threading
 import time
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -31,13 +32,17 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from convbki_core.labels import load_label_map
+from convbki_core.records import RECORD, packed_palette, records_from_alpha
 from convbki_ros.map_files import MapFiles
 from convbki_ros.mapping import MappingCore
 from convbki_ros.params import NODE_NAME, PARAMETERS, check_choice, declare
-from convbki_ros.pointcloud import encode_cloud, encode_map_cloud, variance_cloud_fields
+from convbki_ros.pointcloud import encode_cloud, records_cloud
 from convbki_ros.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
 
 LEVELS = {OK: DiagnosticStatus.OK, WARN: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
+# Odometry is small and may arrive in bursts (a reliable reader delivers in order, so one
+# lost message holds up the rest until it is repeated): keep every pose of such a burst.
+ODOMETRY_DEPTH = 200
 LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -55,14 +60,17 @@ class MapperNode(Node):
         self.status = MapperStatus()
         self.warnings = WarningThrottle(self.get_logger())
         self.label_map = load_label_map("semantic_kitti")
+        self.palette = packed_palette(self.label_map.colors)
         self.core = MappingCore(self, self.status, self.warnings, self.label_map)
         self.files = MapFiles(self)
         self.files.load_at_start()
 
-        inputs, file_io, housekeeping = (MutuallyExclusiveCallbackGroup() for _ in range(3))
-        qos = self._input_qos()
-        self.create_subscription(PointCloud2, "cloud_in", self.core.on_cloud, qos, callback_group=inputs)
-        self.create_subscription(Odometry, "odom", self.core.on_odometry, qos, callback_group=inputs)
+        inputs, odometry_group, file_io, housekeeping = (MutuallyExclusiveCallbackGroup() for _ in range(4))
+        # Clouds and odometry in groups of their own: a cloud being queued never delays odometry.
+        self.create_subscription(PointCloud2, "cloud_in", self.core.on_cloud, self._input_qos(20),
+                                 callback_group=inputs)
+        self.create_subscription(Odometry, "odom", self.core.on_odometry, self._input_qos(ODOMETRY_DEPTH),
+                                 callback_group=odometry_group)
         self.map_publisher = self.create_publisher(PointCloud2, "semantic_map", LATCHED)
         self.variance_publisher = self.create_publisher(PointCloud2, "semantic_map/variance", LATCHED)
         self.local_publisher = self.create_publisher(PointCloud2, "semantic_map/local", 2)
@@ -110,10 +118,11 @@ class MapperNode(Node):
             if spec.name != "kernel_file":
                 declare(self, spec, kernel_values.get(spec.name))
 
-    def _input_qos(self):
+    def _input_qos(self, depth: int):
         if check_choice("input_qos", self.param("input_qos")) == "sensor_data":
-            return qos_profile_sensor_data
-        return QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+            return QoSProfile(depth=max(depth, qos_profile_sensor_data.depth),
+                              reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+        return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
     def _restart_timer(self, name: str) -> None:
         """(Re)create the timer driven by parameter ``name``; a period of 0 means none."""
@@ -151,17 +160,26 @@ class MapperNode(Node):
             self.outputs_changed.notify_all()
 
     def _publish_loop(self) -> None:
-        """The publishing thread. The local window is sent after updates, the newest one only:
-        when updates come faster than it can be encoded, intermediate windows are skipped
-        rather than queued, so watching the map never slows mapping down."""
+        """The publishing thread. The local window is sent after updates, the newest one only and
+        at most once per ``local_period``: when updates come faster than it can be encoded or
+        watched, intermediate windows are skipped rather than queued, so watching the map never
+        slows mapping down."""
+        last_local = -1e9
         while True:
             with self.outputs_changed:
-                while not (self.publish_due or self.local_due) and not self.core.stopping:
-                    self.outputs_changed.wait(0.5)
+                while not self.core.stopping:
+                    local_wait = last_local + self.param("local_period") - time.monotonic()
+                    if self.publish_due or (self.local_due and local_wait <= 0):
+                        break
+                    self.outputs_changed.wait(min(0.5, local_wait) if self.local_due else 0.5)
                 if self.core.stopping:
                     return
-                publish_map, publish_local = self.publish_due, self.local_due
-                self.publish_due = self.local_due = False
+                publish_map = self.publish_due
+                publish_local = self.local_due and local_wait <= 0
+                self.publish_due = False
+                self.local_due = self.local_due and not publish_local
+            if publish_local:
+                last_local = time.monotonic()
             try:
                 if publish_local:
                     self._publish_local()
@@ -171,10 +189,8 @@ class MapperNode(Node):
                 self.get_logger().error(f"publishing failed: {error.__class__.__name__}: {error}")
 
     def _publish_local(self) -> None:
-        if not (self.param("publish_local") and self.local_publisher.get_subscription_count()):
-            return
-        voxels, stamp = self.core.local_copy()
-        self.local_publisher.publish(encode_map_cloud(stamp, self.core.frame, voxels, self.label_map.colors))
+        if self.param("publish_local") and self.local_publisher.get_subscription_count():
+            self.local_publisher.publish(self.core.local_cloud(self.core.frame, self.palette))
 
     def _publish_map(self) -> None:
         """``semantic_map`` and ``semantic_map/variance`` when the map changed and anyone listens.
@@ -182,25 +198,36 @@ class MapperNode(Node):
         Both are latched; with no subscriber the (possibly large) map is not encoded at all,
         and a subscriber that joins later gets the current map at the next tick.
         """
-        listeners = self.map_publisher.get_subscription_count() + self.variance_publisher.get_subscription_count()
-        if not listeners:
+        map_listeners = self.map_publisher.get_subscription_count()
+        variance_listeners = self.variance_publisher.get_subscription_count()
+        if not (map_listeners or variance_listeners):
             return
         started = time.perf_counter()
         copied = self.core.map_copy_if_changed()
         if copied is None:
             return
-        voxels, version = copied
-        max_variance = self.param("max_variance")
-        mask = voxels.variance <= max_variance if max_variance > 0 else None
+        indices, alpha, version = copied
+        resolution = self.core.mapper.resolution
         stamp = self.get_clock().now().nanoseconds
         frame = self.core.frame
-        if self.map_publisher.get_subscription_count():
-            self.map_publisher.publish(encode_map_cloud(stamp, frame, voxels, self.label_map.colors, mask=mask))
-        if self.variance_publisher.get_subscription_count():
-            fields = variance_cloud_fields(voxels)
-            if mask is not None:
-                fields = {name: values[mask] for name, values in fields.items()}
-            self.variance_publisher.publish(encode_cloud(stamp, frame, fields))
+        max_variance = self.param("max_variance")
+        if max_variance > 0 or variance_listeners:
+            records = records_from_alpha(indices, alpha, resolution, self.palette)
+            if max_variance > 0:
+                records = records[records["variance"] <= max_variance]
+            def fill(out):
+                np.copyto(out, records)
+        else:  # straight into the message
+            records = None
+
+            def fill(out):
+                records_from_alpha(indices, alpha, resolution, self.palette, out)
+        count = len(indices) if records is None else len(records)
+        if map_listeners:
+            self.map_publisher.publish(records_cloud(stamp, frame, RECORD, count, fill))
+        if variance_listeners:
+            fields = {name: records[name] for name in ("x", "y", "z")}
+            self.variance_publisher.publish(encode_cloud(stamp, frame, {**fields, "intensity": records["variance"]}))
         self.core.published_version = version
         self.status.published(1e3 * (time.perf_counter() - started))
 

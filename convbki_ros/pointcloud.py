@@ -448,3 +448,22 @@ def encode_map_cloud(stamp: Any, frame_id: str, voxels: Any, class_colors: np.nd
     if mask is not None:
         fields = {name: values[mask] for name, values in fields.items()}
     return encode_cloud(stamp, frame_id, fields, types=types)
+
+
+def records_cloud(stamp: Any, frame_id: str, dtype: np.dtype, count: int, fill) -> Any:
+    """An rclpy PointCloud2 whose points are ``count`` records of the packed structured ``dtype``
+    (e.g. ``convbki_core.records.RECORD``): ``fill(records)`` writes them straight into the
+    buffer that becomes ``data``, so a large map is never copied after it is computed."""
+    types = message_types()
+    field_class = types("sensor_msgs/msg/PointField")
+    data = array.array("B", [0]) * (count * dtype.itemsize)
+    records = np.frombuffer(data, dtype=dtype, count=count)
+    fill(records)
+    del records  # an array.array with an exported buffer cannot be handed over
+    fields = [field_class(name=name, offset=offset, datatype=DTYPE_TO_DATATYPE[field_dtype.str[1:]], count=1)
+              for name, (field_dtype, offset) in dtype.fields.items()]
+    msg = types("sensor_msgs/msg/PointCloud2")(
+        header=make_header(types, stamp, frame_id), height=1, width=count, fields=fields, is_bigendian=False,
+        point_step=dtype.itemsize, row_step=dtype.itemsize * count, is_dense=True)
+    msg.data = data
+    return msg

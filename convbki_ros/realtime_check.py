@@ -21,9 +21,10 @@ dropped and why, queue peak, update and publish times, map voxels), the node's p
 memory, and per listener the messages received from the start of the replay, their spacing
 and the last one's size. Logs:
 ``OUT/mapper.log``, ``OUT/listener_NAME.log``, ``OUT/busy_N.log``. It is a measurement: the
-exit code is 0 when the node kept up (no scan dropped, every scan integrated, and with a
-``map`` listener, maps at most 2.5 publish periods apart), 3 when it did not, 2 when the run
-could not be made (bad arguments, a program that failed).
+exit code is 0 when the node kept up (no scan dropped, every scan integrated), 3 when it did
+not, 2 when the run could not be made (bad arguments, a program that failed). Maps that
+arrived more than 2.5 publish periods apart are reported (``maps_on_time``), not judged: DDS
+decides when a sent message arrives.
 
     .venv/bin/python -m convbki_ros.realtime_check [--frames 300] [--out out/realtime]
         [--listeners map,local] [--busy-cores 1] [--publication-mode synchronous]
@@ -300,8 +301,10 @@ def _report(args, out: Path, scans: int, samples: list[dict], arrivals: dict, re
         "publish_period_s": args.publish_period, "cores": os.cpu_count(),
     }
     map_gap = listeners["map"]["interval_max_s"] if "map" in listeners else None
-    figures["kept_up"] = kept_up = figures["dropped"] == 0 and figures["integrated"] == scans and (
-        "map" not in listeners or (map_gap is not None and map_gap <= 2.5 * args.publish_period))
+    figures["kept_up"] = kept_up = figures["dropped"] == 0 and figures["integrated"] == scans
+    # Reported, not judged: a late map is a DDS delivery delay the node cannot shorten.
+    figures["maps_on_time"] = "map" not in listeners or (map_gap is not None and
+                                                         map_gap <= 2.5 * args.publish_period)
     atomic_write_bytes(out / "realtime.json", (json.dumps(figures, indent=2) + "\n").encode())
     reasons = ", ".join(f"{reason} {count}" for reason, count in figures["dropped_reasons"].items())
     print(f"  scans in bag {scans}: received {figures['scans_in']}, integrated {figures['integrated']}, "
@@ -318,8 +321,10 @@ def _report(args, out: Path, scans: int, samples: list[dict], arrivals: dict, re
     print(f"  {replay_s:.0f} s of replay at rate {args.rate}, publish period {args.publish_period} s, "
           f"publication mode {args.publication_mode}, busy cores {args.busy_cores} of {figures['cores']}")
     print(f"  figures: {out / 'realtime.json'}; logs: {out}/*.log")
+    if not figures["maps_on_time"]:
+        print(f"  note: maps arrived up to {map_gap} s apart (publish period {args.publish_period} s)")
     if not kept_up:
-        print(f"{PROG}: the node did NOT keep real time (see above)", file=sys.stderr)
+        print(f"{PROG}: the node did NOT keep real time: scans were dropped (see above)", file=sys.stderr)
     return 0 if kept_up else 3
 
 

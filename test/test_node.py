@@ -101,7 +101,7 @@ def test_node_maps_a_bag_like_the_offline_mapper_and_serves_its_map(drive, tmp_p
     finally:
         probe.close()
         output = stop(mapper)
-    assert "Traceback" not in output, output
+    assert "Traceback" not in output and "[ERROR]" not in output, output
 
 
 def test_sigint_stops_the_node_within_two_seconds(tmp_path):
