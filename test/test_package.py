@@ -32,12 +32,14 @@ EXECUTABLES: dict[str, tuple[str, tuple[str, ...]]] = {
     "play_bag": ("convbki_ros.play_bag", ("BAG", "--rate", "--clock", "--remap")),
     "evaluate": ("convbki_core.evaluate", (
         "--dataset", "--sequence", "--predictions-dir", "--probabilities-dir", "--kernel",
-        "--frames", "--report", "--write-labels")),
+        "--frames", "--report", "--write-labels", "--save-map")),
     "train": ("convbki_core.train", (
         "--dataset", "--sequences", "--kernel", "--out", "--frames-per-sample", "--epochs",
         "--lr")),
     "synth": ("convbki_core.synthetic", ("--out", "--sequence", "--frames", "--seed")),
     "bench": ("convbki_core.bench", ("--config", "--repeat", "--json")),
+    "map_tool": ("convbki_core.map_tool", (
+        "info", "merge", "export-ply", "--json", "--out", "--force", "--max-variance", "--quiet")),
     "realtime_check": ("convbki_ros.realtime_check", (
         "--frames", "--rate", "--publish-period", "--dataset", "--listeners", "--busy-cores",
         "--publication-mode")),
@@ -62,6 +64,7 @@ VALID_ARGS = {
     "train": ["--dataset", "ds", "--sequences", "0", "--out", "k.yaml"],
     "synth": ["--out", "ds"],
     "bench": ["--repeat", "1"],
+    "map_tool": ["info", "map.npz"],
     "realtime_check": ["--frames", "10", "--listeners", "map,variance", "--busy-cores", "1"],
 }
 
@@ -216,6 +219,7 @@ MISSING_INPUT = {
     "evaluate": ["--dataset", "nowhere", "--sequence", "8", "--report", "r.json"],
     "train": ["--dataset", "nowhere", "--sequences", "0", "--out", "k.yaml"],
     "synth": ["--out", "a_file"],
+    "map_tool": ["info", "nowhere.npz"],
 }
 
 
@@ -296,3 +300,11 @@ def test_mapper_defaults_are_the_papers() -> None:
     parsed = parameter_dict_from_yaml_file(str(REPO / "config" / "mapper.yaml"), use_wildcard=True)
     assert set(PAPER_DEFAULTS) - set(KERNEL_DECIDES) <= set(parsed)
     assert list(parsed["local_bounds"].value.double_array_value) == pytest.approx(PAPER_DEFAULTS["local_bounds"])
+
+
+def test_node_reference_documents_every_parameter() -> None:
+    from convbki_ros.params import PARAMETERS
+
+    text = (REPO / "docs" / "node.md").read_text()
+    rows = {line.split("|")[1].strip().strip("`") for line in text.splitlines() if line.startswith("| `")}
+    assert {spec.name for spec in PARAMETERS} <= rows
