@@ -47,6 +47,7 @@ setup(
             "train = convbki_core.train:main",
             "synth = convbki_core.synthetic:main",
             "bench = convbki_core.bench:main",
+            "map_tool = convbki_core.map_tool:main",
             "realtime_check = convbki_ros.realtime_check:main",
         ],
     },

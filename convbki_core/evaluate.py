@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -166,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--picture", default=None, metavar="PNG",
                    help="bird's-eye picture of the final map (classes and variance side by side); default: next "
                    "to the report, REPORT_map.png (REPORT_<kernel>_map.png with several kernels)")
+    p.add_argument("--save-map", default=None, metavar="FILE",
+                   help="also write the final map (first kernel) as a map file (.npz) that the mapper node can "
+                   "load (map_file) and map_tool reads; written only when the whole run succeeded")
     p.add_argument("--local-bounds", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX",
                    "YMAX", "ZMAX"), help="local window around the sensor in metres (default: the paper's "
                    "-40 -40 -2.6 40 40 2.6)")
@@ -178,6 +182,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="initial concentration of every class in a new voxel (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+def check_writable_file(path: str | Path, flag: str) -> None:
+    """Refuse, before the long work, a file that could not be written at the end."""
+    folder = output_folder(path, flag.lstrip("-").replace("-", " "))
+    if Path(path).is_dir():
+        raise UserError(f"{path}: is a folder; {flag} names a file")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise UserError(f"{folder}: folder is not writable (for {flag} {path})")
 
 
 def _evaluate(args: argparse.Namespace) -> int:
@@ -206,6 +219,8 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         raise UserError(f"{report_path}: is a folder; --report names a JSON file")
     if args.picture:
         output_folder(args.picture, "picture")
+    if args.save_map:
+        check_writable_file(args.save_map, "--save-map")
     dataset = SemanticKittiSequence(args.dataset, args.sequence, args.predictions_dir, args.probabilities_dir)
     if dataset.predictions_folder is None and dataset.probabilities_folder is None:
         raise UserError("no input segmentation: give --predictions-dir or --probabilities-dir")
@@ -246,6 +261,8 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                  f"map mIoU {run_result.map_scores.miou():.3f} (input {input_scores.miou():.3f})")
         save_map_picture(voxels, label_map, run_result.mapper.resolution, outputs.file(picture), title)
         pictures.append(picture)
+    if args.save_map:
+        runs[0].mapper.save(outputs.file(args.save_map))  # atomic; removed again if the report fails
     # The report and the labels last: they are what scripts look for to tell that a run finished.
     atomic_write_bytes(outputs.file(report_path), (json.dumps(report, indent=2) + "\n").encode())
     outputs.commit()
@@ -260,6 +277,8 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     print(f"report: {report_path}; pictures: {', '.join(map(str, pictures))}")
     if args.write_labels:
         print(f"labels: {Path(args.write_labels) / 'sequences' / dataset.sequence / 'predictions'}")
+    if args.save_map:
+        print(f"map: {args.save_map} ({len(runs[0].mapper)} voxels)")
     return 0
 
 

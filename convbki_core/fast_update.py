@@ -39,6 +39,12 @@ except ImportError:  # pragma: no cover - numba is a pinned dependency; this is 
     logging.getLogger("convbki_core").warning(
         "numba is not available: the CPU update uses the slower numpy scatter (install numba==0.68.1)")
 
+# Bits of the window's byte mask: the voxel holds evidence; its concentrations changed since
+# the map's changes were last taken (``RollingWindow.take_changes``).
+EVIDENCE = 1
+CHANGED = 2
+
+
 @dataclass(frozen=True)
 class FilterPlan:
     """The filters as the compiled scatter reads them, prepared once per kernel.
@@ -142,9 +148,10 @@ if HAVE_NUMBA:
                             continue
                         for k in range(size):
                             z = target[m, 2, k]
-                            if z >= 0 and union[(i * size + j) * size + k] != 0 and mask[x, y, z] == 0:
-                                mask[x, y, z] = 1
-                                created += 1
+                            if z >= 0 and union[(i * size + j) * size + k] != 0:
+                                if mask[x, y, z] == 0:
+                                    created += 1
+                                mask[x, y, z] = EVIDENCE | CHANGED
             new_counts[part] = created
         return new_counts.sum()
 
@@ -153,7 +160,7 @@ def _scatter_numpy(occupied, features, filters, origin, dims, alpha, mask) -> in
     """The same scatter with numpy, one tap at a time (the fallback without numba)."""
     size = filters.shape[1]
     half = size // 2
-    before = int(mask.sum())
+    before = int(np.count_nonzero(mask))
     for i in range(size):
         for j in range(size):
             for k in range(size):
@@ -169,8 +176,8 @@ def _scatter_numpy(occupied, features, filters, origin, dims, alpha, mask) -> in
                 plane = alpha.reshape(alpha.shape[0], -1)
                 for c in np.flatnonzero(weights > 0):
                     np.add.at(plane[c], flat, contribution[has, c])
-                mask.reshape(-1)[flat] = 1
-    return int(mask.sum()) - before
+                mask.reshape(-1)[flat] = EVIDENCE | CHANGED
+    return int(np.count_nonzero(mask)) - before
 
 
 def scatter_update(occupied: np.ndarray, features: np.ndarray, filters: np.ndarray | FilterPlan, origin: np.ndarray,
@@ -181,7 +188,7 @@ def scatter_update(occupied: np.ndarray, features: np.ndarray, filters: np.ndarr
     ``filters`` (C, f, f, f) float32, or a ``FilterPlan`` of them (prepare it once per
     kernel); the window covers global indices origin .. origin + dims - 1 (zero padding
     beyond), stored at index mod dims in ``alpha`` (C, X, Y, Z) float32 and ``mask``
-    (X, Y, Z) uint8, which is set where evidence arrives.
+    (X, Y, Z) uint8, which gets ``EVIDENCE | CHANGED`` where evidence arrives.
     Returns the number of voxels that received evidence for the first time.
     """
     plan = filters if isinstance(filters, FilterPlan) else FilterPlan.from_filters(filters)
@@ -310,7 +317,7 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
 if HAVE_NUMBA:
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _gather_window_numba(alpha, mask, origin, dims, indices, values):  # pragma: no cover - compiled
+    def _gather_window_numba(alpha, mask, origin, dims, indices, values, select, keep):  # pragma: no cover
         size_x, size_y, size_z = mask.shape
         num_classes = alpha.shape[0]
         counts = np.zeros(size_x + 1, np.int64)
@@ -318,7 +325,7 @@ if HAVE_NUMBA:
             found = 0
             for y in range(size_y):
                 for z in range(size_z):
-                    if mask[x, y, z] != 0:
+                    if mask[x, y, z] & select != 0:
                         found += 1
             counts[x + 1] = found
         starts = np.cumsum(counts)
@@ -330,41 +337,47 @@ if HAVE_NUMBA:
             for y in range(size_y):
                 global_y = origin[1] + (y - origin[1]) % dims[1]
                 for z in range(size_z):
-                    if mask[x, y, z] != 0:
+                    if mask[x, y, z] & select != 0:
                         indices[row, 0] = global_x
                         indices[row, 1] = global_y
                         indices[row, 2] = origin[2] + (z - origin[2]) % dims[2]
                         for c in range(num_classes):
                             values[row, c] = alpha[c, x, y, z]
+                        mask[x, y, z] &= keep
                         row += 1
         return starts[-1]
 
 
 def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray,
-                  indices: np.ndarray | None = None, values: np.ndarray | None = None):
-    """Voxels of the torus window whose mask is set: (global indices (n, 3), alpha (n, C)), torus order.
+                  indices: np.ndarray | None = None, values: np.ndarray | None = None,
+                  select: int = EVIDENCE, clear: int = 0):
+    """Voxels of the torus window whose ``mask`` has a bit of ``select``: (global indices (n, 3),
+    alpha (n, C)), torus order; the bits ``clear`` are then cleared in them.
 
     One compiled pass instead of ``alpha[:, argwhere(mask)]``, which gathers each of the C
     class planes separately (about 10x slower for a million voxels); the node does this
-    for every map it publishes. ``indices``/``values`` (n rows, n = voxels in the mask):
+    for every map it publishes. ``indices``/``values`` (n rows, n = the voxels selected):
     write into these (e.g. slices of a larger array) instead of new arrays.
     """
     origin = np.ascontiguousarray(origin, np.int64)
     dims = np.ascontiguousarray(dims, np.int64)
     if indices is None or values is None:
-        count = int(np.count_nonzero(mask))
+        count = int(np.count_nonzero(mask & select)) if select != EVIDENCE else int(np.count_nonzero(mask))
         indices = np.empty((count, 3), np.int64)
         values = np.empty((count, alpha.shape[0]), np.float32)
     if HAVE_NUMBA:
-        if _gather_window_numba(alpha, mask, origin, dims, indices, values) != indices.shape[0]:
-            raise ValueError(f"output has {indices.shape[0]} rows, the window {int(np.count_nonzero(mask))} voxels")
+        if _gather_window_numba(alpha, mask, origin, dims, indices, values, np.uint8(select),
+                                np.uint8(~clear & 0xFF)) != indices.shape[0]:
+            raise ValueError(f"output has {indices.shape[0]} rows, the window "
+                             f"{int(np.count_nonzero(mask & select))} selected voxels")
         return indices, values
-    physical = np.argwhere(mask)
+    physical = np.argwhere(mask & select)
     if physical.shape[0] != indices.shape[0]:
-        raise ValueError(f"output has {indices.shape[0]} rows, the window {physical.shape[0]} voxels")
+        raise ValueError(f"output has {indices.shape[0]} rows, the window {physical.shape[0]} selected voxels")
     values[:] = alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
     # Unwrap the torus: the global index is the one in [origin, origin + dims) with this remainder.
     indices[:] = origin + (physical - origin) % dims
+    mask[physical[:, 0], physical[:, 1], physical[:, 2]] &= np.uint8(~clear & 0xFF)
     return indices, values
 
 _warmed_up = False

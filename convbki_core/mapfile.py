@@ -1,14 +1,19 @@
 """The map file: one self-describing, versioned file holding a whole ConvBKI map.
 
-Layout: an uncompressed NumPy ``.npz`` archive (readable from any language with a zip
-reader and the .npy spec) with three members:
+Layout (version 2): an uncompressed NumPy ``.npz`` archive (readable from any language
+with a zip reader and the .npy spec) with five members:
 
 * ``metadata``: UTF-8 JSON bytes: format name and version, resolution (m), num_classes,
   frame_id, prior, local_bounds, the kernel (kernel-file mapping), class names if known;
 * ``voxel_index``: (N, 3) int32 global voxel indices (centre = (index + 0.5) * resolution);
-* ``alpha``: (N, C) float32 Dirichlet concentrations.
+* ``class_count``: (N,) uint8, per voxel the number of classes whose concentration is not
+  the prior; those classes follow voxel by voxel in
+* ``class_id``: (M,) uint8, ascending within a voxel, M = sum of class_count, and
+* ``value``: (M,) float32 Dirichlet concentrations. Every other class holds exactly the
+  metadata's ``prior`` (as float32).
 
-Saves are atomic (temp file in the same folder, fsync, rename).
+Version 1 files (a dense ``alpha`` (N, C) float32 member instead of the last three) still
+load. Saves are atomic (temp file in the same folder, fsync, rename).
 """
 
 from __future__ import annotations
@@ -24,12 +29,15 @@ import numpy as np
 
 from convbki_core.fileio import atomic_write_with
 from convbki_core.kernels import kernel_config_to_dict
+from convbki_core.store import compress_rows, expand_rows
 
 if TYPE_CHECKING:
     from convbki_core.mapper import ConvBKIMapper
 
 MAP_FORMAT = "convbki_map"
-MAP_VERSION = 1
+MAP_VERSION = 2
+_MEMBERS = {1: ("metadata", "voxel_index", "alpha"),
+            2: ("metadata", "voxel_index", "class_count", "class_id", "value")}
 
 
 class MapFileError(ValueError):
@@ -48,13 +56,23 @@ class MapSnapshot:
         return int(self.indices.shape[0])
 
     def write(self, path: str | Path) -> None:
-        """Write the map file atomically: a failed write leaves the previous file as it was."""
+        """Write the map file (version 2) atomically: a failed write leaves the previous file as it was.
+
+        Only values that differ from the metadata's ``prior`` are written; the rest is the prior.
+        """
         if self.indices.size and (np.abs(self.indices) > np.iinfo(np.int32).max).any():
             raise ValueError("voxel indices exceed the int32 range of the map file")
+        prior = self.metadata.get("prior")
+        if not _is_positive_number(prior):
+            raise ValueError(f"the metadata's prior must be a positive number, got {prior!r}")
+        counts, classes, values = compress_rows(self.alpha, prior)
+        metadata = dict(self.metadata, version=MAP_VERSION)
         arrays = {
-            "metadata": np.frombuffer(json.dumps(self.metadata).encode(), dtype=np.uint8),
+            "metadata": np.frombuffer(json.dumps(metadata).encode(), dtype=np.uint8),
             "voxel_index": self.indices.astype(np.int32),
-            "alpha": self.alpha.astype(np.float32, copy=False),
+            "class_count": counts,
+            "class_id": classes,
+            "value": values.view(np.float32),
         }
         atomic_write_with(path, lambda handle: np.savez(handle, **arrays))
 
@@ -82,11 +100,11 @@ def save_map(mapper: ConvBKIMapper, path: str | Path) -> None:
 
 
 def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
-    """Read and check a map file: (metadata, voxel_index (N, 3) int64, alpha (N, C) float32).
+    """Read and check a map file: (metadata, voxel_index (N, 3) int64, alpha (N, C) float32 dense).
 
     Anything that is not a complete map file of this format (empty, truncated, corrupted,
-    another program's .npz or .npy, another format version) raises ``MapFileError`` naming
-    the file and the problem.
+    another program's .npz or .npy, an unknown format version) raises ``MapFileError``
+    naming the file and the problem. Versions 1 and 2 load.
     """
     path = Path(path)
     try:
@@ -99,12 +117,15 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
             raise MapFileError(f"{path}: not a ConvBKI map file (a single NumPy array, not an .npz archive)")
         with archive:
             members = set(archive.files)
-            missing = {"metadata", "voxel_index", "alpha"} - members
-            if missing:
+            if "metadata" not in members:
+                missing = set(_MEMBERS[MAP_VERSION]) - members
                 raise MapFileError(f"{path}: not a ConvBKI map file (missing {', '.join(sorted(missing))})")
             metadata = json.loads(archive["metadata"].tobytes().decode())
-            indices = archive["voxel_index"]
-            alpha = archive["alpha"]
+            _check_format(path, metadata)
+            missing = set(_MEMBERS[metadata["version"]]) - members
+            if missing:
+                raise MapFileError(f"{path}: not a ConvBKI map file (missing {', '.join(sorted(missing))})")
+            arrays = {name: archive[name] for name in _MEMBERS[metadata["version"]][1:]}
     except MapFileError:
         raise
     except FileNotFoundError:
@@ -117,24 +138,72 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
         detail = str(error).splitlines()[0][:200] if str(error) else ""
         raise MapFileError(f"{path}: not a readable ConvBKI map file, truncated or corrupted "
                            f"({error.__class__.__name__}{': ' + detail if detail else ''})") from None
-    if not isinstance(metadata, dict) or metadata.get("format") != MAP_FORMAT:
-        raise MapFileError(f"{path}: not a ConvBKI map file (format is {metadata.get('format')!r})"
-                           if isinstance(metadata, dict) else f"{path}: not a ConvBKI map file")
-    if metadata.get("version") != MAP_VERSION:
-        raise MapFileError(f"{path}: map format version {metadata.get('version')!r} is not supported "
-                           f"(this build reads version {MAP_VERSION})")
     _check_metadata(path, metadata)
+    indices = arrays["voxel_index"]
+    alpha = _dense_alpha(path, metadata, indices, arrays) if metadata["version"] == 2 else arrays["alpha"]
     num_classes = metadata["num_classes"]
     if indices.ndim != 2 or indices.shape[1] != 3 or alpha.ndim != 2 or alpha.shape != (indices.shape[0], num_classes):
         raise MapFileError(f"{path}: inconsistent arrays (voxel_index {indices.shape}, alpha {alpha.shape}, "
                            f"num_classes {num_classes})")
     if indices.dtype.kind != "i" or alpha.dtype.kind != "f":
         raise MapFileError(f"{path}: unexpected array types ({indices.dtype}, {alpha.dtype})")
-    if not np.isfinite(alpha).all() or (alpha < 0).any():
+    if metadata["version"] == 1 and (not np.isfinite(alpha).all() or (alpha < 0).any()):
         raise MapFileError(f"{path}: concentrations must be finite and non-negative")
     if len(np.unique(indices, axis=0)) != indices.shape[0]:
         raise MapFileError(f"{path}: duplicate voxel indices")
-    return metadata, indices.astype(np.int64), alpha.astype(np.float32)
+    return metadata, indices.astype(np.int64), alpha.astype(np.float32, copy=False)
+
+
+def _check_format(path: Path, metadata: object) -> None:
+    """The metadata names this format and a version this build reads."""
+    if not isinstance(metadata, dict) or metadata.get("format") != MAP_FORMAT:
+        raise MapFileError(f"{path}: not a ConvBKI map file (format is {metadata.get('format')!r})"
+                           if isinstance(metadata, dict) else f"{path}: not a ConvBKI map file")
+    version = metadata.get("version")
+    if isinstance(version, bool) or version not in tuple(_MEMBERS):  # a tuple: JSON lists are unhashable
+        raise MapFileError(f"{path}: map format version {version!r} is not supported "
+                           f"(this build reads versions {', '.join(map(str, _MEMBERS))})")
+
+
+def _dense_alpha(path: Path, metadata: dict, indices: np.ndarray, arrays: dict) -> np.ndarray:
+    """The (N, C) float32 concentrations of a version 2 file, after checking its class lists."""
+    counts, classes, values = arrays["class_count"], arrays["class_id"], arrays["value"]
+    num_classes, prior = metadata["num_classes"], metadata.get("prior")
+    if (indices.ndim != 2 or counts.ndim != 1 or counts.shape[0] != indices.shape[0] or classes.ndim != 1
+            or values.shape != classes.shape):
+        raise MapFileError(f"{path}: inconsistent arrays (voxel_index {indices.shape}, class_count {counts.shape}, "
+                           f"class_id {classes.shape}, value {values.shape})")
+    if counts.dtype.kind not in "iu" or classes.dtype.kind not in "iu" or values.dtype.kind != "f":
+        raise MapFileError(f"{path}: unexpected array types ({counts.dtype}, {classes.dtype}, {values.dtype})")
+    if counts.size and (counts.min() < 0 or counts.max() > num_classes):
+        raise MapFileError(f"{path}: inconsistent arrays (class_count beyond 0..{num_classes})")
+    if counts.sum(dtype=np.int64) != classes.size:
+        raise MapFileError(f"{path}: inconsistent arrays (class_count sums to {counts.sum(dtype=np.int64)}, "
+                           f"not the {classes.size} class ids)")
+    if classes.size and (classes.min() < 0 or classes.max() >= num_classes):
+        raise MapFileError(f"{path}: inconsistent arrays (class_id beyond num_classes {num_classes})")
+    # Within a voxel the ids ascend (no class twice); the step into the next voxel may go down.
+    ascending = np.diff(classes.astype(np.int64)) > 0
+    ends = np.cumsum(counts, dtype=np.int64)[:-1]
+    ascending[ends[(ends > 0) & (ends < classes.size)] - 1] = True
+    if not ascending.all():
+        raise MapFileError(f"{path}: class ids of a voxel must ascend, each class at most once")
+    if not np.isfinite(values).all() or (values < 0).any():
+        raise MapFileError(f"{path}: concentrations must be finite and non-negative")
+    if not _is_positive_number(prior):
+        raise MapFileError(f"{path}: metadata prior must be a positive number, got {prior!r}")
+    return expand_rows(counts, classes, values.astype(np.float32), prior, num_classes)
+
+
+def _is_positive_number(value: object) -> bool:
+    """A JSON number usable as a float32 prior: finite and positive."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:  # float(): json integers may be too large for a float
+        prior = np.float32(float(value))
+    except OverflowError:
+        return False
+    return bool(np.isfinite(prior) and prior > 0)
 
 
 def _check_metadata(path: Path, metadata: dict) -> None:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.fast_update import HAVE_NUMBA, FilterPlan, scatter_update, voxelize_scan, warm_up
+from convbki_core.fast_update import CHANGED, EVIDENCE, HAVE_NUMBA, FilterPlan, scatter_update, voxelize_scan, warm_up
 from convbki_core.kernels import ConvBKIKernel, KernelConfig, load_kernel_file
 from convbki_core.layer import ConvBKILayer
 from convbki_core.records import RECORD, window_records
@@ -106,6 +106,21 @@ class IntegrationResult:
 
 
 @dataclass
+class MapChanges:
+    """What changed in the map since the changes were last taken.
+
+    ``removed``: global indices (R, 3) of voxels that left the map (a reset, a load);
+    ``indices`` (N, 3) and ``alpha`` (N, C): voxels whose concentrations changed, in order
+    (a voxel may appear more than once: its last row is its state). Applying the removals
+    first and then the rows to a copy of the map as it was gives the map as it is.
+    """
+
+    removed: np.ndarray
+    indices: np.ndarray
+    alpha: np.ndarray
+
+
+@dataclass
 class VoxelSet:
     """Voxels with their statistics. Centres in the map frame (m)."""
 
@@ -126,7 +141,8 @@ class ConvBKIMapper:
     ``kernel``: a ``ConvBKIKernel``, a ``KernelConfig`` or a kernel-file path. The
     resolution and filter size come from the kernel unless overridden (lengths are in
     metres, so a kernel may be evaluated on another grid). ``prior`` is the initial
-    concentration of every class in a new voxel.
+    concentration of every class in a new voxel. ``track_changes``: remember what changed
+    for ``take_changes`` (outputs that send only changes); off, nothing is kept for it.
     """
 
     def __init__(self, kernel: ConvBKIKernel | KernelConfig | str | Path,
@@ -134,7 +150,7 @@ class ConvBKIMapper:
                      (-40.0, -40.0, -2.6), (40.0, 40.0, 2.6)),
                  prior: float = 1e-3, resolution: float | None = None, filter_size: int | None = None,
                  device: str = "auto", frame_id: str = "map", ignore_classes: tuple[int, ...] = (0,),
-                 stale_after: int = 20, update_path: str = "auto"):
+                 update_path: str = "auto", track_changes: bool = False):
         if isinstance(kernel, (str, Path)):
             kernel = load_kernel_file(kernel)
         if isinstance(kernel, KernelConfig):
@@ -153,8 +169,8 @@ class ConvBKIMapper:
         self.prior = float(prior)
         self.frame_id = frame_id
         self.ignore_classes = tuple(int(c) for c in ignore_classes)
-        self.store = VoxelStore(kernel.num_classes, stale_after=stale_after)
-        self.window = RollingWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store)
+        self.store = VoxelStore(kernel.num_classes, prior=self.prior)
+        self.window = RollingWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store, track_changes)
         if update_path not in ("auto", "fast", "dense"):
             raise ValueError(f"update_path must be auto, fast or dense, got {update_path!r}")
         if update_path == "auto":
@@ -163,6 +179,8 @@ class ConvBKIMapper:
         if update_path == "fast":
             warm_up()  # compiled code loads now, not during the first scan
         self.scans_integrated = 0
+        self._removed: list[np.ndarray] = []  # voxels that left the map since the changes were taken
+        self._everything_changed = False  # a load replaced the map: every voxel is a change
         self._plan: FilterPlan | None = None
         self._plan_key: tuple | None = None
 
@@ -242,7 +260,7 @@ class ConvBKIMapper:
         touched = np.roll(touched, shift, axis=(0, 1, 2))
         new = int(np.count_nonzero(touched & (self.window.mask == 0)))
         self.window.alpha += np.roll(increment, shift, axis=(1, 2, 3))
-        self.window.mask |= touched.astype(np.uint8)
+        self.window.mask |= touched.astype(np.uint8) * np.uint8(EVIDENCE | CHANGED)
         return new
 
     # -- reading the map -------------------------------------------------------------------
@@ -309,9 +327,21 @@ class ConvBKIMapper:
     # -- persistence -----------------------------------------------------------------------
     def reset(self) -> None:
         """Forget every voxel (the kernel and settings stay)."""
+        self._removed.append(self.items()[0])
         self.store.clear()
         self.window.clear()
         self.scans_integrated = 0
+
+    def take_changes(self, everything: bool = False) -> MapChanges:
+        """The voxels that changed or left the map since the last call (``everything``: every
+        voxel of the map, as after a load), for outputs that send only what changed."""
+        removed = np.concatenate(self._removed) if self._removed else np.zeros((0, 3), np.int64)
+        self._removed = []
+        indices, alpha = self.window.take_changes()
+        if everything or self._everything_changed:
+            self._everything_changed = False
+            indices, alpha = self.items()
+        return MapChanges(removed, indices, alpha)
 
     def save(self, path: str | Path) -> None:
         """Write the whole map to one self-describing file, atomically."""
@@ -327,7 +357,8 @@ class ConvBKIMapper:
         """Replace the map's voxels with those of a map file (resolution and classes must match)."""
         from convbki_core.mapfile import load_map_into
 
-        load_map_into(self, path)
+        load_map_into(self, path)  # resets the map first: its voxels count as removed
+        self._everything_changed = True
 
     def export_ply(self, path: str | Path, max_variance: float | None = None) -> int:
         """Write the map as a PLY point cloud in class colours; returns the number of voxels written."""

@@ -114,3 +114,51 @@ if HAVE_NUMBA:
                     floats[row, 6] = expected
                     row += 1
         return starts[-1]
+
+
+def removal_records(indices: np.ndarray, resolution: float) -> np.ndarray:
+    """Records saying "this voxel left the map": its centre, label 0, every other field 0."""
+    records = np.zeros(len(indices), RECORD)
+    centres = voxel_centres(indices, resolution)
+    for axis, name in enumerate("xyz"):
+        records[name] = centres[:, axis]
+    return records
+
+
+def change_records(removed: np.ndarray, indices: np.ndarray, alpha: np.ndarray, resolution: float,
+                   palette: np.ndarray, max_variance: float = 0.0) -> np.ndarray:
+    """The records of a map's changes, in the order a receiver applies them: the voxels that
+    left the map (label 0), then the voxels that changed (a voxel listed twice: its last
+    record counts). A changed voxel whose variance exceeds ``max_variance`` (when > 0) is not
+    in the shown map, so it is sent as a removal too. A receiver that starts from an empty
+    map and applies every message in order holds exactly the shown map (``apply_records``)."""
+    changed = records_from_alpha(indices, alpha, resolution, palette)
+    if max_variance > 0:
+        hidden = changed["variance"] > max_variance
+        for name in ("rgb", "label", "variance", "confidence"):
+            changed[name][hidden] = 0
+    return np.concatenate([removal_records(removed, resolution), changed])
+
+
+def apply_records(shown: dict, records: np.ndarray) -> dict:
+    """Apply change records to ``shown`` (voxel centre (x, y, z) -> record), as a receiver of
+    the map's updates does: label 0 removes the voxel, any other label sets it."""
+    for record in records:
+        key = (float(record["x"]), float(record["y"]), float(record["z"]))
+        if record["label"] == 0:
+            shown.pop(key, None)
+        else:
+            shown[key] = record.copy()
+    return shown
+
+
+def view_records(records: np.ndarray, centre: np.ndarray, radius: float, budget: int) -> np.ndarray:
+    """The records within ``radius`` metres (horizontally) of ``centre`` (x, y), at most
+    ``budget`` of them, the nearest first when there are more: a view of a large map that a
+    viewer can draw at any map size."""
+    distance_sq = (records["x"] - np.float32(centre[0])) ** 2 + (records["y"] - np.float32(centre[1])) ** 2
+    near = np.flatnonzero(distance_sq <= np.float32(radius) ** 2)
+    if len(near) > budget:
+        near = near[np.argpartition(distance_sq[near], budget - 1)[:budget]]
+        near.sort()
+    return records[near]

@@ -5,34 +5,55 @@ local window, so the fetch slows down as the map grows. Here voxels live in a ha
 chunks (16 x 16 x 16 voxels each); fetching or writing back a window touches only the
 chunks that overlap it, so the cost follows the window, not the map.
 
-Inside a chunk the voxels are kept sorted by their 12-bit chunk-local offset (int16) next
-to their concentration rows (float32, C per voxel), about 4 * C + 2 bytes a voxel.
-
-Chunks that have not overlapped a window for ``stale_after`` updates leave the active
-table for an archive table; they are still part of the map (saved, exported, listed,
-looked up) and come back to the active table when the sensor returns.
+A voxel's row starts at the prior in every class and grows only in the few classes that
+received evidence (one to three of twenty, typically). So a chunk keeps, per voxel, its
+12-bit chunk-local offset (uint16, sorted) and the number of classes whose value is not
+the prior (uint8); and per such class its id (uint8) and its float32 value, kept as the
+bit pattern (uint32). Classes left out are exactly the prior, so rows come back bit for bit.
+Rows go in and out dense, (n, C) float32; compiled kernels (numba) do the packing.
 """
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 
+from convbki_core.fast_update import HAVE_NUMBA
 from convbki_core.voxelize import linear_index, unravel_linear
+
+if HAVE_NUMBA:
+    from numba import njit
 
 CHUNK_SHIFT = 4
 CHUNK_EDGE = 1 << CHUNK_SHIFT
 _MASK = CHUNK_EDGE - 1
 
 
-@dataclass
 class _Chunk:
-    offsets: np.ndarray  # (n,) int16 sorted chunk-local offsets (x << 8 | y << 4 | z)
-    alpha: np.ndarray  # (n, C) float32
-    last_used: int = 0
+    """The voxels of one chunk; every array owns its memory (no views of shared buffers)."""
+
+    __slots__ = ("classes", "counts", "offsets", "values")
+
+    def __init__(self, offsets: np.ndarray, counts: np.ndarray, classes: np.ndarray, values: np.ndarray):
+        self.offsets = offsets  # (n,) uint16 sorted chunk-local offsets (x << 8 | y << 4 | z)
+        self.counts = counts  # (n,) uint8: classes of the voxel stored below
+        self.classes = classes  # (m,) uint8 class ids, ascending within a voxel
+        self.values = values  # (m,) uint32 float32 bit patterns
+
+
+def _per_chunk_bytes() -> int:
+    """Python memory a chunk adds besides its array data: the chunk object, four array headers
+    (plus the allocator's header of each data block, 16 bytes), the key tuple and its ints."""
+    array = np.zeros(1, np.uint8)
+    header = sys.getsizeof(array) - array.nbytes + 16
+    empty = np.zeros(0, np.uint8)
+    key = (1 << 20, 1 << 20, 1 << 20)  # ints beyond the small-int cache, as far from the origin
+    chunk = _Chunk(empty, empty, empty, empty)
+    return sys.getsizeof(chunk) + 4 * header + sys.getsizeof(key) + 3 * sys.getsizeof(key[0])
+
+
+_PER_CHUNK_BYTES = _per_chunk_bytes()
 
 
 def _chunk_keys(indices: np.ndarray) -> np.ndarray:
@@ -41,7 +62,7 @@ def _chunk_keys(indices: np.ndarray) -> np.ndarray:
 
 def _local_offsets(indices: np.ndarray) -> np.ndarray:
     local = indices & _MASK
-    return ((local[:, 0] << (2 * CHUNK_SHIFT)) | (local[:, 1] << CHUNK_SHIFT) | local[:, 2]).astype(np.int16)
+    return ((local[:, 0] << (2 * CHUNK_SHIFT)) | (local[:, 1] << CHUNK_SHIFT) | local[:, 2]).astype(np.uint16)
 
 
 def _decode_offsets(offsets: np.ndarray) -> np.ndarray:
@@ -49,70 +70,205 @@ def _decode_offsets(offsets: np.ndarray) -> np.ndarray:
     return np.stack([offsets >> (2 * CHUNK_SHIFT), (offsets >> CHUNK_SHIFT) & _MASK, offsets & _MASK], axis=1)
 
 
-class VoxelStore:
-    """Sparse global map: voxel index (3 x int64) -> concentrations (C x float32)."""
+def _starts(counts: np.ndarray) -> np.ndarray:
+    """(n + 1,) int64: where each voxel's classes begin, and the total."""
+    starts = np.zeros(counts.size + 1, np.int64)
+    np.cumsum(counts, out=starts[1:])
+    return starts
 
-    def __init__(self, num_classes: int, stale_after: int = 20):
+
+def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Concatenated aranges [starts[i], starts[i] + counts[i]) (numpy paths)."""
+    counts = counts.astype(np.int64)
+    ends = np.cumsum(counts)
+    return np.arange(int(ends[-1]) if ends.size else 0) + np.repeat(starts - (ends - counts), counts)
+
+
+if HAVE_NUMBA:
+
+    @njit(cache=True, nogil=True)
+    def _compress_numba(bits, order, prior_bits, counts, classes, values):  # pragma: no cover - compiled
+        m = 0
+        for i in range(order.size):
+            row = order[i]
+            first = m
+            for c in range(bits.shape[1]):
+                if bits[row, c] != prior_bits:
+                    classes[m] = c
+                    values[m] = bits[row, c]
+                    m += 1
+            counts[i] = m - first
+        return m
+
+    @njit(cache=True, nogil=True)
+    def _expand_numba(out, positions, starts, counts, classes, values, prior_bits):  # pragma: no cover - compiled
+        for k in range(positions.size):
+            p = positions[k]
+            for c in range(out.shape[1]):
+                out[k, c] = prior_bits
+            for e in range(starts[p], starts[p] + counts[p]):
+                out[k, classes[e]] = values[e]
+
+    @njit(cache=True, nogil=True)
+    def _window_linear_numba(offsets, first, shift, dims, linear, inside):  # pragma: no cover - compiled
+        for k in range(first.size - 1):
+            count = 0
+            for i in range(first[k], first[k + 1]):
+                offset = np.int64(offsets[i])
+                x = (offset >> 8) + shift[k, 0]
+                y = ((offset >> 4) & 15) + shift[k, 1]
+                z = (offset & 15) + shift[k, 2]
+                if 0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]:
+                    linear[i] = (x * dims[1] + y) * dims[2] + z
+                    count += 1
+                else:
+                    linear[i] = -1
+            inside[k] = count
+
+    @njit(cache=True, nogil=True)
+    def _merge_numba(old_offsets, old_counts, old_classes, old_values, new_offsets, new_counts, new_classes,
+                     new_values, offsets, counts, classes, values):  # pragma: no cover - compiled
+        i = j = k = old_entry = new_entry = entry = 0
+        while i < old_offsets.size or j < new_offsets.size:
+            if j < new_offsets.size and (i == old_offsets.size or new_offsets[j] <= old_offsets[i]):
+                if i < old_offsets.size and old_offsets[i] == new_offsets[j]:  # overwritten
+                    old_entry += old_counts[i]
+                    i += 1
+                offsets[k], counts[k] = new_offsets[j], new_counts[j]
+                for _ in range(new_counts[j]):
+                    classes[entry], values[entry] = new_classes[new_entry], new_values[new_entry]
+                    entry += 1
+                    new_entry += 1
+                j += 1
+            else:
+                offsets[k], counts[k] = old_offsets[i], old_counts[i]
+                for _ in range(old_counts[i]):
+                    classes[entry], values[entry] = old_classes[old_entry], old_values[old_entry]
+                    entry += 1
+                    old_entry += 1
+                i += 1
+            k += 1
+        return k, entry
+
+
+def _entry_types(num_classes: int) -> tuple[type, type]:
+    """dtypes of (class count, class id): one byte each up to 255 classes."""
+    return (np.uint8 if num_classes <= 255 else np.uint16), (np.uint8 if num_classes <= 256 else np.uint16)
+
+
+def compress_rows(alpha: np.ndarray, prior: float,
+                  order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Dense rows ``alpha[order]`` (N, C) float32 -> (class_count (N,), class_id (M,), value (M,) uint32
+    float32 bit patterns) of the values that are not ``prior`` (compared bit for bit), in row order."""
+    bits = np.ascontiguousarray(alpha, np.float32).view(np.uint32)
+    order = np.arange(bits.shape[0]) if order is None else order
+    prior_bits = np.float32(prior).view(np.uint32)
+    count_type, class_type = _entry_types(bits.shape[1])
+    if HAVE_NUMBA:
+        counts = np.empty(order.size, count_type)
+        # Room for every class of every row; memory that is never written is never touched.
+        classes = np.empty(order.size * bits.shape[1], class_type)
+        values = np.empty(order.size * bits.shape[1], np.uint32)
+        used = _compress_numba(bits, order, prior_bits, counts, classes, values)
+        return counts, classes[:used], values[:used]
+    rows = bits[order]
+    kept = rows != prior_bits
+    row, column = np.nonzero(kept)
+    return kept.sum(axis=1).astype(count_type), column.astype(class_type), rows[row, column]
+
+
+def expand_rows(counts: np.ndarray, classes: np.ndarray, values: np.ndarray, prior: float, num_classes: int,
+                positions: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+    """Inverse of ``compress_rows``: dense float32 rows of the voxels at ``positions`` (default: all),
+    the prior in every class not listed; into ``out`` if given. Inputs are trusted (ids < C)."""
+    count_type, class_type = _entry_types(num_classes)
+    counts, classes = counts.astype(count_type, copy=False), classes.astype(class_type, copy=False)
+    values = np.ascontiguousarray(values).view(np.uint32)
+    positions = np.arange(counts.size) if positions is None else positions
+    out = np.empty((positions.size, num_classes), np.float32) if out is None else out
+    bits, starts, prior_bits = out.view(np.uint32), _starts(counts), np.float32(prior).view(np.uint32)
+    if HAVE_NUMBA:
+        _expand_numba(bits, positions, starts, counts, classes, values, prior_bits)
+        return out
+    bits[:positions.size] = prior_bits
+    entries = _ranges(starts[positions], counts[positions])
+    bits[np.repeat(np.arange(positions.size), counts[positions]), classes[entries]] = values[entries]
+    return out
+
+
+def _window_linear(offsets: np.ndarray, first: np.ndarray, shift: np.ndarray,
+                   dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Window-linear index of each voxel (-1 outside) and the count inside per chunk.
+
+    ``first``: (k + 1,) where each chunk's voxels begin; ``shift``: (k, 3) chunk base - origin."""
+    if HAVE_NUMBA:
+        linear, inside = np.empty(offsets.size, np.int64), np.empty(first.size - 1, np.int64)
+        _window_linear_numba(offsets, first, shift, dims, linear, inside)
+        return linear, inside
+    local = _decode_offsets(offsets) + np.repeat(shift, np.diff(first), axis=0)
+    within = (local >= 0).all(axis=1) & (local < dims).all(axis=1)
+    linear = np.where(within, linear_index(local, dims), -1)
+    return linear, np.add.reduceat(within.astype(np.int64), first[:-1])  # chunks are never empty
+
+
+def _merge(old: _Chunk, offsets: np.ndarray, counts: np.ndarray, classes: np.ndarray, values: np.ndarray) -> _Chunk:
+    """``old`` with the given voxels (sorted offsets) inserted or overwritten, as a new chunk."""
+    if HAVE_NUMBA:  # into buffers with room for both, then trimmed: the chunk's arrays must own their memory
+        buffers = [np.empty(a.size + b.size, a.dtype) for a, b in ((old.offsets, offsets), (old.counts, counts),
+                                                                    (old.classes, classes), (old.values, values))]
+        voxels, entries = _merge_numba(old.offsets, old.counts, old.classes, old.values, offsets, counts, classes,
+                                       values, *buffers)
+        return _Chunk(buffers[0][:voxels].copy(), buffers[1][:voxels].copy(), buffers[2][:entries].copy(),
+                      buffers[3][:entries].copy())
+    keep = ~np.isin(old.offsets, offsets, assume_unique=True)
+    kept_entries = np.repeat(keep, old.counts)
+    all_offsets = np.concatenate([old.offsets[keep], offsets])
+    all_counts = np.concatenate([old.counts[keep], counts])
+    sort = np.argsort(all_offsets, kind="stable")
+    entries = _ranges(_starts(all_counts)[:-1][sort], all_counts[sort])
+    return _Chunk(all_offsets[sort], all_counts[sort], np.concatenate([old.classes[kept_entries], classes])[entries],
+                  np.concatenate([old.values[kept_entries], values])[entries])
+
+
+class VoxelStore:
+    """Sparse global map: voxel index (3 x int64) -> concentrations (C x float32).
+
+    ``prior``: the concentration of a class without evidence; only other values take memory.
+    """
+
+    def __init__(self, num_classes: int, prior: float):
         self.num_classes = int(num_classes)
-        self.stale_after = int(stale_after)
-        self._active: dict[tuple[int, int, int], _Chunk] = {}
-        self._archive: dict[tuple[int, int, int], _Chunk] = {}
-        self._clock = 0
+        if self.num_classes < 1:
+            raise ValueError(f"num_classes must be positive, got {num_classes}")
+        self.prior = np.float32(prior)
+        self._chunks: dict[tuple[int, int, int], _Chunk] = {}
         self._count = 0
+        warm_up()
 
     # -- size ----------------------------------------------------------------------------
     def __len__(self) -> int:
         return self._count
 
     @property
-    def num_active_chunks(self) -> int:
-        return len(self._active)
-
-    @property
-    def num_archived_chunks(self) -> int:
-        return len(self._archive)
-
-    @property
     def nbytes(self) -> int:
-        """Bytes held by voxel arrays (keys and concentrations), excluding Python overhead."""
-        return sum(c.offsets.nbytes + c.alpha.nbytes for c in self._chunks())
+        """Bytes held by the voxel arrays (offsets, counts, class ids, values), excluding Python overhead."""
+        return sum(c.offsets.nbytes + c.counts.nbytes + c.classes.nbytes + c.values.nbytes
+                   for c in self._chunks.values())
 
     @property
     def resident_bytes(self) -> int:
-        """``nbytes`` plus the Python bookkeeping of the chunk tables (estimated per chunk:
-        its key tuple, the chunk object and the two array headers)."""
-        per_chunk = 200 + 3 * 28 + 2 * 112
-        tables = sys.getsizeof(self._active) + sys.getsizeof(self._archive)
-        return self.nbytes + tables + per_chunk * (len(self._active) + len(self._archive))
-
-    def _chunks(self) -> Iterator[_Chunk]:
-        yield from self._active.values()
-        yield from self._archive.values()
+        """``nbytes`` plus the Python bookkeeping: the chunk table and, per chunk, its objects."""
+        return self.nbytes + sys.getsizeof(self._chunks) + _PER_CHUNK_BYTES * len(self._chunks)
 
     def clear(self) -> None:
-        self._active.clear()
-        self._archive.clear()
+        self._chunks.clear()
         self._count = 0
 
-    # -- chunk access ----------------------------------------------------------------------
-    def _get(self, key: tuple[int, int, int]) -> _Chunk | None:
-        # The active table is kept in order of last use (a used chunk moves to the end), so
-        # retiring stale chunks looks only at the front of it, not at every active chunk.
-        chunk = self._active.pop(key, None)
-        if chunk is None:
-            chunk = self._archive.pop(key, None)
-        if chunk is not None:
-            self._active[key] = chunk
-            chunk.last_used = self._clock
-        return chunk
-
-    def _window_chunk_keys(self, origin: np.ndarray, dims: np.ndarray):
-        first = _chunk_keys(origin)
-        last = _chunk_keys(origin + dims - 1)
-        for cx in range(first[0], last[0] + 1):
-            for cy in range(first[1], last[1] + 1):
-                for cz in range(first[2], last[2] + 1):
-                    yield (cx, cy, cz)
+    def _expand_chunks(self, chunks: list[_Chunk], positions: np.ndarray | None = None,
+                       out: np.ndarray | None = None) -> np.ndarray:
+        """Dense rows of the chunks' voxels (concatenated in order), all or those at ``positions``."""
+        return expand_rows(np.concatenate([c.counts for c in chunks]), np.concatenate([c.classes for c in chunks]),
+                           np.concatenate([c.values for c in chunks]), self.prior, self.num_classes, positions, out)
 
     # -- window access ---------------------------------------------------------------------
     def query_window(self, origin: np.ndarray, dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -125,29 +281,40 @@ class VoxelStore:
 
     def _collect_window(self, origin: np.ndarray, dims: np.ndarray, remove: bool) -> tuple[np.ndarray, np.ndarray]:
         origin = np.asarray(origin, np.int64)
-        dims = np.asarray(dims, np.int64)
-        parts_index, parts_alpha = [], []
-        for key in self._window_chunk_keys(origin, dims):
-            chunk = self._get(key)
-            if chunk is None or chunk.offsets.size == 0:
-                continue
-            base = np.asarray(key, np.int64) << CHUNK_SHIFT
-            local = _decode_offsets(chunk.offsets) + (base - origin)
-            inside = (local >= 0).all(axis=1) & (local < dims).all(axis=1)
-            parts_index.append(local[inside])
-            parts_alpha.append(chunk.alpha[inside])
-            if remove and inside.any():
-                self._count -= int(inside.sum())
-                if inside.all():
-                    del self._active[key]
-                else:
-                    chunk.offsets, chunk.alpha = chunk.offsets[~inside], chunk.alpha[~inside]
-        if not parts_index:
+        dims = np.ascontiguousarray(dims, np.int64)
+        first, last = _chunk_keys(origin).tolist(), _chunk_keys(origin + dims - 1).tolist()
+        keys, chunks = [], []
+        for cx in range(first[0], last[0] + 1):
+            for cy in range(first[1], last[1] + 1):
+                for cz in range(first[2], last[2] + 1):
+                    chunk = self._chunks.get((cx, cy, cz))
+                    if chunk is not None:
+                        keys.append((cx, cy, cz))
+                        chunks.append(chunk)
+        if not chunks:
             return np.zeros(0, np.int64), np.zeros((0, self.num_classes), np.float32)
-        linear = linear_index(np.concatenate(parts_index), dims)
-        alpha = np.concatenate(parts_alpha)
-        order = np.argsort(linear, kind="stable")
-        return linear[order], alpha[order]
+        bounds = np.zeros(len(chunks) + 1, np.int64)
+        np.cumsum([c.offsets.size for c in chunks], out=bounds[1:])
+        shift = (np.array(keys, np.int64) << CHUNK_SHIFT) - origin
+        linear, inside = _window_linear(np.concatenate([c.offsets for c in chunks]), bounds, shift, dims)
+        selected = np.flatnonzero(linear >= 0)
+        # Each chunk is already a sorted run of window-linear indices; numpy's stable sort of int64
+        # (timsort) merges such runs instead of sorting from scratch.
+        order = np.argsort(linear[selected], kind="stable")
+        positions = selected[order]
+        rows = self._expand_chunks(chunks, positions)
+        if remove:
+            for key, chunk, count, start, end in zip(keys, chunks, inside.tolist(), bounds[:-1].tolist(),
+                                                     bounds[1:].tolist()):
+                if count == chunk.offsets.size:
+                    del self._chunks[key]
+                elif count:
+                    keep = linear[start:end] < 0
+                    entries = np.repeat(keep, chunk.counts)
+                    self._chunks[key] = _Chunk(chunk.offsets[keep], chunk.counts[keep], chunk.classes[entries],
+                                               chunk.values[entries])
+            self._count -= positions.size
+        return linear[positions], rows
 
     def write_window(self, origin: np.ndarray, dims: np.ndarray, linear: np.ndarray, alpha: np.ndarray) -> None:
         """Insert or overwrite the voxels at window-linear indices ``linear`` with ``alpha`` rows."""
@@ -155,47 +322,38 @@ class VoxelStore:
         self.write(unravel_linear(np.asarray(linear, np.int64), np.asarray(dims, np.int64)) + origin, alpha)
 
     def write(self, indices: np.ndarray, alpha: np.ndarray) -> None:
-        """Insert or overwrite voxels at global ``indices`` (n, 3) with ``alpha`` (n, C)."""
+        """Insert or overwrite voxels at global ``indices`` (n, 3) with ``alpha`` (n, C) float32.
+
+        An index given twice keeps its last row.
+        """
         indices = np.asarray(indices, np.int64)
-        alpha = np.asarray(alpha, np.float32)
+        alpha = np.ascontiguousarray(alpha, np.float32)
         if alpha.shape != (indices.shape[0], self.num_classes):
             raise ValueError(f"alpha must be ({indices.shape[0]}, {self.num_classes}), got {alpha.shape}")
-        self._clock += 1
         if indices.shape[0] == 0:
-            self._retire_stale()
             return
         keys = _chunk_keys(indices)
         offsets = _local_offsets(indices)
         order = np.lexsort((offsets, keys[:, 2], keys[:, 1], keys[:, 0]))
-        keys, offsets, alpha = keys[order], offsets[order], alpha[order]
-        boundaries = np.flatnonzero((keys[1:] != keys[:-1]).any(axis=1)) + 1
-        starts = np.concatenate([[0], boundaries])
-        ends = np.concatenate([boundaries, [keys.shape[0]]])
-        for start, end in zip(starts.tolist(), ends.tolist()):
-            key = tuple(keys[start].tolist())
-            new_offsets, new_alpha = offsets[start:end], alpha[start:end]
-            chunk = self._get(key)
+        keys, offsets = keys[order], offsets[order]
+        # The sort is stable: of an index given twice, the last row is last; keep that one.
+        last = np.append((keys[1:] != keys[:-1]).any(axis=1) | (offsets[1:] != offsets[:-1]), True)
+        order, keys, offsets = order[last], keys[last], offsets[last]
+        new_chunk = np.append(True, (keys[1:] != keys[:-1]).any(axis=1))
+        counts, classes, values = compress_rows(alpha, self.prior, order)
+        starts = _starts(counts)
+        bounds = np.append(np.flatnonzero(new_chunk), order.size).tolist()
+        for key, start, end in zip(map(tuple, keys[bounds[:-1]].tolist()), bounds[:-1], bounds[1:]):
+            first, stop = int(starts[start]), int(starts[end])
+            chunk = self._chunks.get(key)
             if chunk is None:
-                self._active[key] = _Chunk(new_offsets.copy(), new_alpha.copy(), self._clock)
+                self._chunks[key] = _Chunk(offsets[start:end].copy(), counts[start:end].copy(),
+                                           classes[first:stop].copy(), values[first:stop].copy())
                 self._count += end - start
-                continue
-            keep = ~np.isin(chunk.offsets, new_offsets, assume_unique=True)
-            merged_offsets = np.concatenate([chunk.offsets[keep], new_offsets])
-            merged_alpha = np.concatenate([chunk.alpha[keep], new_alpha])
-            sort = np.argsort(merged_offsets, kind="stable")
-            self._count += merged_offsets.size - chunk.offsets.size
-            chunk.offsets, chunk.alpha = merged_offsets[sort], merged_alpha[sort]
-        self._retire_stale()
-
-    def _retire_stale(self) -> None:
-        horizon = self._clock - self.stale_after
-        stale = []
-        for key, chunk in self._active.items():  # oldest use first (see _get)
-            if chunk.last_used >= horizon:
-                break
-            stale.append(key)
-        for key in stale:
-            self._archive[key] = self._active.pop(key)
+            else:
+                merged = _merge(chunk, offsets[start:end], counts[start:end], classes[first:stop], values[first:stop])
+                self._count += merged.offsets.size - chunk.offsets.size
+                self._chunks[key] = merged
 
     # -- point access ----------------------------------------------------------------------
     def lookup(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -215,14 +373,13 @@ class VoxelStore:
         order = np.argsort(group, kind="stable")
         boundaries = np.searchsorted(group[order], np.arange(unique_keys.shape[0] + 1))
         for number, key in enumerate(map(tuple, unique_keys.tolist())):
-            chunk = self._active.get(key) or self._archive.get(key)
-            if chunk is None or chunk.offsets.size == 0:
+            chunk = self._chunks.get(key)
+            if chunk is None:
                 continue
             members = order[boundaries[number]:boundaries[number + 1]]
-            position = np.searchsorted(chunk.offsets, offsets[members])
-            position = np.minimum(position, chunk.offsets.size - 1)
+            position = np.minimum(np.searchsorted(chunk.offsets, offsets[members]), chunk.offsets.size - 1)
             hit = chunk.offsets[position] == offsets[members]
-            alpha[members[hit]] = chunk.alpha[position[hit]]
+            alpha[members[hit]] = self._expand_chunks([chunk], position[hit])
             found[members[hit]] = True
         return alpha, found
 
@@ -238,12 +395,29 @@ class VoxelStore:
             indices = np.empty((len(self), 3), np.int64)
             alpha = np.empty((len(self), self.num_classes), np.float32)
         row = 0
-        for table in (self._active, self._archive):
-            for key, chunk in table.items():
-                end = row + chunk.offsets.size
-                indices[row:end] = _decode_offsets(chunk.offsets) + (np.asarray(key, np.int64) << CHUNK_SHIFT)
-                alpha[row:end] = chunk.alpha
-                row = end
-        if row != indices.shape[0]:
-            raise RuntimeError(f"store counted {indices.shape[0]} voxels but holds {row}")
+        for key, chunk in self._chunks.items():
+            end = row + chunk.offsets.size
+            if end > indices.shape[0]:
+                break
+            indices[row:end] = _decode_offsets(chunk.offsets) + (np.asarray(key, np.int64) << CHUNK_SHIFT)
+            self._expand_chunks([chunk], out=alpha[row:end])
+            row = end
+        if row != indices.shape[0] or row != self._count:
+            raise RuntimeError(f"store counted {self._count} voxels, was given {indices.shape[0]} rows")
         return indices, alpha
+
+
+_warmed_up = False
+
+
+def warm_up() -> None:
+    """Load (or compile) the store's kernels now, on a toy store, once per process."""
+    global _warmed_up
+    if _warmed_up or not HAVE_NUMBA:
+        return
+    _warmed_up = True
+    store = VoxelStore(2, 1.0)
+    store.write(np.array([[0, 0, 0], [1, 0, 0], [40, 0, 0]]), np.array([[1, 2], [1, 1], [3, 1]], np.float32))
+    store.write(np.array([[1, 0, 0], [2, 0, 0]]), np.ones((2, 2), np.float32))
+    store.take_window(np.zeros(3, np.int64), np.array([2, 2, 2]))
+    store.lookup(np.array([[40, 0, 0]]))

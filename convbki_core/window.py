@@ -8,13 +8,18 @@ window are written to the global ``VoxelStore`` and the slabs that enter are rea
 Voxels without evidence hold the prior, so an update is a plain in-place addition.
 
 Every voxel with evidence is in exactly one place: in the window (mask set) or in the store.
+
+The mask has two bits: ``EVIDENCE`` (the voxel holds evidence) and ``CHANGED`` (its
+concentrations changed since the map's changes were last taken). With ``track_changes``,
+a changed voxel that leaves the window before its change is taken is remembered, so
+``take_changes`` misses nothing; outputs that send only what changed are built on it.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.fast_update import gather_window
+from convbki_core.fast_update import CHANGED, gather_window
 from convbki_core.store import VoxelStore
 from convbki_core.voxelize import unravel_linear
 
@@ -43,7 +48,8 @@ def box_difference(first_lo: np.ndarray, first_hi: np.ndarray, second_lo: np.nda
 class RollingWindow:
     """Dense window of ``dims`` voxels over the global grid, backed by a ``VoxelStore``."""
 
-    def __init__(self, dims: np.ndarray, num_classes: int, prior: float, store: VoxelStore):
+    def __init__(self, dims: np.ndarray, num_classes: int, prior: float, store: VoxelStore,
+                 track_changes: bool = False):
         self.dims = np.asarray(dims, np.int64)
         self.num_classes = int(num_classes)
         self.prior = np.float32(prior)
@@ -53,6 +59,10 @@ class RollingWindow:
         # Scratch table for the compiled voxeliser (voxel -> row of F), -1 between scans.
         self.slot = np.full(int(np.prod(self.dims)), -1, np.int32)
         self.origin: np.ndarray | None = None
+        # Changed voxels that left the window before their change was taken: (indices, alpha),
+        # kept only for a map whose changes are taken (``track_changes``), or they would pile up.
+        self.track_changes = bool(track_changes)
+        self._evicted_changes: list[tuple[np.ndarray, np.ndarray]] = []
 
     @property
     def nbytes(self) -> int:
@@ -73,6 +83,10 @@ class RollingWindow:
         local = np.argwhere(mask)
         if local.size:
             rows = self.alpha[:, px[local[:, 0]], py[local[:, 1]], pz[local[:, 2]]].T
+            if self.track_changes:
+                changed = (mask[local[:, 0], local[:, 1], local[:, 2]] & CHANGED) != 0
+                if changed.any():
+                    self._evicted_changes.append(((local + lo)[changed], rows[changed]))
             self.store.write(local + lo, rows)
         self.alpha[np.ix_(np.arange(self.num_classes), px, py, pz)] = self.prior
         self.mask[np.ix_(px, py, pz)] = 0
@@ -113,6 +127,22 @@ class RollingWindow:
         self.alpha.fill(self.prior)
         self.mask.fill(0)
         self.origin = None
+        self._evicted_changes.clear()
+
+    def take_changes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Voxels whose concentrations changed since the last call, in the window or since
+        moved to the store: (global indices (n, 3), alpha (n, C)); their marks are cleared.
+        Needs ``track_changes``."""
+        if not self.track_changes:
+            raise RuntimeError("this window does not track changes (track_changes=False)")
+        parts = self._evicted_changes
+        self._evicted_changes = []
+        if self.origin is not None:
+            parts.append(gather_window(self.alpha, self.mask, self.origin, self.dims, select=CHANGED,
+                                       clear=CHANGED))
+        if not parts:
+            return np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32)
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
     def inside(self, indices: np.ndarray) -> np.ndarray:
         """(N,) bool: global indices inside the current window."""

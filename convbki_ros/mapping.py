@@ -18,7 +18,6 @@ import numpy as np
 from convbki_core.kernels import load_kernel_file
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
-from convbki_core.records import RECORD
 from convbki_ros.params import (
     KERNEL_DECIDES,
     SPECS,
@@ -31,7 +30,7 @@ from convbki_ros.params import (
     kernel_defaults,
     unknown_parameters,
 )
-from convbki_ros.pointcloud import CloudError, decode_cloud, records_cloud
+from convbki_ros.pointcloud import CloudError, decode_cloud
 from convbki_ros.pose_buffer import PoseStatus, pose_problem
 from convbki_ros.status import problem_key
 from convbki_ros.sync import CloudQueue, Decision, SensorMount, Verdict
@@ -55,10 +54,10 @@ class MappingCore:
         self.queue = CloudQueue(max_pose_jump=node.param("max_pose_jump"))
         self.map_lock = threading.Lock()
         self.map_version = 0  # bumped by every change of the map
-        self.published_version = -1
         self.newest_odometry_stamp: int | None = None  # ns, of accepted odometry
         self.odometry_frame: str | None = None
         self.last_stamp = None  # header stamp of the last integrated cloud
+        self.position = np.zeros(3)  # the sensor's position in the map at the last integrated cloud
         self.on_integrated = lambda: None  # set by the node: the local window may be published
 
     @property
@@ -92,7 +91,7 @@ class MappingCore:
                              prior=node.param("prior"), resolution=node.param("resolution"),
                              filter_size=node.param("filter_size"), device=node.param("device"),
                              frame_id=node.param("map_frame") or "map", update_path=node.param("update_path"),
-                             ignore_classes=self.label_map.ignore_classes)
+                             ignore_classes=self.label_map.ignore_classes, track_changes=True)
 
     def _optional(self, name: str):
         from rclpy.exceptions import ParameterUninitializedException
@@ -294,6 +293,7 @@ class MappingCore:
             result = self.mapper.integrate(cloud.points, values, lookup.pose @ mount)
             self.map_version += 1
             self.last_stamp = msg.header.stamp
+            self.position = (lookup.pose @ mount)[:3, 3]
         self.status.integrated_one(result.timing_ms["total"])
         self.on_integrated()
 
@@ -325,18 +325,19 @@ class MappingCore:
                                f"{known} (e.g. {examples}); they are ignored")
         return self.label_map.to_learning(labels) if space == "raw" else np.where(unknown, 0, labels)
 
-    # -- what the outputs show (copied or computed under the lock, sent without it) -----------
-    def map_copy_if_changed(self):
-        """(indices, alpha, version) of the whole map, or None when it is as last published."""
+    # -- what the outputs show (taken under the lock, encoded and sent without it) ------------
+    def take_changes(self, everything: bool = False):
+        """``MapChanges`` since the last call (``everything``: every voxel of the map)."""
         with self.map_lock:
-            if self.map_version == self.published_version:
-                return None
+            return self.mapper.take_changes(everything)
+
+    def map_copy(self):
+        """(indices, alpha, map_version) of the whole map."""
+        with self.map_lock:
             indices, alpha = self.mapper.items()
             return indices, alpha, self.map_version
 
-    def local_cloud(self, frame: str, palette: np.ndarray):
-        """PointCloud2 of the window around the sensor, stamped with the cloud last integrated."""
+    def window_records(self, palette: np.ndarray):
+        """(map_version, the sensor's position (x, y, z) in the map, records of the window's voxels)."""
         with self.map_lock:
-            count = self.mapper.window.count()
-            return records_cloud(self.last_stamp or 0, frame, RECORD, count,
-                                 lambda records: self.mapper.window_records(palette, records))
+            return self.map_version, self.position.copy(), self.mapper.window_records(palette)

@@ -19,32 +19,28 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from convbki_core.labels import load_label_map
-from convbki_core.records import RECORD, packed_palette, records_from_alpha
+from convbki_core.records import packed_palette
 from convbki_ros.map_files import MapFiles
 from convbki_ros.mapping import MappingCore
+from convbki_ros.outputs import MapOutputs
 from convbki_ros.params import NODE_NAME, PARAMETERS, check_choice, declare
-from convbki_ros.pointcloud import encode_cloud, records_cloud
 from convbki_ros.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
 
 LEVELS = {OK: DiagnosticStatus.OK, WARN: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
 # Odometry is small and may arrive in bursts (a reliable reader delivers in order, so one
 # lost message holds up the rest until it is repeated): keep every pose of such a burst.
 ODOMETRY_DEPTH = 200
-LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class MapperNode(Node):
@@ -71,9 +67,7 @@ class MapperNode(Node):
                                  callback_group=inputs)
         self.create_subscription(Odometry, "odom", self.core.on_odometry, self._input_qos(ODOMETRY_DEPTH),
                                  callback_group=odometry_group)
-        self.map_publisher = self.create_publisher(PointCloud2, "semantic_map", LATCHED)
-        self.variance_publisher = self.create_publisher(PointCloud2, "semantic_map/variance", LATCHED)
-        self.local_publisher = self.create_publisher(PointCloud2, "semantic_map/local", 2)
+        self.outputs = MapOutputs(self)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/save_map", self.files.on_save_map, callback_group=file_io)
         self.create_service(Trigger, "~/export_ply", self.files.on_export_ply, callback_group=file_io)
@@ -84,7 +78,8 @@ class MapperNode(Node):
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._groups = {"housekeeping": housekeeping, "file_io": file_io}
         self._period_timers: dict[str, object] = {}
-        self._timer_callbacks = {"publish_period": (self._request_publish, "housekeeping"),
+        self._timer_callbacks = {"publish_period": (lambda: self.outputs.request("cycle"), "housekeeping"),
+                                 "map_period": (lambda: self.outputs.request("map"), "housekeeping"),
                                  "stats_period": (self._log_counters, "housekeeping"),
                                  "autosave_period": (self.files.autosave, "file_io"),
                                  "odometry_timeout": (self.core.watch_odometry, "housekeeping"),
@@ -93,14 +88,10 @@ class MapperNode(Node):
             self._restart_timer(name)
         self.add_post_set_parameters_callback(self._on_parameters_changed)
 
-        self.outputs_changed = threading.Condition()
-        self.publish_due = False
-        self.local_due = False
-        self.core.on_integrated = self._request_local
+        self.core.on_integrated = lambda: self.outputs.request("local")
         self.update_thread = threading.Thread(target=self.core.run, name="convbki_update", daemon=True)
         self.update_thread.start()
-        self.publisher_thread = threading.Thread(target=self._publish_loop, name="convbki_publish", daemon=True)
-        self.publisher_thread.start()
+        self.outputs.start()
         mapper = self.core.mapper
         self.get_logger().info(
             f"ConvBKI mapper ready: {mapper.kernel.kind} kernel, {mapper.resolution} m voxels, "
@@ -142,95 +133,12 @@ class MapperNode(Node):
                 self._restart_timer(parameter.name)
             elif parameter.name == "max_pose_jump":
                 self.core.set_max_pose_jump(parameter.value)
-            if parameter.name in ("max_variance", "publish_local"):
-                self._request_publish(force=True)
+            if parameter.name == "max_variance":  # the shown map changes as a whole
+                self.outputs.request("cycle", refresh=True)
+                self.outputs.request("map")
             self.get_logger().info(f"parameter {parameter.name} is now {parameter.value}")
 
-    # -- outputs ----------------------------------------------------------------------------
-    def _request_publish(self, force: bool = False) -> None:
-        with self.outputs_changed:
-            self.publish_due = True
-            if force:
-                self.core.published_version = -1
-            self.outputs_changed.notify_all()
-
-    def _request_local(self) -> None:
-        with self.outputs_changed:
-            self.local_due = True
-            self.outputs_changed.notify_all()
-
-    def _publish_loop(self) -> None:
-        """The publishing thread. The local window is sent after updates, the newest one only and
-        at most once per ``local_period``: when updates come faster than it can be encoded or
-        watched, intermediate windows are skipped rather than queued, so watching the map never
-        slows mapping down."""
-        last_local = -1e9
-        while True:
-            with self.outputs_changed:
-                while not self.core.stopping:
-                    local_wait = last_local + self.param("local_period") - time.monotonic()
-                    if self.publish_due or (self.local_due and local_wait <= 0):
-                        break
-                    self.outputs_changed.wait(min(0.5, local_wait) if self.local_due else 0.5)
-                if self.core.stopping:
-                    return
-                publish_map = self.publish_due
-                publish_local = self.local_due and local_wait <= 0
-                self.publish_due = False
-                self.local_due = self.local_due and not publish_local
-            if publish_local:
-                last_local = time.monotonic()
-            try:
-                if publish_local:
-                    self._publish_local()
-                if publish_map:
-                    self._publish_map()
-            except Exception as error:  # a failed publish must not end the thread
-                self.get_logger().error(f"publishing failed: {error.__class__.__name__}: {error}")
-
-    def _publish_local(self) -> None:
-        if self.param("publish_local") and self.local_publisher.get_subscription_count():
-            self.local_publisher.publish(self.core.local_cloud(self.core.frame, self.palette))
-
-    def _publish_map(self) -> None:
-        """``semantic_map`` and ``semantic_map/variance`` when the map changed and anyone listens.
-
-        Both are latched; with no subscriber the (possibly large) map is not encoded at all,
-        and a subscriber that joins later gets the current map at the next tick.
-        """
-        map_listeners = self.map_publisher.get_subscription_count()
-        variance_listeners = self.variance_publisher.get_subscription_count()
-        if not (map_listeners or variance_listeners):
-            return
-        started = time.perf_counter()
-        copied = self.core.map_copy_if_changed()
-        if copied is None:
-            return
-        indices, alpha, version = copied
-        resolution = self.core.mapper.resolution
-        stamp = self.get_clock().now().nanoseconds
-        frame = self.core.frame
-        max_variance = self.param("max_variance")
-        if max_variance > 0 or variance_listeners:
-            records = records_from_alpha(indices, alpha, resolution, self.palette)
-            if max_variance > 0:
-                records = records[records["variance"] <= max_variance]
-            def fill(out):
-                np.copyto(out, records)
-        else:  # straight into the message
-            records = None
-
-            def fill(out):
-                records_from_alpha(indices, alpha, resolution, self.palette, out)
-        count = len(indices) if records is None else len(records)
-        if map_listeners:
-            self.map_publisher.publish(records_cloud(stamp, frame, RECORD, count, fill))
-        if variance_listeners:
-            fields = {name: records[name] for name in ("x", "y", "z")}
-            self.variance_publisher.publish(encode_cloud(stamp, frame, {**fields, "intensity": records["variance"]}))
-        self.core.published_version = version
-        self.status.published(1e3 * (time.perf_counter() - started))
-
+    # -- reports ----------------------------------------------------------------------------
     def _snapshot(self):
         return self.status.snapshot(len(self.core.queue), self.core.queue.waiting_for_pose(), len(self.core.mapper),
                                     self.core.map_version)
@@ -251,7 +159,8 @@ class MapperNode(Node):
     # -- services -----------------------------------------------------------------------------
     def _on_reset(self, request, response):
         self.core.reset_map()
-        self._request_publish()
+        self.outputs.request("cycle")
+        self.outputs.request("map")
         response.success, response.message = True, "map reset: 0 voxels"
         self.get_logger().info(response.message)
         return response
@@ -260,10 +169,8 @@ class MapperNode(Node):
     def stop(self) -> None:
         """Stop the threads (the scan in progress finishes) and save when asked to."""
         self.core.stop()
-        with self.outputs_changed:
-            self.outputs_changed.notify_all()
+        self.outputs.stop()
         self.update_thread.join(timeout=1.5)
-        self.publisher_thread.join(timeout=0.3)
         message = self.files.save_on_shutdown()
         if message:
             print(f"[{NODE_NAME}] on shutdown: {message}", file=sys.stderr)

@@ -74,7 +74,15 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("max_variance", 0.0,
          "leave out voxels whose variance of the expected class exceeds this; unitless; 0.0 = no filter",
          0.0, 0.25, run_time=True),
-    Spec("publish_period", 1.0, "period of the semantic_map publisher; seconds", 0.05, 3600.0, run_time=True),
+    Spec("publish_period", 1.0, "period of semantic_map/updates (what changed) and semantic_map/view (the map "
+         "around the sensor); seconds", 0.05, 3600.0, run_time=True),
+    Spec("map_period", 5.0, "period of semantic_map and semantic_map/variance (the whole map, for late joiners; "
+         "sent only when it changed and someone listens); seconds", 0.05, 3600.0, run_time=True),
+    Spec("updates_depth", 10, "history depth of semantic_map/updates (reliable, volatile); messages", 1, 1000),
+    Spec("view_radius", 30.0, "semantic_map/view holds the voxels within this horizontal distance of the sensor; "
+         "metres", 0.5, 10000.0, run_time=True),
+    Spec("view_max_points", 600_000, "at most this many voxels in semantic_map/view, the nearest first; count",
+         1, 100_000_000, run_time=True),
     Spec("device", "auto", "torch device: auto (CUDA when present, else CPU), cpu, cuda[:N]"),
     Spec("update_path", "auto", "how the update runs: auto, fast (compiled sparse scatter, CPU) or dense "
          "(depthwise conv3d, the paper's formulation)", choices=("auto", "fast", "dense")),

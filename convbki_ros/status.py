@@ -70,6 +70,7 @@ class Snapshot:
     last_publish_ms: float
     median_publish_ms: float
     maps_published: int
+    median_cycle_ms: float
     map_version: int  # bumped by every change of the map (an update, a load, a reset)
 
     @property
@@ -83,7 +84,7 @@ class Snapshot:
                 f"{f' ({reasons})' if reasons else ''}, odometry in {self.odometry_in} "
                 f"(rejected {self.odometry_rejected}), queue {self.queue}, map voxels {self.map_voxels}, "
                 f"last update {self.last_update_ms:.0f} ms, last map publish {self.last_publish_ms:.0f} ms, "
-                f"queue peak {self.queue_peak}")
+                f"queue peak {self.queue_peak}, cycle median {self.median_cycle_ms:.0f} ms")
 
 
 @dataclass
@@ -98,7 +99,8 @@ class MapperStatus:
     queue_peak: int = 0
     maps_published: int = 0
     update_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))
-    publish_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))
+    publish_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))  # the whole map
+    cycle_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))  # updates and view
     last_cloud_received: float | None = None  # time.monotonic()
     last_odometry_received: float | None = None
     started: float = field(default_factory=time.monotonic)
@@ -132,10 +134,14 @@ class MapperStatus:
             self.integrated += 1
             self.update_ms.append(update_ms)
 
-    def published(self, publish_ms: float) -> None:
+    def published(self, what: str, milliseconds: float) -> None:
+        """A publish of ``what`` ("map": the whole map; "cycle": updates and view) took this long."""
         with self._lock:
-            self.maps_published += 1
-            self.publish_ms.append(publish_ms)
+            if what == "map":
+                self.maps_published += 1
+                self.publish_ms.append(milliseconds)
+            else:
+                self.cycle_ms.append(milliseconds)
 
     def snapshot(self, queue: int, waiting_for_pose: int, map_voxels: int, map_version: int) -> Snapshot:
         with self._lock:
@@ -146,7 +152,7 @@ class MapperStatus:
                 statistics.median(self.update_ms) if self.update_ms else 0.0,
                 self.publish_ms[-1] if self.publish_ms else 0.0,
                 statistics.median(self.publish_ms) if self.publish_ms else 0.0,
-                self.maps_published, map_version)
+                self.maps_published, statistics.median(self.cycle_ms) if self.cycle_ms else 0.0, map_version)
 
     def health(self, snapshot: Snapshot, odometry_timeout: float) -> tuple[int, str]:
         """Level and message of the next diagnostics report (it remembers the drops reported)."""
@@ -180,5 +186,6 @@ def diagnostic_values(snapshot: Snapshot) -> list[tuple[str, str]]:
         ("publish_ms_last", f"{snapshot.last_publish_ms:.1f}"),
         ("publish_ms_median", f"{snapshot.median_publish_ms:.1f}"),
         ("maps_published", snapshot.maps_published), ("map_version", snapshot.map_version),
+        ("cycle_ms_median", f"{snapshot.median_cycle_ms:.1f}"),
     ]
     return [(key, str(value)) for key, value in values]

@@ -107,7 +107,8 @@ class Rig:
         domain = domain_id()
         remap = ("-r", f"__ns:={namespace}") if namespace else ()
         self.process = start("convbki_ros.mapper", domain, "--ros-args", *remap, "-p", f"local_bounds:={BOUNDS}",
-                             "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "diagnostics_period:=0.2",
+                             "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "map_period:=0.2",
+                             "-p", "diagnostics_period:=0.2",
                              "-p", "pose_wait_timeout:=1.5", "-p", f"map_file:={self.map_file}", *parameters,
                              prefix=prefix)
         self.log = NodeLog(self.process)

@@ -247,23 +247,68 @@ def _rewrite(good: Path, out: Path, change) -> Path:
     return out
 
 
+def _rewrite_arrays(good: Path, out: Path, change) -> Path:
+    """A copy of ``good`` with its arrays (a dict of writable copies) changed by ``change(dict)``."""
+    with np.load(good) as archive:
+        arrays = {name: archive[name].copy() for name in archive.files}
+    change(arrays)
+    np.savez(out, **arrays)
+    return out
+
+
+def _as_version_1(good: Path, out: Path, change, alpha_change=lambda alpha: None) -> Path:
+    """``good`` in the version 1 layout (dense ``alpha``), metadata changed by ``change(dict)``."""
+    metadata, indices, alpha = read_map(good)
+    metadata["version"] = 1
+    change(metadata)
+    alpha_change(alpha)
+    np.savez(out, metadata=np.frombuffer(json.dumps(metadata).encode(), np.uint8),
+             voxel_index=indices.astype(np.int32), alpha=alpha)
+    return out
+
+
 @pytest.mark.parametrize("make, message", [
     (lambda good, p: p.write_bytes(b""), "empty file"),
     (lambda good, p: p.write_bytes(good.read_bytes()[:100]), "truncated or corrupted"),
     (lambda good, p: p.write_bytes(good.read_bytes()[:-30]), "truncated or corrupted"),
     (lambda good, p: p.write_text("# a PLY or text file\n"), "truncated or corrupted"),
     (lambda good, p: p.write_bytes(_npy_bytes(np.zeros((3, 3)))), "single NumPy array"),
-    (lambda good, p: np.savez(p, voxels=np.zeros(3)), "missing alpha, metadata, voxel_index"),
+    (lambda good, p: np.savez(p, voxels=np.zeros(3)), "missing class_count, class_id, metadata, value, voxel_index"),
     (lambda good, p: zipfile.ZipFile(p, "w").writestr("readme.txt", "hello"), "missing"),
     (lambda good, p: p.mkdir(), "is a folder"),
-    (lambda good, p: _rewrite(good, p, lambda m: m.update(version=MAP_VERSION + 1)), "version 2 is not supported"),
+    (lambda good, p: _rewrite(good, p, lambda m: m.update(version=MAP_VERSION + 1)), "version 3 is not supported"),
+    (lambda good, p: _rewrite(good, p, lambda m: m.update(version=[2])), "version \\[2\\] is not supported"),
     (lambda good, p: _rewrite(good, p, lambda m: m.update(format="octomap")), "format is 'octomap'"),
     (lambda good, p: _rewrite(good, p, lambda m: m.update(num_classes="20")), "num_classes"),
-    (lambda good, p: _rewrite(good, p, lambda m: m.update(num_classes=5)), "inconsistent arrays"),
+    (lambda good, p: _rewrite(good, p, lambda m: m.update(num_classes=3)), "inconsistent arrays"),  # class id 3
+    (lambda good, p: _as_version_1(good, p, lambda m: m.update(num_classes=5)), "inconsistent arrays"),
     (lambda good, p: _rewrite(good, p, lambda m: m.update(resolution=-0.2)), "resolution"),
     (lambda good, p: _rewrite(good, p, lambda m: m.update(resolution=10**400)), "resolution"),
     (lambda good, p: _rewrite(good, p, lambda m: m.pop("resolution")), "resolution"),
     (lambda good, p: _rewrite(good, p, lambda m: m.update(scans_integrated=-1)), "scans_integrated"),
+    (lambda good, p: _rewrite(good, p, lambda m: m.pop("prior")), "prior must be a positive number"),
+    (lambda good, p: _rewrite(good, p, lambda m: m.update(prior=0)), "prior must be a positive number"),
+    (lambda good, p: _rewrite(good, p, lambda m: m.update(version=1)), "missing alpha"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a.pop("class_id")), "missing class_id"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a.update(class_count=a["class_count"][:2])),
+     "inconsistent arrays"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a.update(value=a["value"][:-1])), "inconsistent arrays"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a["class_count"].__setitem__(0, 3)), "sums to 11"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a["class_count"].__setitem__(0, 5)), "class_count beyond"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a["class_id"].__setitem__(1, 4)), "class_id beyond"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a["class_id"].__setitem__(1, 0)), "must ascend"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a["class_id"].__setitem__(2, 1)), "must ascend"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a["value"].__setitem__(5, -1.0)), "non-negative"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a["value"].__setitem__(5, np.inf)), "finite"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a["value"].__setitem__(5, np.nan)), "finite"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a.update(class_id=a["class_id"].astype(np.float32))),
+     "unexpected array types"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a.update(voxel_index=a["voxel_index"].astype(np.float32))),
+     "unexpected array types"),
+    (lambda good, p: _rewrite_arrays(good, p, lambda a: a.update(voxel_index=a["voxel_index"][[0, 1, 1]])),
+     "duplicate voxel indices"),
+    (lambda good, p: _as_version_1(good, p, lambda m: None, alpha_change=lambda a: a.__setitem__((0, 1), -1.0)),
+     "non-negative"),
 ])
 def test_broken_map_files_raise_map_file_error_naming_file_and_problem(tmp_path, make, message):
     good = _saved_map(tmp_path)

@@ -58,7 +58,7 @@ def test_fast_path_equals_dense_reference(seed, kind, filter_size, probabilities
 def test_rolling_window_matches_a_dict_of_voxels(seed):
     rng = np.random.default_rng(seed)
     dims = np.array([7, 6, 4])
-    store = VoxelStore(3, stale_after=2)
+    store = VoxelStore(3, prior=0.5)
     window = RollingWindow(dims, 3, 0.5, store)
     naive = {}
     origin = np.array([0, 0, 0])

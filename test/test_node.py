@@ -41,6 +41,7 @@ def offline_map(root):
 def start_mapper(domain, tmp_path, *parameters):
     return start("convbki_ros.mapper", domain, "--ros-args", "-r", "cloud_in:=/kitti/velo/pointcloud",
                  "-r", "odom:=/kitti/odom", "-p", f"local_bounds:={BOUNDS}", "-p", "publish_period:=0.3",
+                 "-p", "map_period:=0.3",
                  "-p", f"map_file:={tmp_path / 'map.npz'}", "-p", "device:=cpu", *parameters)
 
 

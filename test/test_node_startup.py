@@ -53,9 +53,9 @@ def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_e
     from rcl_interfaces.srv import SetParameters
 
     params = tmp_path / "params.yaml"
-    params.write_text("/**:\n  ros__parameters:\n    resolutoin: 0.3\n    publish_period: 1000.0\n")
-    # publish_period and stats_period so long that, unless the change re-creates their timers,
-    # nothing would be published or logged while the test runs.
+    params.write_text("/**:\n  ros__parameters:\n    resolutoin: 0.3\n    map_period: 1000.0\n")
+    # map_period and stats_period so long that, unless the change re-creates their timers,
+    # the map would not be published nor the counters logged while the test runs.
     rig = Rig(tmp_path, "--params-file", str(params), "-p", "filter_size:=3", "-p", "stats_period:=1000.0")
     try:
         assert rig.log.find(r"\[WARN\].*unknown parameters ignored \(misspelt\?\): resolutoin;")
@@ -78,8 +78,8 @@ def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_e
         assert not refused.successful and "read-only" in refused.reason
         refused = set_parameter("publish_period", 0.001)
         assert not refused.successful and "out of range" in refused.reason
-        assert set_parameter("publish_period", 0.2).successful
-        assert rig.probe.spin_until(lambda: bool(rig.maps), WAIT), "no map after publish_period became 0.2 s"
+        assert set_parameter("map_period", 0.2).successful
+        assert rig.probe.spin_until(lambda: bool(rig.maps), WAIT), "no map after map_period became 0.2 s"
         assert set_parameter("stats_period", 0.2).successful
         assert rig.probe.spin_until(lambda: rig.log.find(r"scans in 1, integrated 1"), WAIT)
     finally:

@@ -167,8 +167,11 @@ def test_ament_index_finds_installed_package(
     assert "mapper.yaml" in [p.name for p in share.glob("config/*.yaml")]
     rviz = yaml.safe_load((share / "rviz" / "convbki.rviz").read_text())
     displays = {d["Name"]: d for d in rviz["Visualization Manager"]["Displays"]}
-    assert displays["Semantic map"]["Topic"]["Value"] == "/semantic_map"
-    assert displays["Semantic map"]["Color Transformer"] == "RGB8"
+    # RViz shows the bounded view by default, so it stays interactive on a map of any size.
+    assert displays["Semantic map (view)"]["Topic"]["Value"] == "/semantic_map/view"
+    assert displays["Semantic map (view)"]["Enabled"] is True
+    assert displays["Semantic map (view)"]["Color Transformer"] == "RGB8"
+    assert displays["Whole map"]["Topic"]["Value"] == "/semantic_map" and displays["Whole map"]["Enabled"] is False
     assert displays["Variance"]["Topic"]["Value"] == "/semantic_map/variance"
     assert rviz["Visualization Manager"]["Global Options"]["Fixed Frame"] == "map"
 

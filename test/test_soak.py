@@ -63,20 +63,20 @@ def test_rows_follow_the_map(soaked):
 
 
 def test_store_bytes_per_voxel_stay_at_the_layout(soaked):
-    """The store holds a voxel in 4 C + 2 bytes plus per-chunk bookkeeping, whatever the map size."""
-    mapper, result = soaked
-    layout = 4 * mapper.num_classes + 2
+    """The store holds a voxel in 3 + 5 k bytes (k classes off the prior, at least one) plus per-chunk
+    bookkeeping: at most 40 bytes, whatever the map size."""
+    _, result = soaked
     per_voxel = [r.store_per_voxel_b for r in result.checkpoints]
-    assert all(layout <= b <= layout + 12 for b in per_voxel), per_voxel
-    assert per_voxel[-1] <= per_voxel[0] + 1
+    assert all(3 + 5 <= b <= 40 for b in per_voxel), per_voxel
+    assert per_voxel[-1] <= 1.25 * per_voxel[0], per_voxel
 
 
 def test_memory_grows_with_the_voxels_only(soaked):
     """RSS growth after the first scan is the store's growth; nothing else accumulates per scan."""
     _, result = soaked
     rows = result.checkpoints
-    store_growth = rows[-1].store_mb - result.baseline.store_mb
-    assert store_growth > 20  # the test map is big enough for a per-scan leak to stand out
+    # The test map is big enough for a per-scan leak to stand out: half a million voxels move to the store.
+    assert rows[-1].store_voxels - result.baseline.store_voxels > 500_000
     assert max(r.excess_mb for r in rows) <= EXCESS_LIMIT_MB, [round(r.excess_mb, 1) for r in rows]
     # The bytes malloc reports live (glibc) say the same without the allocator's retained pages.
     assert max(r.live_excess_mb for r in rows) <= EXCESS_LIMIT_MB, [round(r.live_excess_mb, 1) for r in rows]

@@ -1,0 +1,257 @@
+"""``map_tool`` (info, merge, export-ply) and ``evaluate --save-map`` on real map files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from kitti_fixture import write_drive
+
+from convbki_core import evaluate, map_tool
+from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.mapfile import MapSnapshot, read_map
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.paths import kernel_path
+from convbki_core.ply import read_ply
+from convbki_core.synthetic import main as synth
+
+REPO = Path(__file__).resolve().parents[1]
+BOUNDS = ((-20.0, -12.0, -3.0), (20.0, 12.0, 4.0))
+FRAMES = 12
+HALF = FRAMES // 2
+PRIOR = 1e-3
+
+
+def sorted_map(path):
+    """(metadata, indices, alpha) of a map file with the voxels in x, y, z order."""
+    metadata, indices, alpha = read_map(path)
+    order = np.lexsort(indices.T[::-1])
+    return metadata, indices[order], alpha[order]
+
+
+def map_frames(dataset, start, stop, path):
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, prior=PRIOR, device="cpu")
+    for position in range(start, stop):
+        frame = dataset[position]
+        mapper.integrate(frame.points, frame.input_values, frame.pose)
+    mapper.save(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory):
+    """A short synthetic drive (sparse 16-beam LiDAR, for speed) mapped as two halves and as a whole."""
+    root = tmp_path_factory.mktemp("maps")
+    assert synth(["--out", str(root / "data"), "--sequence", "08", "--frames", str(FRAMES), "--seed", "3",
+                  "--beams", "16", "--azimuth-steps", "360", "--noise-strength", "0.35", "--quiet"]) == 0
+    dataset = SemanticKittiSequence(root / "data", "08")
+    return {"first": map_frames(dataset, 0, HALF, root / "first.npz"),
+            "second": map_frames(dataset, HALF, FRAMES, root / "second.npz"),
+            "whole": map_frames(dataset, 0, FRAMES, root / "whole.npz")}
+
+
+def one_line_error(capsys) -> str:
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith("map_tool: error: ") and "Traceback" not in captured.err
+    return lines[0]
+
+
+def test_merge_of_two_halves_is_the_map_of_the_whole_drive(maps, tmp_path, capsys):
+    out = tmp_path / "merged.npz"
+    assert map_tool.main(["merge", str(maps["first"]), str(maps["second"]), "--out", str(out), "--quiet"]) == 0
+    assert "merged 2 maps" in capsys.readouterr().out
+    metadata, indices, alpha = sorted_map(out)
+    _, whole_indices, whole_alpha = sorted_map(maps["whole"])
+    _, first_indices, first_alpha = read_map(maps["first"])
+    _, second_indices, _ = read_map(maps["second"])
+    # The halves overlap in space, so the prior-counted-once rule is exercised on many voxels.
+    shared = {tuple(v) for v in first_indices.tolist()} & {tuple(v) for v in second_indices.tolist()}
+    assert len(shared) > 100
+    np.testing.assert_array_equal(indices, whole_indices)
+    # Not bit-exact: the whole-drive map adds each scan's increments one by one in float32, the merge adds
+    # two partial sums, and float32 addition depends on the order of the terms.
+    np.testing.assert_allclose(alpha, whole_alpha, rtol=1e-5, atol=0)
+    # Voxels seen by one half only keep their rows bit for bit.
+    only_first = np.array([tuple(v) not in shared for v in first_indices.tolist()])
+    lookup = {tuple(v): row for row, v in enumerate(indices.tolist())}
+    rows = [lookup[tuple(v)] for v in first_indices[only_first].tolist()]
+    np.testing.assert_array_equal(alpha[rows], first_alpha[only_first])
+    assert metadata["num_voxels"] == len(whole_indices) and metadata["scans_integrated"] == FRAMES
+    assert metadata["merged_from"] == [str(maps["first"]), str(maps["second"])]
+
+
+def test_merge_counts_the_prior_once(maps, tmp_path):
+    """A plain sum of the halves (prior counted twice) is not the whole map: the test above can fail."""
+    _, indices, _ = sorted_map(maps["whole"])
+    parts = [read_map(maps[name])[1:] for name in ("first", "second")]
+    merged_indices, merged, shared = map_tool.merge_arrays(parts, PRIOR)
+    _, naive, _ = map_tool.merge_arrays(parts, 0.0)
+    np.testing.assert_array_equal(merged_indices, indices)
+    assert shared > 0 and not np.allclose(naive, merged, rtol=1e-5, atol=0)
+
+
+def test_merge_refuses_an_existing_output_and_the_same_map_twice(maps, tmp_path, capsys):
+    out = tmp_path / "merged.npz"
+    out.write_bytes(b"keep me")
+    assert map_tool.main(["merge", str(maps["first"]), str(maps["second"]), "--out", str(out), "--quiet"]) == 2
+    assert "--force" in one_line_error(capsys) and out.read_bytes() == b"keep me"
+    assert map_tool.main(["merge", str(maps["first"]), str(maps["second"]), "--out", str(out), "--force",
+                          "--quiet"]) == 0
+    assert read_map(out)[0]["merged_from"]
+    again = tmp_path / "again.npz"
+    assert map_tool.main(["merge", str(maps["first"]), str(maps["first"]), "--out", str(again), "--quiet"]) == 2
+    assert "given twice" in one_line_error(capsys) and not again.exists()
+
+
+@pytest.mark.parametrize("change, message", [
+    ("resolution", "resolution (m) differs (0.2 vs 0.4)"),
+    ("num_classes", "num_classes differs (20 vs 19)"),
+    ("frame_id", "frame_id differs ('map' vs 'odom')"),
+    ("prior", "prior differs (0.001 vs 0.01)"),
+])
+def test_merge_refuses_maps_that_do_not_add_up(maps, tmp_path, capsys, change, message):
+    metadata, indices, alpha = read_map(maps["second"])
+    if change == "resolution":
+        metadata["resolution"] = 0.4
+    elif change == "num_classes":
+        metadata["num_classes"], alpha = 19, alpha[:, :19]
+    elif change == "frame_id":
+        metadata["frame_id"] = "odom"
+    else:
+        metadata["prior"], alpha = 0.01, alpha + 0.01
+    other = tmp_path / "other.npz"
+    MapSnapshot(metadata, indices, alpha).write(other)
+    out = tmp_path / "merged.npz"
+    assert map_tool.main(["merge", str(maps["first"]), str(other), "--out", str(out), "--quiet"]) == 2
+    line = one_line_error(capsys)
+    assert message in line and str(maps["first"]) in line and str(other) in line
+    assert not out.exists() and not list(tmp_path.glob(".merged.npz*"))
+
+
+def test_info_reports_what_the_file_holds(maps, capsys):
+    _, indices, alpha = read_map(maps["whole"])
+    assert map_tool.main(["info", str(maps["whole"]), "--json", "--quiet"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["num_voxels"] == len(indices) and info["num_classes"] == 20 and info["frame_id"] == "map"
+    assert info["bounds"]["index_min"] == indices.min(axis=0).tolist()
+    assert info["bounds"]["index_max"] == indices.max(axis=0).tolist()
+    np.testing.assert_allclose(info["bounds"]["metres_min"], indices.min(axis=0) * 0.2)
+    np.testing.assert_allclose(info["bounds"]["metres_max"], (indices.max(axis=0) + 1) * 0.2)
+    counts = {entry["name"]: entry["voxels"] for entry in info["class_voxels"]}
+    expected = np.bincount(alpha.argmax(axis=1), minlength=20)
+    assert counts["road"] == expected[9] and sum(counts.values()) == len(indices)
+    assert info["resolution"] == 0.2 and info["prior"] == PRIOR and info["kernel"] == "compound"
+    assert info["scans_integrated"] == FRAMES and info["file_bytes"] == maps["whole"].stat().st_size
+    assert info["bytes_per_voxel"] == 20 * 4 + 3 * 8
+    assert map_tool.main(["info", str(maps["whole"]), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert f"voxels:      {len(indices)}\n" in text and "road" in text
+
+
+def test_export_ply_writes_every_voxel_or_the_confident_ones(maps, tmp_path, capsys):
+    _, indices, alpha = read_map(maps["whole"])
+    ply = tmp_path / "map.ply"
+    assert map_tool.main(["export-ply", str(maps["whole"]), "--out", str(ply), "--quiet"]) == 0
+    assert f"wrote {len(indices)} voxels" in capsys.readouterr().out
+    vertices = read_ply(ply)
+    assert len(vertices) == len(indices)
+    np.testing.assert_allclose(np.column_stack([vertices["x"], vertices["y"], vertices["z"]]),
+                               (indices + 0.5) * 0.2, atol=1e-5)
+    np.testing.assert_array_equal(vertices["label"], alpha.argmax(axis=1))
+    # Variance of the expected class, computed here from the concentrations.
+    total = alpha.astype(np.float64).sum(axis=1)
+    expected = alpha.max(axis=1) / total
+    variance = expected * (1 - expected) / (1 + total)
+    limit = float(np.median(variance))
+    confident = tmp_path / "confident.ply"
+    assert map_tool.main(["export-ply", str(maps["whole"]), "--out", str(confident), "--max-variance",
+                          str(limit), "--quiet"]) == 0
+    kept = len(read_ply(confident))
+    assert 0 < kept < len(indices)
+    assert abs(kept - int((variance <= limit).sum())) <= 2  # float32 vs float64 at the boundary
+
+
+@pytest.mark.parametrize("arguments, message", [
+    ([], "required: COMMAND"),
+    (["info", "{tmp}/nowhere.npz"], "no such map file"),
+    (["info", "{tmp}/not_a_map.npz"], "not a"),
+    (["export-ply", "{tmp}/nowhere.npz", "--out", "{tmp}/out.ply"], "no such map file"),
+    (["export-ply", "{tmp}/not_a_map.npz", "--out", "{tmp}/missing/out.ply"], "output folder does not exist"),
+    (["export-ply", "{tmp}/not_a_map.npz", "--out", "{tmp}/out.ply", "--max-variance", "-1"], "positive"),
+    (["merge", "{tmp}/nowhere.npz", "--out", "{tmp}/out.npz"], "required: MAP"),
+    (["merge", "{tmp}/nowhere.npz", "{tmp}/not_a_map.npz", "--out", "{tmp}/out.npz"], "no such map file"),
+])
+def test_cli_errors_are_one_line_and_exit_2(tmp_path, capsys, arguments, message):
+    (tmp_path / "not_a_map.npz").write_bytes(b"this is text")
+    arguments = [a.replace("{tmp}", str(tmp_path)) for a in arguments]
+    assert exit_code([*arguments, "--quiet"] if arguments else arguments) == 2
+    assert message in one_line_error(capsys)
+    assert not (tmp_path / "out.ply").exists() and not (tmp_path / "out.npz").exists()
+
+
+def exit_code(argv) -> int:
+    """main()'s return value, or the code argparse exits with on a bad command line."""
+    try:
+        return map_tool.main(argv)
+    except SystemExit as exit_:
+        return exit_.code
+
+
+def test_module_runs_as_a_process_without_traceback(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "convbki_core.map_tool", "info", str(tmp_path / "nowhere.npz")],
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines() == [f"map_tool: error: {tmp_path / 'nowhere.npz'}: no such map file"]
+
+
+# -- evaluate --save-map -------------------------------------------------------------------
+SMALL_WINDOW = ["--local-bounds", "-20", "-12", "-3", "20", "12", "4", "--device", "cpu"]
+
+
+def test_evaluate_saves_the_map_it_built(tmp_path, capsys):
+    write_drive(tmp_path / "data", "08", frames=4)
+    saved = tmp_path / "final.npz"
+    assert evaluate.main(["--dataset", str(tmp_path / "data"), "--sequence", "08", "--report",
+                          str(tmp_path / "r.json"), "--save-map", str(saved), "--quiet", *SMALL_WINDOW]) == 0
+    metadata, indices, alpha = sorted_map(saved)
+    # The same frames through a mapper with evaluate's defaults: the same arithmetic, so the same bits.
+    dataset = SemanticKittiSequence(tmp_path / "data", "08")
+    mapper = ConvBKIMapper(kernel_path(evaluate.DEFAULT_KERNEL), local_bounds=BOUNDS, prior=evaluate.DEFAULT_PRIOR,
+                           device="cpu", ignore_classes=dataset.label_map.ignore_classes)
+    for frame in dataset:
+        mapper.integrate(frame.points, frame.input_values, frame.pose)
+    expected_indices, expected_alpha = mapper.items()
+    order = np.lexsort(expected_indices.T[::-1])
+    np.testing.assert_array_equal(indices, expected_indices[order])
+    np.testing.assert_array_equal(alpha, expected_alpha[order])
+    assert metadata["scans_integrated"] == 4 and len(indices) > 1000
+    assert f"map: {saved} ({len(indices)} voxels)" in capsys.readouterr().out
+
+
+def test_evaluate_save_map_refused_up_front_and_never_left_by_a_failed_run(tmp_path, capsys, monkeypatch):
+    write_drive(tmp_path / "data", "08", frames=2)
+    common = ["--dataset", str(tmp_path / "data"), "--sequence", "08", "--report", str(tmp_path / "r.json"),
+              "--quiet", *SMALL_WINDOW]
+    (tmp_path / "folder.npz").mkdir()
+    for bad, message in ((tmp_path / "missing" / "map.npz", "folder does not exist"),
+                         (tmp_path / "folder.npz", "is a folder")):
+        assert evaluate.main([*common, "--save-map", str(bad)]) == 2
+        error = capsys.readouterr().err.strip().splitlines()
+        assert len(error) == 1 and message in error[0] and error[0].startswith("evaluate: error: ")
+        assert not (tmp_path / "r.json").exists()
+
+    def fail(path, data):
+        raise OSError(28, "No space left on device", str(path))
+
+    # The report is written after the map: when it fails, the run fails and takes its map with it.
+    monkeypatch.setattr(evaluate, "atomic_write_bytes", fail)
+    saved = tmp_path / "final.npz"
+    assert evaluate.main([*common, "--save-map", str(saved)]) == 2
+    assert "No space left" in capsys.readouterr().err
+    assert not saved.exists() and not list(tmp_path.glob(".final.npz*"))
