@@ -149,9 +149,11 @@ if HAVE_NUMBA:
                         for k in range(size):
                             z = target[m, 2, k]
                             if z >= 0 and union[(i * size + j) * size + k] != 0:
-                                if mask[x, y, z] == 0:
-                                    created += 1
-                                mask[x, y, z] = EVIDENCE | CHANGED
+                                marks = mask[x, y, z]
+                                if marks != EVIDENCE | CHANGED:  # write only what changes: no dirty lines
+                                    if marks == 0:
+                                        created += 1
+                                    mask[x, y, z] = EVIDENCE | CHANGED
             new_counts[part] = created
         return new_counts.sum()
 
