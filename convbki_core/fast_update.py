@@ -225,7 +225,7 @@ if HAVE_NUMBA:
                 stats[0] += 1
                 continue
             if use_probabilities:
-                # One pass over the row decides what voxelize.bad_probability_rows decides. A
+                # One pass over the row decides what probabilities.bad_probability_rows decides. A
                 # float64 sum of float32 values cannot overflow, so it is finite exactly when
                 # every value is; with no negative value it is positive exactly when one value is.
                 total = 0.0

@@ -101,9 +101,9 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("local_period", 0.5, "shortest time between two semantic_map/local messages: after updates, the "
          "newest window is sent at most this often; seconds; 0.0 = after every update", 0.0, 3600.0,
          run_time=True),
-    Spec("cloud_queue_size", 60, "clouds waiting to be integrated (6 s at 10 Hz); when full the oldest is "
+    Spec("cloud_queue_size", 100, "clouds waiting to be integrated (10 s at 10 Hz); when full the oldest is "
          "dropped; count", 1, 10000, run_time=True),
-    Spec("pose_wait_timeout", 5.0, "how long a cloud waits for odometry covering its stamp before it is "
+    Spec("pose_wait_timeout", 10.0, "how long a cloud waits for odometry covering its stamp before it is "
          "dropped; seconds", 0.0, 600.0, run_time=True),
     Spec("stats_period", 10.0, "period of the counters line in the log (scans in, integrated, dropped); "
          "seconds", 0.1, 3600.0, run_time=True),
