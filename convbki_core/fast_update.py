@@ -319,9 +319,11 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
 if HAVE_NUMBA:
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _gather_window_numba(alpha, mask, origin, dims, indices, values, select, keep):  # pragma: no cover
+    def plane_starts(mask, select):  # pragma: no cover - compiled
+        """Where each x plane's voxels with a bit of ``select`` start in a gathered output: the
+        running count over the planes (X + 1 entries, the last one the total), so that the
+        planes can then be gathered in parallel."""
         size_x, size_y, size_z = mask.shape
-        num_classes = alpha.shape[0]
         counts = np.zeros(size_x + 1, np.int64)
         for x in prange(size_x):
             found = 0
@@ -330,7 +332,13 @@ if HAVE_NUMBA:
                     if mask[x, y, z] & select != 0:
                         found += 1
             counts[x + 1] = found
-        starts = np.cumsum(counts)
+        return np.cumsum(counts)
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _gather_window_numba(alpha, mask, origin, dims, indices, values, select, keep):  # pragma: no cover
+        size_x, size_y, size_z = mask.shape
+        num_classes = alpha.shape[0]
+        starts = plane_starts(mask, select)
         if starts[-1] != indices.shape[0]:
             return -1  # the caller's count of the mask was wrong: write nothing
         for x in prange(size_x):

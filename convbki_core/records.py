@@ -75,21 +75,14 @@ def window_records(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims
 if HAVE_NUMBA:
     from numba import njit, prange
 
+    from convbki_core.fast_update import plane_starts
     from convbki_core.statistics import voxel_statistics
 
     @njit(cache=True, parallel=True, nogil=True)
     def _window_records_numba(alpha, mask, origin, dims, resolution, palette, words):  # pragma: no cover
         size_x, size_y, size_z = mask.shape
         num_classes = alpha.shape[0]
-        counts = np.zeros(size_x + 1, np.int64)
-        for x in prange(size_x):
-            found = 0
-            for y in range(size_y):
-                for z in range(size_z):
-                    if mask[x, y, z] != 0:
-                        found += 1
-            counts[x + 1] = found
-        starts = np.cumsum(counts)
+        starts = plane_starts(mask, np.uint8(0xFF))
         if starts[-1] != words.shape[0]:
             return -1
         floats = words.view(np.float32)

@@ -104,3 +104,21 @@ def test_view_keeps_the_nearest_voxels_within_its_radius_and_budget():
     assert len(view) == budget
     kept = np.hypot(view["x"] - 3.0, view["y"] + 1.0)
     assert kept.max() <= np.sort(distance)[budget - 1] + 1e-6
+
+
+@pytest.mark.parametrize("update_path", ["fast", "dense"])
+def test_window_records_equal_the_records_of_the_window_voxels(update_path):
+    """The local window and the view are computed from the window's class planes in one pass;
+    they must be the records of the same voxels computed from their concentrations, bit for bit."""
+    rng = np.random.default_rng(6)
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, device="cpu",
+                           update_path=update_path)
+    for step in range(6):
+        pose = np.eye(4)
+        pose[:3, 3] = [1.3 * step, -0.7 * step, 0.1]
+        values = rng.integers(1, 20, 600) if step % 2 else rng.dirichlet(np.ones(20), 600)
+        mapper.integrate(rng.uniform(-3.5, 3.5, (600, 3)) * [1, 1, 0.25], values, pose)
+    indices, alpha = mapper.window.items()
+    expected = records_from_alpha(indices, alpha, mapper.resolution, PALETTE)
+    assert len(expected) > 1000
+    assert mapper.window_records(PALETTE).tobytes() == expected.tobytes()
