@@ -63,8 +63,10 @@ class MapperNode(Node):
 
         inputs, odometry_group, file_io, housekeeping = (MutuallyExclusiveCallbackGroup() for _ in range(4))
         # Clouds and odometry in groups of their own: a cloud being queued never delays odometry.
-        self.create_subscription(PointCloud2, "cloud_in", self.core.on_cloud, self._input_qos(20),
-                                 callback_group=inputs)
+        # The reader keeps as many clouds as the queue: DDS may deliver a burst after holding
+        # messages back, and a shorter history would drop the oldest of it.
+        self.create_subscription(PointCloud2, "cloud_in", self.core.on_cloud,
+                                 self._input_qos(self.param("cloud_queue_size")), callback_group=inputs)
         self.create_subscription(Odometry, "odom", self.core.on_odometry, self._input_qos(ODOMETRY_DEPTH),
                                  callback_group=odometry_group)
         self.outputs = MapOutputs(self)
