@@ -81,6 +81,7 @@ def main() -> int:
         if number >= args.scans:
             break
         mapper.integrate(frame.points, frame.input_labels, frame.pose)
+        mapper.take_changes()  # as the node's publish cycle does; untaken changes would pile up
         frames.append(frame)
     print(f"map: {len(mapper):,} voxels after {len(frames)} scans ({len(mapper.window.mask.nonzero()[0]):,} in the "
           "window)")
