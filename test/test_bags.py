@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 from kitti_fixture import pose_about_z, write_sequence
-from ros_helpers import domain_id
+from ros_helpers import Probe, domain_id
 
 from convbki_ros import kitti_to_bag, play_bag
 from convbki_ros.pointcloud import decode_cloud
@@ -299,24 +299,24 @@ def test_play_bag_paces_by_stamps_and_stops_on_ctrl_c(dataset, tmp_path: Path) -
     root, _, _ = dataset
     bag = tmp_path / "bag"
     assert convert("--dataset", root, "--sequence", "8", "--out", bag) == 0
-    # rate 0.01: the 4 frames would take ~31 s; SIGINT after the start must end it at once with 0
-    process = _play(bag, domain_id(), "--rate", "0.01", "--wait-subscribers", "0")
+    # rate 0.01: the 4 frames would take ~31 s; SIGINT once the first cloud has arrived must end
+    # it with 0, before the next stamp is due.
+    from sensor_msgs.msg import PointCloud2
+
+    domain = domain_id()
+    probe = Probe(domain)
+    clouds = probe.subscribe(PointCloud2, "/kitti/velo/pointcloud")
+    process = _play(bag, domain, "--rate", "0.01", "--wait-subscribers", "30")
     try:
-        deadline = time.monotonic() + 20
-        line = ""
-        while time.monotonic() < deadline and "skipping /tf" not in line:
-            line = process.stderr.readline()
-        time.sleep(0.5)
-        sent = time.monotonic()
+        assert probe.spin_until(lambda: bool(clouds), 60), "the first cloud never arrived"
         process.send_signal(signal.SIGINT)
-        _, stderr = process.communicate(timeout=10)
-        elapsed = time.monotonic() - sent
+        _, stderr = process.communicate(timeout=30)  # a bound for a hung player, not a measurement
     finally:
+        probe.close()
         if process.poll() is None:
             process.kill()
             process.communicate()
     assert process.returncode == 0
-    assert elapsed < 5.0
     # only the first timestamp's messages (odometry + cloud) were due: pacing by the stamps
     assert "interrupted after 2 messages" in stderr and "Traceback" not in stderr
 
