@@ -11,7 +11,6 @@ counted and warned about once per problem (throttled).
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 
@@ -215,14 +214,10 @@ class MappingCore:
     def watch_odometry(self) -> None:
         """Warn every odometry_timeout seconds while clouds come in and odometry does not."""
         timeout = self.node.param("odometry_timeout")
-        now = time.monotonic()
-        last_cloud = self.status.last_cloud_received
-        if last_cloud is None or now - last_cloud > timeout:
-            return  # no input at all (nothing played yet, or the bag ended): nothing to say
-        since = now - (self.status.last_odometry_received or self.status.started)
-        if since < timeout:
+        missing = self.status.odometry_missing(timeout)
+        if missing is None:
             return
-        what = "no usable odometry" if self.status.odometry_in else "no odometry at all"
+        what, since = missing
         topics = self.node.resolve_topic_name("odom"), self.node.resolve_topic_name("cloud_in")
         self.warnings.warn("no odometry", f"{what} on {topics[0]} for {since:.1f} s while clouds arrive on "
                            f"{topics[1]}: clouds cannot be placed (check the odom remapping, its QoS and its "

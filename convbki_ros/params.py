@@ -133,7 +133,7 @@ PARAMETERS: tuple[Spec, ...] = (
 SPECS = {spec.name: spec for spec in PARAMETERS}
 
 
-def descriptor(spec: Spec, default_text: str | None = None):
+def descriptor(spec: Spec):
     """The rcl ParameterDescriptor of ``spec`` (meaning, unit, range, read-only)."""
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
@@ -144,8 +144,6 @@ def descriptor(spec: Spec, default_text: str | None = None):
         result.floating_point_range = [FloatingPointRange(from_value=float(spec.low), to_value=float(spec.high))]
     elif spec.low is not None:
         result.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=spec.step)]
-    if default_text:
-        result.additional_constraints = default_text
     return result
 
 

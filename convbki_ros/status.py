@@ -154,18 +154,25 @@ class MapperStatus:
                 statistics.median(self.publish_ms) if self.publish_ms else 0.0,
                 self.maps_published, statistics.median(self.cycle_ms) if self.cycle_ms else 0.0, map_version)
 
+    def odometry_missing(self, timeout: float) -> tuple[str, float] | None:
+        """(what is missing, for how many seconds) while clouds arrive and no usable odometry has
+        for ``timeout`` seconds; None otherwise (odometry flows, or no input at all)."""
+        now = time.monotonic()
+        with self._lock:
+            if self.last_cloud_received is None or now - self.last_cloud_received > timeout:
+                return None  # no input at all (nothing played yet, or the bag ended)
+            since = now - (self.last_odometry_received or self.started)
+            what = "no usable odometry" if self.odometry_in else "no odometry at all"
+        return (what, since) if since >= timeout else None
+
     def health(self, snapshot: Snapshot, odometry_timeout: float) -> tuple[int, str]:
         """Level and message of the next diagnostics report (it remembers the drops reported)."""
-        now = time.monotonic()
         with self._lock:
             new_drops = snapshot.dropped_total - self._dropped_at_last_report
             self._dropped_at_last_report = snapshot.dropped_total
-            clouds_recent = self.last_cloud_received is not None and \
-                now - self.last_cloud_received <= odometry_timeout
-            without_odometry = now - (self.last_odometry_received or self.started)
-        if clouds_recent and without_odometry >= odometry_timeout:
-            what = "no usable odometry" if snapshot.odometry_in else "no odometry at all"
-            return ERROR, f"{what} for {without_odometry:.1f} s while clouds arrive"
+        missing = self.odometry_missing(odometry_timeout)
+        if missing:
+            return ERROR, f"{missing[0]} for {missing[1]:.1f} s while clouds arrive"
         if new_drops > 0:
             return WARN, f"dropped {new_drops} clouds since the last report"
         if snapshot.waiting_for_pose:
