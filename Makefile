@@ -21,7 +21,7 @@ lint: setup
 
 ## demo: set-up, then synthetic drive -> rosbag2 -> mapper node + play_bag over DDS -> map, PNG, mIoU (out/demo)
 demo: setup
-	@scripts/venv_exec.sh $(PYTHON) -m convbki_ros.demo --out out/demo
+	@scripts/venv_exec.sh $(PYTHON) -m convbki_ros.tools.demo --out out/demo
 
 ## clean: remove colcon output, caches and out/ (keeps .venv/)
 clean:

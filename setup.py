@@ -41,14 +41,14 @@ setup(
     entry_points={
         "console_scripts": [
             "mapper = convbki_ros.mapper:main",
-            "kitti_to_bag = convbki_ros.kitti_to_bag:main",
-            "play_bag = convbki_ros.play_bag:main",
-            "evaluate = convbki_core.evaluate:main",
-            "train = convbki_core.train:main",
-            "synth = convbki_core.synthetic:main",
-            "bench = convbki_core.bench:main",
-            "map_tool = convbki_core.map_tool:main",
-            "realtime_check = convbki_ros.realtime_check:main",
+            "kitti_to_bag = convbki_ros.tools.kitti_to_bag:main",
+            "play_bag = convbki_ros.tools.play_bag:main",
+            "evaluate = convbki_core.tools.evaluate:main",
+            "train = convbki_core.tools.train:main",
+            "synth = convbki_core.tools.synth:main",
+            "bench = convbki_core.tools.bench:main",
+            "map_tool = convbki_core.tools.map_tool:main",
+            "realtime_check = convbki_ros.tools.realtime_check:main",
         ],
     },
 )

@@ -223,7 +223,7 @@ def kernel_config_to_dict(config: KernelConfig) -> dict:
 
 def save_kernel_file(config: KernelConfig, path: str | Path) -> None:
     """Write a kernel file atomically (temp file in the same folder, fsync, rename)."""
-    from convbki_core.fileio import atomic_write_bytes
+    from convbki_core.io.atomic import atomic_write_bytes
 
     config.validate()
     lines = ["# ConvBKI kernel file (convbki_ros). Lengths in metres."]

@@ -25,13 +25,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.fast_update import CHANGED, EVIDENCE, HAVE_NUMBA, FilterPlan, scatter_update, voxelize_scan, warm_up
 from convbki_core.kernels import ConvBKIKernel, KernelConfig, load_kernel_file
 from convbki_core.layer import ConvBKILayer
+from convbki_core.native import HAVE_NUMBA
 from convbki_core.records import RECORD, window_records
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
-from convbki_core.voxelize import (
+from convbki_core.update import FilterPlan, scatter_update, warm_up
+from convbki_core.volume import (
     SparseVolume,
     VoxelizeStats,
     WindowGeometry,
@@ -41,8 +42,9 @@ from convbki_core.voxelize import (
     voxel_centres,
     voxel_indices,
     voxelize,
+    voxelize_scan,
 )
-from convbki_core.window import RollingWindow
+from convbki_core.window import CHANGED, EVIDENCE, RollingWindow
 
 DEVICE_CHOICES = "auto, cpu or cuda[:N]"
 
@@ -349,20 +351,20 @@ class ConvBKIMapper:
 
     def snapshot(self):
         """A copy of the map's contents (``mapfile.MapSnapshot``): take it under a lock, ``write()`` it later."""
-        from convbki_core.mapfile import snapshot_map
+        from convbki_core.io.map_file import snapshot_map
 
         return snapshot_map(self)
 
     def load(self, path: str | Path) -> None:
         """Replace the map's voxels with those of a map file (resolution and classes must match)."""
-        from convbki_core.mapfile import load_map_into
+        from convbki_core.io.map_file import load_map_into
 
         load_map_into(self, path)  # resets the map first: its voxels count as removed
         self._everything_changed = True
 
     def export_ply(self, path: str | Path, max_variance: float | None = None) -> int:
         """Write the map as a PLY point cloud in class colours; returns the number of voxels written."""
-        from convbki_core.ply import write_voxels_ply
+        from convbki_core.io.ply import write_voxels_ply
 
         return write_voxels_ply(self.voxels(), path, max_variance=max_variance)
 

@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.fast_update import HAVE_NUMBA
+from convbki_core.native import HAVE_NUMBA
 from convbki_core.statistics import dirichlet_statistics
-from convbki_core.voxelize import voxel_centres
+from convbki_core.volume import voxel_centres
 
 RECORD = np.dtype({"names": ["x", "y", "z", "rgb", "label", "variance", "confidence"],
                    "formats": ["<f4", "<f4", "<f4", "<f4", "<u4", "<f4", "<f4"],
@@ -75,8 +75,8 @@ def window_records(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims
 if HAVE_NUMBA:
     from numba import njit, prange
 
-    from convbki_core.fast_update import plane_starts
     from convbki_core.statistics import voxel_statistics
+    from convbki_core.window import plane_starts
 
     @njit(cache=True, parallel=True, nogil=True)
     def _window_records_numba(alpha, mask, origin, dims, resolution, palette, words):  # pragma: no cover

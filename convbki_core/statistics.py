@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.fast_update import HAVE_NUMBA
+from convbki_core.native import HAVE_NUMBA
 
 
 @dataclass

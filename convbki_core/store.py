@@ -19,8 +19,8 @@ import sys
 
 import numpy as np
 
-from convbki_core.fast_update import HAVE_NUMBA
-from convbki_core.voxelize import linear_index, unravel_linear
+from convbki_core.native import HAVE_NUMBA
+from convbki_core.volume import linear_index, unravel_linear
 
 if HAVE_NUMBA:
     from numba import njit

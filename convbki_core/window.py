@@ -19,9 +19,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.fast_update import CHANGED, gather_window
+from convbki_core.native import HAVE_NUMBA
 from convbki_core.store import VoxelStore
-from convbki_core.voxelize import unravel_linear
+from convbki_core.volume import unravel_linear
+
+if HAVE_NUMBA:
+    from numba import njit, prange
+
+# Bits of the window's byte mask: the voxel holds evidence; its concentrations changed since
+# the map's changes were last taken (``RollingWindow.take_changes``).
+EVIDENCE = 1
+CHANGED = 2
 
 
 def box_difference(first_lo: np.ndarray, first_hi: np.ndarray, second_lo: np.ndarray,
@@ -169,3 +177,80 @@ class RollingWindow:
                 return indices, alpha
             return np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32)
         return gather_window(self.alpha, self.mask, self.origin, self.dims, indices, alpha)
+
+
+if HAVE_NUMBA:
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def plane_starts(mask, select):  # pragma: no cover - compiled
+        """Where each x plane's voxels with a bit of ``select`` start in a gathered output: the
+        running count over the planes (X + 1 entries, the last one the total), so that the
+        planes can then be gathered in parallel."""
+        size_x, size_y, size_z = mask.shape
+        counts = np.zeros(size_x + 1, np.int64)
+        for x in prange(size_x):
+            found = 0
+            for y in range(size_y):
+                for z in range(size_z):
+                    if mask[x, y, z] & select != 0:
+                        found += 1
+            counts[x + 1] = found
+        return np.cumsum(counts)
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _gather_window_numba(alpha, mask, origin, dims, indices, values, select, keep):  # pragma: no cover
+        size_x, size_y, size_z = mask.shape
+        num_classes = alpha.shape[0]
+        starts = plane_starts(mask, select)
+        if starts[-1] != indices.shape[0]:
+            return -1  # the caller's count of the mask was wrong: write nothing
+        for x in prange(size_x):
+            row = starts[x]
+            global_x = origin[0] + (x - origin[0]) % dims[0]
+            for y in range(size_y):
+                global_y = origin[1] + (y - origin[1]) % dims[1]
+                for z in range(size_z):
+                    if mask[x, y, z] & select != 0:
+                        indices[row, 0] = global_x
+                        indices[row, 1] = global_y
+                        indices[row, 2] = origin[2] + (z - origin[2]) % dims[2]
+                        for c in range(num_classes):
+                            values[row, c] = alpha[c, x, y, z]
+                        mask[x, y, z] &= keep
+                        row += 1
+        return starts[-1]
+
+
+def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray,
+                  indices: np.ndarray | None = None, values: np.ndarray | None = None,
+                  select: int = EVIDENCE, clear: int = 0):
+    """Voxels of the torus window whose ``mask`` has a bit of ``select``: (global indices (n, 3),
+    alpha (n, C)), torus order; the bits ``clear`` are then cleared in them.
+
+    One compiled pass instead of ``alpha[:, argwhere(mask)]``, which gathers each of the C
+    class planes separately (about 10x slower for a million voxels); the node does this
+    for every map it publishes. ``indices``/``values`` (n rows, n = the voxels selected):
+    write into these (e.g. slices of a larger array) instead of new arrays.
+    """
+    origin = np.ascontiguousarray(origin, np.int64)
+    dims = np.ascontiguousarray(dims, np.int64)
+    if indices is None or values is None:
+        count = int(np.count_nonzero(mask & select)) if select != EVIDENCE else int(np.count_nonzero(mask))
+        indices = np.empty((count, 3), np.int64)
+        values = np.empty((count, alpha.shape[0]), np.float32)
+    if HAVE_NUMBA:
+        if _gather_window_numba(alpha, mask, origin, dims, indices, values, np.uint8(select),
+                                np.uint8(~clear & 0xFF)) != indices.shape[0]:
+            raise ValueError(f"output has {indices.shape[0]} rows, the window "
+                             f"{int(np.count_nonzero(mask & select))} selected voxels")
+        return indices, values
+    physical = np.argwhere(mask & select)
+    if physical.shape[0] != indices.shape[0]:
+        raise ValueError(f"output has {indices.shape[0]} rows, the window {physical.shape[0]} selected voxels")
+    values[:] = alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
+    # Unwrap the torus: the global index is the one in [origin, origin + dims) with this remainder.
+    indices[:] = origin + (physical - origin) % dims
+    mask[physical[:, 0], physical[:, 1], physical[:, 2]] &= np.uint8(~clear & 0xFF)
+    return indices, values
+
+_warmed_up = False

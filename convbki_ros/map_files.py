@@ -13,8 +13,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from convbki_core.mapfile import MapFileError
-from convbki_core.ply import write_voxels_ply
+from convbki_core.io.map_file import MapFileError
+from convbki_core.io.ply import write_voxels_ply
 
 
 class MapFiles:

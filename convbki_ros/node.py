@@ -29,7 +29,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from convbki_core.labels import load_label_map
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.records import packed_palette
 from convbki_ros.map_files import MapFiles
 from convbki_ros.mapping import MappingCore

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from convbki_core.probabilities import bad_probability_rows
+from convbki_core.volume import bad_probability_rows
 from convbki_ros.transforms import TypeResolver, make_header, message_types, stamp_to_ns
 
 # sensor_msgs/PointField datatype constants.

@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from convbki_core.store import VoxelStore
-from convbki_core.voxelize import WindowGeometry, linear_index
+from convbki_core.volume import WindowGeometry, linear_index
 
 NUM_CLASSES = 20
 PRIOR = np.float32(1e-3)

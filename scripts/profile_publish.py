@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_core.records import RECORD, change_records, packed_palette, records_from_alpha, view_records
@@ -93,7 +93,7 @@ def main() -> int:
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
-    listener = subprocess.Popen([sys.executable, "-m", "convbki_ros.topic_listener", "--topic", "/profile_map",
+    listener = subprocess.Popen([sys.executable, "-m", "convbki_ros.tools.topic_listener", "--topic", "/profile_map",
                                  "--qos", "latched", "--depth", "1"], stdout=subprocess.DEVNULL)
     rclpy.init()
     node = rclpy.create_node("profile_publish")

@@ -16,14 +16,14 @@ TEST_SEED="${5:-2}"
 PY=.venv/bin/python
 mkdir -p "$OUT/kernels"
 
-[[ -d "$OUT/train/sequences/00" ]] || $PY -m convbki_core.synthetic --out "$OUT/train" --sequence 00 --frames "$TRAIN_FRAMES" --seed 1
-[[ -d "$OUT/test/sequences/08" ]] || $PY -m convbki_core.synthetic --out "$OUT/test" --sequence 08 --frames "$FRAMES" --seed "$TEST_SEED"
+[[ -d "$OUT/train/sequences/00" ]] || $PY -m convbki_core.tools.synth --out "$OUT/train" --sequence 00 --frames "$TRAIN_FRAMES" --seed 1
+[[ -d "$OUT/test/sequences/08" ]] || $PY -m convbki_core.tools.synth --out "$OUT/test" --sequence 08 --frames "$FRAMES" --seed "$TEST_SEED"
 
 for kind in single per_class compound; do
-    [[ -f "$OUT/kernels/$kind.yaml" ]] || $PY -m convbki_core.train --dataset "$OUT/train" --sequences 00 \
+    [[ -f "$OUT/kernels/$kind.yaml" ]] || $PY -m convbki_core.tools.train --dataset "$OUT/train" --sequences 00 \
         --kernel "$kind" --epochs "$EPOCHS" --out "$OUT/kernels/$kind.yaml"
 done
 
-$PY -m convbki_core.evaluate --dataset "$OUT/test" --sequence 08 --report "$OUT/report.json" \
+$PY -m convbki_core.tools.evaluate --dataset "$OUT/test" --sequence 08 --report "$OUT/report.json" \
     --kernel config/kernels/semantic_kitti_sbki.yaml "$OUT/kernels/single.yaml" "$OUT/kernels/per_class.yaml" \
     "$OUT/kernels/compound.yaml" config/kernels/semantic_kitti_compound.yaml

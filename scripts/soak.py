@@ -4,7 +4,7 @@
     .venv/bin/python scripts/soak.py --scans 2000 --out out/soak
 
 Not a test (a 2,000-scan drive takes 15-25 minutes on a 2-core machine); the measuring loop
-lives in ``convbki_core.soak`` so that test/test_soak.py runs a short version of it.
+lives in ``convbki_core.tools.soak`` so that test/test_soak.py runs a short version of it.
 See ``--help`` for the columns and outputs.
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 # Run from a checkout without installing: the package sits next to this folder.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from convbki_core.soak import main
+from convbki_core.tools.soak import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from ros_helpers import NodeLog, Probe, domain_id, start
 
-from convbki_core.labels import load_label_map
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_ros.pointcloud import encode_cloud

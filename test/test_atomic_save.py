@@ -28,8 +28,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError
-from convbki_core.fileio import atomic_write_bytes, remove_stale_temp_files, temp_files, writer_tag
-from convbki_core.mapfile import MAP_VERSION, read_map
+from convbki_core.io.atomic import atomic_write_bytes, remove_stale_temp_files, temp_files, writer_tag
+from convbki_core.io.map_file import MAP_VERSION, read_map
 
 REPO = Path(__file__).resolve().parents[1]
 KILLS = 25

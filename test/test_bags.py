@@ -15,8 +15,8 @@ import yaml
 from kitti_fixture import pose_about_z, write_sequence
 from ros_helpers import Probe, domain_id
 
-from convbki_ros import kitti_to_bag, play_bag
 from convbki_ros.pointcloud import decode_cloud
+from convbki_ros.tools import kitti_to_bag, play_bag
 from convbki_ros.transforms import odometry_to_pose, stamp_to_ns, transform_to_pose
 
 REPO = Path(__file__).resolve().parents[1]
@@ -249,7 +249,7 @@ class Listener:
 def _play(bag: Path, domain: int, *args: str) -> subprocess.Popen:
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "convbki_ros.play_bag", str(bag), *args], cwd=REPO, env=env,
+    return subprocess.Popen([sys.executable, "-m", "convbki_ros.tools.play_bag", str(bag), *args], cwd=REPO, env=env,
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -325,7 +325,7 @@ def test_play_bag_bad_input_is_one_line(tmp_path: Path) -> None:
     assert play_bag.main([str(tmp_path / "nothing")]) == 2
     not_a_bag = tmp_path / "folder"
     not_a_bag.mkdir()
-    result = subprocess.run([sys.executable, "-m", "convbki_ros.play_bag", str(not_a_bag)], capture_output=True,
+    result = subprocess.run([sys.executable, "-m", "convbki_ros.tools.play_bag", str(not_a_bag)], capture_output=True,
                             text=True, cwd=REPO, timeout=60, stdin=subprocess.DEVNULL)
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [

@@ -19,9 +19,10 @@ import torch
 import yaml
 from kitti_fixture import write_drive
 
-from convbki_core import bench, evaluate, synthetic, train
-from convbki_core.fileio import writer_tag
-from convbki_ros import demo, kitti_to_bag, play_bag
+from convbki_core.io.atomic import writer_tag
+from convbki_core.tools import bench, evaluate, train
+from convbki_core.tools import synth as synthetic
+from convbki_ros.tools import demo, kitti_to_bag, play_bag
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL_WINDOW = ["--local-bounds", "-8", "-8", "-2", "8", "8", "2", "--device", "cpu"]
@@ -454,11 +455,11 @@ def test_processes_print_one_line_and_no_traceback(root, tmp_path):
     (tmp_path / "text.mcap").write_text("not a bag")
     before = tree(tmp_path)
     runs = [
-        (_run("convbki_core.evaluate", "--dataset", str(root), "--sequence", "0", "--kernel", str(kernel),
+        (_run("convbki_core.tools.evaluate", "--dataset", str(root), "--sequence", "0", "--kernel", str(kernel),
               "--report", "r.json", cwd=tmp_path), "evaluate", "even.yaml", "filter_size"),
-        (_run("convbki_core.train", "--dataset", str(root), "--sequences", "0", "--out", "k.yaml", cwd=tmp_path),
+        (_run("convbki_core.tools.train", "--dataset", str(root), "--sequences", "0", "--out", "k.yaml", cwd=tmp_path),
          "train", "000002.label", "2 labels for"),
-        (_run("convbki_ros.play_bag", "text.mcap", cwd=tmp_path), "play_bag", "text.mcap", "cannot read the bag"),
+        (_run("convbki_ros.tools.play_bag", "text.mcap", cwd=tmp_path), "play_bag", "text.mcap", "cannot read the bag"),
     ]
     for result, prog, *needles in runs:
         assert result.returncode == 2, result.stderr
@@ -483,7 +484,7 @@ def test_bench_never_overwrites_a_dataset_it_did_not_write(tmp_path, capsys):
 
 def test_outputs_committed_survive_a_later_failure(tmp_path):
     """After commit() the outputs are the user's: a failure afterwards (Ctrl-C while printing) keeps them."""
-    from convbki_core.cli import NewOutputs
+    from convbki_core.tools.cli import NewOutputs
 
     outputs = NewOutputs()
     report = outputs.file(outputs.folder(tmp_path / "new" / "reports") / "r.json")

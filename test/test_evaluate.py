@@ -7,8 +7,8 @@ import pytest
 import yaml
 from kitti_fixture import BUILDING, POLE, ROAD, SIDEWALK, write_drive
 
-from convbki_core import evaluate, train
 from convbki_core.kernels import load_kernel_file
+from convbki_core.tools import evaluate, train
 
 # Typed from shared/reference/semantic_kitti.md, independently of the project's label map.
 RAW_TO_LEARNING = {0: 0, 1: 0, 10: 1, 11: 2, 13: 5, 15: 3, 16: 5, 18: 4, 20: 5, 30: 6, 31: 7, 32: 8, 40: 9, 44: 10,

@@ -18,7 +18,7 @@ import json, sys
 sys.modules["numba"] = None  # what a platform without numba looks like to `import numba`
 import numpy as np
 from convbki_core import ConvBKIMapper
-from convbki_core.fast_update import HAVE_NUMBA
+from convbki_core.native import HAVE_NUMBA
 from convbki_core.paths import kernel_path
 rng = np.random.default_rng(4)
 mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS_HERE, device="cpu")

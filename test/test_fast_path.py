@@ -5,8 +5,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 from kitti_fixture import write_drive
 
-from convbki_core import ConvBKIKernel, ConvBKIMapper, evaluate
+from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.store import VoxelStore
+from convbki_core.tools import evaluate
 from convbki_core.window import RollingWindow, box_difference
 
 NUM_CLASSES = 6
@@ -120,8 +121,7 @@ def test_evaluate_writes_identical_labels_on_both_paths(tmp_path):
 
 @given(seed=st.integers(0, 2**31 - 1), probabilities=st.booleans())
 def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities):
-    from convbki_core.fast_update import voxelize_scan
-    from convbki_core.voxelize import transform_points, voxelize
+    from convbki_core.volume import transform_points, voxelize, voxelize_scan
 
     rng = np.random.default_rng(seed)
     count = int(rng.integers(0, 400))
@@ -168,7 +168,7 @@ def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities):
 @given(seed=st.integers(0, 2**31 - 1), filter_size=st.sampled_from([1, 3, 5]), probabilities=st.booleans())
 def test_compiled_scatter_handles_any_zero_pattern_in_the_filters(seed, filter_size, probabilities):
     """Filters with holes (not a ball around the centre) give the numpy scatter's result exactly."""
-    from convbki_core import fast_update
+    from convbki_core import update as fast_update
 
     rng = np.random.default_rng(seed)
     filters = rng.uniform(0.0, 1.0, (NUM_CLASSES, filter_size, filter_size, filter_size)).astype(np.float32)

@@ -10,11 +10,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError, dirichlet_statistics
+from convbki_core.io.ply import read_ply
 from convbki_core.mapper import resolve_device
 from convbki_core.paths import kernel_path
-from convbki_core.ply import read_ply
 from convbki_core.store import VoxelStore
-from convbki_core.voxelize import WindowGeometry
+from convbki_core.volume import WindowGeometry
 
 NUM_CLASSES = 6
 BOUNDS = ((-3.0, -3.0, -1.0), (3.0, 3.0, 1.0))

@@ -10,7 +10,7 @@ rebuilt map against the whole map, record for record.
 import numpy as np
 import pytest
 
-from convbki_core.labels import load_label_map
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_core.records import apply_records, change_records, packed_palette, records_from_alpha, view_records

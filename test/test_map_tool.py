@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from kitti_fixture import write_drive
 
-from convbki_core import evaluate, map_tool
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.mapfile import MapSnapshot, read_map
+from convbki_core.io.map_file import MapSnapshot, read_map
+from convbki_core.io.ply import read_ply
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
-from convbki_core.ply import read_ply
-from convbki_core.synthetic import main as synth
+from convbki_core.tools import evaluate, map_tool
+from convbki_core.tools.synth import main as synth
 
 REPO = Path(__file__).resolve().parents[1]
 BOUNDS = ((-20.0, -12.0, -3.0), (20.0, 12.0, 4.0))

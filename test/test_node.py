@@ -10,9 +10,9 @@ from ros_helpers import Probe, domain_id, start, stop
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
-from convbki_core.synthetic import main as synth
-from convbki_ros.kitti_to_bag import main as kitti_to_bag
+from convbki_core.tools.synth import main as synth
 from convbki_ros.pointcloud import FLOAT32, UINT32, decode_cloud
+from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
 
 BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]
 FRAMES = 5
@@ -60,7 +60,7 @@ def test_node_maps_a_bag_like_the_offline_mapper_and_serves_its_map(drive, tmp_p
     try:
         maps = probe.subscribe(PointCloud2, "/semantic_map", latched=True)
         variances = probe.subscribe(PointCloud2, "/semantic_map/variance", latched=True)
-        player = start("convbki_ros.play_bag", domain, drive / "bag", "--rate", "2", "--wait-subscribers", "20")
+        player = start("convbki_ros.tools.play_bag", domain, drive / "bag", "--rate", "2", "--wait-subscribers", "20")
         expected = offline_map(drive)
         assert player.wait(timeout=60) == 0, stop(player)
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds, odometry
 
-from convbki_core.labels import load_label_map
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_ros.pointcloud import decode_cloud

@@ -36,7 +36,7 @@ from mapper_rig import (
 )
 from ros_helpers import domain_id, start
 
-from convbki_core.labels import load_label_map
+from convbki_core.datasets.labels import load_label_map
 from convbki_ros.pointcloud import decode_cloud
 
 # Root ignores file permissions through two capabilities; a node started without them (still

@@ -26,21 +26,21 @@ PACKAGE = "convbki_ros"
 # INTERFACE.md section 2: exe -> (module, flags its --help must explain).
 EXECUTABLES: dict[str, tuple[str, tuple[str, ...]]] = {
     "mapper": ("convbki_ros.mapper", ("--ros-args", "--params-file")),
-    "kitti_to_bag": ("convbki_ros.kitti_to_bag", (
+    "kitti_to_bag": ("convbki_ros.tools.kitti_to_bag", (
         "--dataset", "--sequence", "--out", "--predictions-dir", "--probabilities-dir",
         "--frames", "--storage", "mcap", "sqlite3")),
-    "play_bag": ("convbki_ros.play_bag", ("BAG", "--rate", "--clock", "--remap")),
-    "evaluate": ("convbki_core.evaluate", (
+    "play_bag": ("convbki_ros.tools.play_bag", ("BAG", "--rate", "--clock", "--remap")),
+    "evaluate": ("convbki_core.tools.evaluate", (
         "--dataset", "--sequence", "--predictions-dir", "--probabilities-dir", "--kernel",
         "--frames", "--report", "--write-labels", "--save-map")),
-    "train": ("convbki_core.train", (
+    "train": ("convbki_core.tools.train", (
         "--dataset", "--sequences", "--kernel", "--out", "--frames-per-sample", "--epochs",
         "--lr")),
-    "synth": ("convbki_core.synthetic", ("--out", "--sequence", "--frames", "--seed")),
-    "bench": ("convbki_core.bench", ("--config", "--repeat", "--json")),
-    "map_tool": ("convbki_core.map_tool", (
+    "synth": ("convbki_core.tools.synth", ("--out", "--sequence", "--frames", "--seed")),
+    "bench": ("convbki_core.tools.bench", ("--config", "--repeat", "--json")),
+    "map_tool": ("convbki_core.tools.map_tool", (
         "info", "merge", "export-ply", "--json", "--out", "--force", "--max-variance", "--quiet")),
-    "realtime_check": ("convbki_ros.realtime_check", (
+    "realtime_check": ("convbki_ros.tools.realtime_check", (
         "--frames", "--rate", "--publish-period", "--dataset", "--listeners", "--busy-cores",
         "--publication-mode")),
 }

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from convbki_ros.realtime_check import LISTENERS, listeners_arg, parse_counters
+from convbki_ros.tools.realtime_check import LISTENERS, listeners_arg, parse_counters
 
 LINE = ("[INFO] [1.0] [convbki_mapper]: scans in 150, integrated 146, dropped 4 (queue full 3, no pose 1), "
         "odometry in 150 (rejected 0), queue 2, map voxels 2186145, last update 12 ms, last map publish 310 ms")
@@ -32,7 +32,7 @@ def test_listeners_argument() -> None:
 @pytest.mark.parametrize("argv", [["--listeners", "foo"], ["--listeners", "map,map"], ["--busy-cores", "-1"],
                                   ["--publication-mode", "fast"]])
 def test_bad_argument_is_one_line_exit_2(argv: list[str]) -> None:
-    result = subprocess.run([sys.executable, "-m", "convbki_ros.realtime_check", *argv], capture_output=True,
+    result = subprocess.run([sys.executable, "-m", "convbki_ros.tools.realtime_check", *argv], capture_output=True,
                             text=True, stdin=subprocess.DEVNULL, timeout=60)
     assert result.returncode == 2 and result.stdout == ""
     assert result.stderr.count("\n") == 1 and result.stderr.startswith("realtime_check: error: ")

@@ -1,7 +1,7 @@
 """Short soak (200 scans): memory grows with the map's voxels and with nothing else.
 
 The full soak (scripts/soak.py, 2,000 full-size scans) is too long for CI; this runs the same
-measuring loop (``convbki_core.soak``) on a sparser LiDAR and a smaller window, and asserts
+measuring loop (``convbki_core.tools.soak``) on a sparser LiDAR and a smaller window, and asserts
 memory and map state only (no test asserts a duration).
 """
 
@@ -15,7 +15,16 @@ import pytest
 
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
-from convbki_core.soak import DEFAULT_SEED, MB, drive_frames, ensure_drive, main, resident_bytes, soak, write_outputs
+from convbki_core.tools.soak import (
+    DEFAULT_SEED,
+    MB,
+    drive_frames,
+    ensure_drive,
+    main,
+    resident_bytes,
+    soak,
+    write_outputs,
+)
 
 SCANS = 200
 EVERY = 20

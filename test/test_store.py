@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from convbki_core import store as store_module
-from convbki_core.mapfile import MAP_VERSION, MapSnapshot, read_map
+from convbki_core.io.map_file import MAP_VERSION, MapSnapshot, read_map
 from convbki_core.store import VoxelStore, compress_rows, expand_rows
 
 PRIOR = np.float32(1e-3)

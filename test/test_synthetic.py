@@ -1,4 +1,4 @@
-"""The synthetic SemanticKITTI drive generator (``synth``, convbki_core.synthetic / convbki_core.synth).
+"""The synthetic SemanticKITTI drive generator (``synth``, convbki_core.tools.synth / convbki_core.synth).
 
 Drives here are short (2-8 scans) and mostly low-resolution (--azimuth-steps) so the file runs
 in well under a minute on two cores; one full-size scan checks the ~120k point count.
@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from convbki_core.labels import load_label_map
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.synth import DriveConfig, generate_drive, lidar_poses
 from convbki_core.synth.scene import build_scene
-from convbki_core.synthetic import main
+from convbki_core.tools.synth import main
 
 LABELS = load_label_map()
 VALID_RAW = {int(r) for r in np.flatnonzero(LABELS.learning_map)} | {0, 1}  # mapped ids, unlabeled, outlier
@@ -202,7 +202,7 @@ def test_full_size_scan(tmp_path):
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "convbki_core.synthetic", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "convbki_core.tools.synth", *args], capture_output=True, text=True,
                           timeout=120)
 
 

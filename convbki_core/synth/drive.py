@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.labels import load_label_map
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.synth import lidar, writer
 from convbki_core.synth.noise import BLUR_WIDTH, CalibrationSample, NoiseModel, PointNoise, calibrate
@@ -250,7 +250,7 @@ def _record(config: DriveConfig, result: DriveResult, names: tuple[str, ...], tr
     """Contents of synth.yaml: the settings and what was measured on the written files."""
     summary = result.confusion.summary(names)
     return {
-        "generator": "convbki_core.synthetic (synth)",
+        "generator": "convbki_core.tools.synth (synth)",
         "version": VERSION,
         "seed": config.seed,
         "sequence": config.sequence,

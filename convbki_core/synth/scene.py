@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from convbki_core.labels import load_label_map
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.synth import objects as obj
 from convbki_core.synth.primitives import (
     BOX,

@@ -1,4 +1,4 @@
-"""SemanticKITTI files of a synthetic drive, written atomically (convbki_core.fileio).
+"""SemanticKITTI files of a synthetic drive, written atomically (convbki_core.io.atomic).
 
 Layout (INTERFACE.md section 3): ``ROOT/sequences/SS/`` with ``velodyne/NNNNNN.bin`` (float32
 x, y, z, remission; sensor frame, m), ``labels/NNNNNN.label`` and ``predictions/NNNNNN.label``
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from convbki_core.fileio import atomic_write_bytes
+from convbki_core.io.atomic import atomic_write_bytes
 
 SCAN_FOLDERS = {"velodyne": ".bin", "labels": ".label", "predictions": ".label", "probabilities": ".npy"}
 _SCAN_NAME = re.compile(r"^\d{6}\.(bin|label|npy)$")

@@ -24,26 +24,17 @@ runs as vectorised numpy, much slower, after one log line.
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
 
-try:
+from convbki_core.native import HAVE_NUMBA
+from convbki_core.volume import voxelize_scan
+from convbki_core.window import CHANGED, EVIDENCE, gather_window
+
+if HAVE_NUMBA:
     import numba
     from numba import njit, prange
-
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover - numba is a pinned dependency; this is the fallback
-    HAVE_NUMBA = False
-    logging.getLogger("convbki_core").warning(
-        "numba is not available: the CPU update uses the slower numpy scatter (install numba==0.68.1)")
-
-# Bits of the window's byte mask: the voxel holds evidence; its concentrations changed since
-# the map's changes were last taken (``RollingWindow.take_changes``).
-EVIDENCE = 1
-CHANGED = 2
-
 
 @dataclass(frozen=True)
 class FilterPlan:
@@ -207,197 +198,15 @@ def scatter_update(occupied: np.ndarray, features: np.ndarray, filters: np.ndarr
     return _scatter_numpy(occupied, features, plan.filters, origin, dims, alpha, mask)
 
 
-if HAVE_NUMBA:
-
-    @njit(cache=True, nogil=True)
-    def _voxelize_numba(points, pose, labels, probabilities, use_probabilities, origin, dims, resolution,
-                        ignored, slot):  # pragma: no cover - compiled; tested through voxelize_scan
-        count = points.shape[0]
-        num_classes = ignored.shape[0]
-        point_slot = np.full(count, -1, np.int64)
-        point_linear = np.full(count, -1, np.int64)
-        occupied = np.empty(count, np.int64)
-        stats = np.zeros(5, np.int64)  # non-finite, unknown label, ignored class, outside window, bad probabilities
-        used = 0
-        for i in range(count):
-            x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
-            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
-                stats[0] += 1
-                continue
-            if use_probabilities:
-                # One pass over the row decides what probabilities.bad_probability_rows decides. A
-                # float64 sum of float32 values cannot overflow, so it is finite exactly when
-                # every value is; with no negative value it is positive exactly when one value is.
-                total = 0.0
-                lowest = np.float32(0.0)
-                for c in range(num_classes):
-                    p = probabilities[i, c]
-                    total += p
-                    lowest = min(lowest, p)
-                finite = np.isfinite(total)
-                negative = lowest < 0
-                positive = total > 0
-                if not finite:
-                    stats[0] += 1
-                    continue
-                if negative or not positive:
-                    stats[4] += 1
-                    continue
-            else:
-                label = labels[i]
-                if label < 0 or label >= num_classes:
-                    stats[1] += 1
-                    continue
-                if ignored[label]:
-                    stats[2] += 1
-                    continue
-            # Same operation order as voxelize.transform_points: identical rounding, identical voxels.
-            vx = np.int64(np.floor((((x * pose[0, 0] + y * pose[0, 1]) + z * pose[0, 2]) + pose[0, 3]) / resolution))
-            vy = np.int64(np.floor((((x * pose[1, 0] + y * pose[1, 1]) + z * pose[1, 2]) + pose[1, 3]) / resolution))
-            vz = np.int64(np.floor((((x * pose[2, 0] + y * pose[2, 1]) + z * pose[2, 2]) + pose[2, 3]) / resolution))
-            lx, ly, lz = vx - origin[0], vy - origin[1], vz - origin[2]
-            if lx < 0 or ly < 0 or lz < 0 or lx >= dims[0] or ly >= dims[1] or lz >= dims[2]:
-                stats[3] += 1
-                continue
-            linear = (lx * dims[1] + ly) * dims[2] + lz
-            if slot[linear] < 0:
-                slot[linear] = used
-                occupied[used] = linear
-                used += 1
-            point_slot[i] = slot[linear]
-            point_linear[i] = linear
-        features = np.zeros((used, num_classes), np.float32)
-        for i in range(count):
-            s = point_slot[i]
-            if s < 0:
-                continue
-            if use_probabilities:
-                for c in range(num_classes):
-                    if not ignored[c]:
-                        features[s, c] += probabilities[i, c]
-            else:
-                features[s, labels[i]] += 1.0
-        for m in range(used):  # leave the scratch table clean for the next scan
-            slot[occupied[m]] = -1
-        return occupied[:used], features, point_linear, stats
-
-
-def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, origin: np.ndarray, dims: np.ndarray,
-                  resolution: float, num_classes: int, ignore_classes: tuple[int, ...], slot: np.ndarray):
-    """``voxelize(transform_points(points, pose), values, ...)`` in one compiled pass.
-
-    ``slot`` is a scratch int32 table of the window's size, all -1 (left so on return): it
-    finds each voxel's row without sorting the points. Probabilities are judged and summed
-    in float32, as ``voxelize`` does. Returns a ``voxelize.SparseVolume`` equal to the numpy
-    path's (same voxels, same sums, same counts).
-    """
-    from convbki_core.voxelize import SparseVolume, VoxelizeStats
-
-    with_probabilities = values.ndim == 2
-    ignored = np.zeros(num_classes, np.bool_)
-    ignored[[c for c in ignore_classes if 0 <= c < num_classes]] = True
-    labels = np.zeros(0, np.int64) if with_probabilities else np.ascontiguousarray(values, np.int64)
-    with np.errstate(over="ignore"):  # beyond float32: inf, then dropped (as voxelize.check_scan does)
-        probabilities = (np.ascontiguousarray(values, np.float32) if with_probabilities
-                         else np.zeros((0, num_classes), np.float32))
-    points = np.ascontiguousarray(points)
-    if points.dtype not in (np.float32, np.float64):
-        points = points.astype(np.float64)
-    occupied, features, point_linear, counts = _voxelize_numba(
-        points, np.ascontiguousarray(pose, np.float64), labels, probabilities, with_probabilities,
-        np.ascontiguousarray(origin, np.int64), np.ascontiguousarray(dims, np.int64), float(resolution), ignored, slot)
-    order = np.argsort(occupied)
-    stats = VoxelizeStats(points_in=len(points), non_finite=int(counts[0]), unknown_label=int(counts[1]),
-                          ignored_class=int(counts[2]), outside_window=int(counts[3]),
-                          bad_probabilities=int(counts[4]))
-    stats.used = (stats.points_in - stats.non_finite - stats.bad_probabilities - stats.unknown_label
-                  - stats.ignored_class - stats.outside_window)
-    return SparseVolume(np.asarray(origin, np.int64), np.asarray(dims, np.int64), occupied[order], features[order],
-                        point_linear, stats)
-
-
-if HAVE_NUMBA:
-
-    @njit(cache=True, parallel=True, nogil=True)
-    def plane_starts(mask, select):  # pragma: no cover - compiled
-        """Where each x plane's voxels with a bit of ``select`` start in a gathered output: the
-        running count over the planes (X + 1 entries, the last one the total), so that the
-        planes can then be gathered in parallel."""
-        size_x, size_y, size_z = mask.shape
-        counts = np.zeros(size_x + 1, np.int64)
-        for x in prange(size_x):
-            found = 0
-            for y in range(size_y):
-                for z in range(size_z):
-                    if mask[x, y, z] & select != 0:
-                        found += 1
-            counts[x + 1] = found
-        return np.cumsum(counts)
-
-    @njit(cache=True, parallel=True, nogil=True)
-    def _gather_window_numba(alpha, mask, origin, dims, indices, values, select, keep):  # pragma: no cover
-        size_x, size_y, size_z = mask.shape
-        num_classes = alpha.shape[0]
-        starts = plane_starts(mask, select)
-        if starts[-1] != indices.shape[0]:
-            return -1  # the caller's count of the mask was wrong: write nothing
-        for x in prange(size_x):
-            row = starts[x]
-            global_x = origin[0] + (x - origin[0]) % dims[0]
-            for y in range(size_y):
-                global_y = origin[1] + (y - origin[1]) % dims[1]
-                for z in range(size_z):
-                    if mask[x, y, z] & select != 0:
-                        indices[row, 0] = global_x
-                        indices[row, 1] = global_y
-                        indices[row, 2] = origin[2] + (z - origin[2]) % dims[2]
-                        for c in range(num_classes):
-                            values[row, c] = alpha[c, x, y, z]
-                        mask[x, y, z] &= keep
-                        row += 1
-        return starts[-1]
-
-
-def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray,
-                  indices: np.ndarray | None = None, values: np.ndarray | None = None,
-                  select: int = EVIDENCE, clear: int = 0):
-    """Voxels of the torus window whose ``mask`` has a bit of ``select``: (global indices (n, 3),
-    alpha (n, C)), torus order; the bits ``clear`` are then cleared in them.
-
-    One compiled pass instead of ``alpha[:, argwhere(mask)]``, which gathers each of the C
-    class planes separately (about 10x slower for a million voxels); the node does this
-    for every map it publishes. ``indices``/``values`` (n rows, n = the voxels selected):
-    write into these (e.g. slices of a larger array) instead of new arrays.
-    """
-    origin = np.ascontiguousarray(origin, np.int64)
-    dims = np.ascontiguousarray(dims, np.int64)
-    if indices is None or values is None:
-        count = int(np.count_nonzero(mask & select)) if select != EVIDENCE else int(np.count_nonzero(mask))
-        indices = np.empty((count, 3), np.int64)
-        values = np.empty((count, alpha.shape[0]), np.float32)
-    if HAVE_NUMBA:
-        if _gather_window_numba(alpha, mask, origin, dims, indices, values, np.uint8(select),
-                                np.uint8(~clear & 0xFF)) != indices.shape[0]:
-            raise ValueError(f"output has {indices.shape[0]} rows, the window "
-                             f"{int(np.count_nonzero(mask & select))} selected voxels")
-        return indices, values
-    physical = np.argwhere(mask & select)
-    if physical.shape[0] != indices.shape[0]:
-        raise ValueError(f"output has {indices.shape[0]} rows, the window {physical.shape[0]} selected voxels")
-    values[:] = alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
-    # Unwrap the torus: the global index is the one in [origin, origin + dims) with this remainder.
-    indices[:] = origin + (physical - origin) % dims
-    mask[physical[:, 0], physical[:, 1], physical[:, 2]] &= np.uint8(~clear & 0xFF)
-    return indices, values
-
 _warmed_up = False
 
 
 def warm_up() -> None:
-    """Load (or compile) the compiled kernels now, on a toy problem, once per process.
+    """Load (or compile) the update's compiled kernels (voxeliser, scatter, gather) now, on a
+    toy problem, once per process.
 
     The first call of a numba function loads its machine code from the cache and starts the
-    thread pool: about 1.5 s here. A mapping node pays that at start-up instead of on its
+    thread pool, which takes a noticeable pause. A mapping node pays that at start-up instead of on its
     first scan, when the 10 Hz clouds are already queueing.
     """
     global _warmed_up

@@ -7,7 +7,7 @@ prints ``listener ready`` once subscribed, then one line per message received:
 SIGINT or SIGTERM ends it. Like a user who follows the README for RViz, it uses the package's
 large-data Fast DDS profile unless one is chosen in the environment.
 
-    .venv/bin/python -m convbki_ros.topic_listener --topic /semantic_map --qos latched --depth 1
+    .venv/bin/python -m convbki_ros.tools.topic_listener --topic /semantic_map --qos latched --depth 1
 """
 
 from __future__ import annotations

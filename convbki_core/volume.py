@@ -15,11 +15,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
-from convbki_core.probabilities import bad_probability_rows
+from convbki_core.native import HAVE_NUMBA
+
+if HAVE_NUMBA:
+    from numba import njit
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass(frozen=True)
@@ -136,8 +141,11 @@ class SparseVolume:
     def num_voxels(self) -> int:
         return int(self.linear.shape[0])
 
-    def to_dense(self, device: torch.device | str = "cpu", dtype=torch.float32) -> torch.Tensor:
-        """Dense F as a (C, X, Y, Z) tensor."""
+    def to_dense(self, device: torch.device | str = "cpu", dtype: torch.dtype | None = None) -> torch.Tensor:
+        """Dense F as a (C, X, Y, Z) tensor (float32 unless ``dtype``)."""
+        import torch  # here, not at the top: the ROS side's cloud decoder imports this module without torch
+
+        dtype = torch.float32 if dtype is None else dtype
         num_classes = self.features.shape[1]
         dense = torch.zeros(num_classes, int(np.prod(self.dims)), dtype=dtype, device=device)
         if self.num_voxels:
@@ -234,3 +242,129 @@ def voxelize(points: np.ndarray, values: np.ndarray, origin: np.ndarray, dims: n
         features = np.bincount(pairs, minlength=linear.shape[0] * num_classes)
         features = features.reshape(linear.shape[0], num_classes).astype(np.float32)
     return SparseVolume(origin, dims, linear, features, point_linear, stats)
+
+
+def bad_probability_rows(probabilities: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows of (N, C) class ``probabilities`` that are no evidence, as three disjoint (N,) bool masks:
+    rows holding a NaN/inf; finite rows holding a negative value; finite non-negative rows
+    summing to zero (all zero)."""
+    # Each row's minimum and maximum (with 0) find all three: NaN propagates through both,
+    # -inf shows in the minimum and +inf in the maximum, and a non-negative row sums to zero
+    # exactly when its maximum is zero. Column by column, because numpy reduces a short
+    # inner axis (C classes) one row at a time, far slower than elementwise passes over N.
+    lowest = np.zeros(probabilities.shape[0], probabilities.dtype)
+    highest = np.zeros(probabilities.shape[0], probabilities.dtype)
+    for column in probabilities.T:
+        np.minimum(lowest, column, out=lowest)
+        np.maximum(highest, column, out=highest)
+    non_finite = ~(np.isfinite(lowest) & np.isfinite(highest))
+    negative = ~non_finite & (lowest < 0)
+    zero_sum = ~non_finite & ~negative & (highest <= 0)
+    return non_finite, negative, zero_sum
+
+
+if HAVE_NUMBA:
+
+    @njit(cache=True, nogil=True)
+    def _voxelize_numba(points, pose, labels, probabilities, use_probabilities, origin, dims, resolution,
+                        ignored, slot):  # pragma: no cover - compiled; tested through voxelize_scan
+        count = points.shape[0]
+        num_classes = ignored.shape[0]
+        point_slot = np.full(count, -1, np.int64)
+        point_linear = np.full(count, -1, np.int64)
+        occupied = np.empty(count, np.int64)
+        stats = np.zeros(5, np.int64)  # non-finite, unknown label, ignored class, outside window, bad probabilities
+        used = 0
+        for i in range(count):
+            x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                stats[0] += 1
+                continue
+            if use_probabilities:
+                # One pass over the row decides what probabilities.bad_probability_rows decides. A
+                # float64 sum of float32 values cannot overflow, so it is finite exactly when
+                # every value is; with no negative value it is positive exactly when one value is.
+                total = 0.0
+                lowest = np.float32(0.0)
+                for c in range(num_classes):
+                    p = probabilities[i, c]
+                    total += p
+                    lowest = min(lowest, p)
+                finite = np.isfinite(total)
+                negative = lowest < 0
+                positive = total > 0
+                if not finite:
+                    stats[0] += 1
+                    continue
+                if negative or not positive:
+                    stats[4] += 1
+                    continue
+            else:
+                label = labels[i]
+                if label < 0 or label >= num_classes:
+                    stats[1] += 1
+                    continue
+                if ignored[label]:
+                    stats[2] += 1
+                    continue
+            # Same operation order as voxelize.transform_points: identical rounding, identical voxels.
+            vx = np.int64(np.floor((((x * pose[0, 0] + y * pose[0, 1]) + z * pose[0, 2]) + pose[0, 3]) / resolution))
+            vy = np.int64(np.floor((((x * pose[1, 0] + y * pose[1, 1]) + z * pose[1, 2]) + pose[1, 3]) / resolution))
+            vz = np.int64(np.floor((((x * pose[2, 0] + y * pose[2, 1]) + z * pose[2, 2]) + pose[2, 3]) / resolution))
+            lx, ly, lz = vx - origin[0], vy - origin[1], vz - origin[2]
+            if lx < 0 or ly < 0 or lz < 0 or lx >= dims[0] or ly >= dims[1] or lz >= dims[2]:
+                stats[3] += 1
+                continue
+            linear = (lx * dims[1] + ly) * dims[2] + lz
+            if slot[linear] < 0:
+                slot[linear] = used
+                occupied[used] = linear
+                used += 1
+            point_slot[i] = slot[linear]
+            point_linear[i] = linear
+        features = np.zeros((used, num_classes), np.float32)
+        for i in range(count):
+            s = point_slot[i]
+            if s < 0:
+                continue
+            if use_probabilities:
+                for c in range(num_classes):
+                    if not ignored[c]:
+                        features[s, c] += probabilities[i, c]
+            else:
+                features[s, labels[i]] += 1.0
+        for m in range(used):  # leave the scratch table clean for the next scan
+            slot[occupied[m]] = -1
+        return occupied[:used], features, point_linear, stats
+
+
+def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, origin: np.ndarray, dims: np.ndarray,
+                  resolution: float, num_classes: int, ignore_classes: tuple[int, ...], slot: np.ndarray):
+    """``voxelize(transform_points(points, pose), values, ...)`` in one compiled pass.
+
+    ``slot`` is a scratch int32 table of the window's size, all -1 (left so on return): it
+    finds each voxel's row without sorting the points. Probabilities are judged and summed
+    in float32, as ``voxelize`` does. Returns a ``voxelize.SparseVolume`` equal to the numpy
+    path's (same voxels, same sums, same counts).
+    """
+    with_probabilities = values.ndim == 2
+    ignored = np.zeros(num_classes, np.bool_)
+    ignored[[c for c in ignore_classes if 0 <= c < num_classes]] = True
+    labels = np.zeros(0, np.int64) if with_probabilities else np.ascontiguousarray(values, np.int64)
+    with np.errstate(over="ignore"):  # beyond float32: inf, then dropped (as voxelize.check_scan does)
+        probabilities = (np.ascontiguousarray(values, np.float32) if with_probabilities
+                         else np.zeros((0, num_classes), np.float32))
+    points = np.ascontiguousarray(points)
+    if points.dtype not in (np.float32, np.float64):
+        points = points.astype(np.float64)
+    occupied, features, point_linear, counts = _voxelize_numba(
+        points, np.ascontiguousarray(pose, np.float64), labels, probabilities, with_probabilities,
+        np.ascontiguousarray(origin, np.int64), np.ascontiguousarray(dims, np.int64), float(resolution), ignored, slot)
+    order = np.argsort(occupied)
+    stats = VoxelizeStats(points_in=len(points), non_finite=int(counts[0]), unknown_label=int(counts[1]),
+                          ignored_class=int(counts[2]), outside_window=int(counts[3]),
+                          bad_probabilities=int(counts[4]))
+    stats.used = (stats.points_in - stats.non_finite - stats.bad_probabilities - stats.unknown_label
+                  - stats.ignored_class - stats.outside_window)
+    return SparseVolume(np.asarray(origin, np.int64), np.asarray(dims, np.int64), occupied[order], features[order],
+                        point_linear, stats)

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from convbki_core.fileio import atomic_write_with
+from convbki_core.io.atomic import atomic_write_with
 from convbki_core.kernels import kernel_config_to_dict
 from convbki_core.store import compress_rows, expand_rows
 

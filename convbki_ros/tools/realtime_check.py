@@ -9,7 +9,7 @@ exactly that with the package's own programs, each in its own process over DDS:
 * the ``mapper`` node with ``config/mapper.yaml`` (its default queue of clouds, simulated
   time, ``publish_period`` and ``map_period`` from the options, counters logged every second), with
   Fast DDS's publication mode chosen by ``--publication-mode``;
-* one listener process per ``--listeners`` entry (``convbki_ros.topic_listener``): an rclpy
+* one listener process per ``--listeners`` entry (``convbki_ros.tools.topic_listener``): an rclpy
   node that subscribes the topic the way RViz or ``ros2 topic echo`` does (so the node really
   encodes and sends what is watched) and records when each message arrives;
 * ``--busy-cores`` processes that each keep one core busy all along, standing for another
@@ -26,7 +26,7 @@ not, 2 when the run could not be made (bad arguments, a program that failed). Ma
 arrived more than 2.5 publish periods apart are reported (``maps_on_time``), not judged: DDS
 decides when a sent message arrives.
 
-    .venv/bin/python -m convbki_ros.realtime_check [--frames 300] [--out out/realtime]
+    .venv/bin/python -m convbki_ros.tools.realtime_check [--frames 300] [--out out/realtime]
         [--listeners map,updates,view,local] [--busy-cores 1] [--publication-mode synchronous]
 """
 
@@ -49,10 +49,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import NamedTuple
 
-from convbki_core.cli import UserError, positive, run
-from convbki_core.fileio import atomic_write_bytes
+from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.paths import config_dir
-from convbki_ros.demo import LineReader, run_module
+from convbki_core.tools.cli import UserError, positive, run
+from convbki_ros.tools.demo import LineReader, run_module
 
 PROG = "realtime_check"
 COUNTERS = re.compile(
@@ -140,11 +140,11 @@ def _prepare_bag(args: argparse.Namespace, out: Path) -> tuple[Path, int]:
         root, sequence = out / "data", "00"
         if not (root / "sequences" / sequence / "poses.txt").exists():
             _step(f"simulating a {args.frames}-scan drive into {root} (about 0.3 s a scan)")
-            run_module("convbki_core.synthetic", "--out", str(root), "--sequence", sequence, "--frames",
+            run_module("convbki_core.tools.synth", "--out", str(root), "--sequence", sequence, "--frames",
                         str(args.frames), "--seed", str(args.seed), "--force", "--quiet")
     bag = out / "bag"
     _step(f"kitti_to_bag: scans 0:{args.frames} of {root / 'sequences' / sequence} -> {bag}")
-    run_module("convbki_ros.kitti_to_bag", "--dataset", str(root), "--sequence", sequence, "--out", str(bag),
+    run_module("convbki_ros.tools.kitti_to_bag", "--dataset", str(root), "--sequence", sequence, "--out", str(bag),
                 "--frames", f"0:{args.frames}", "--force")
     return bag, args.frames
 
@@ -209,7 +209,7 @@ def _check(args: argparse.Namespace) -> int:
                          "-p", "save_on_shutdown:=false", environment=node_env)
             for name in args.listeners:
                 watch = LISTENERS[name]
-                start(f"listener_{name}", f"the {name} listener", "-m", "convbki_ros.topic_listener", "--topic",
+                start(f"listener_{name}", f"the {name} listener", "-m", "convbki_ros.tools.topic_listener", "--topic",
                       watch.topic, "--qos", watch.qos, "--depth", str(watch.depth), "--type", watch.type)
             for index in range(1, args.busy_cores + 1):
                 start(f"busy_{index}", f"busy process {index}", "-c", _BUSY)

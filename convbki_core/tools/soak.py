@@ -37,10 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.bench import PAPER_BOUNDS
-from convbki_core.cli import UserError, positive, run
-from convbki_core.fileio import atomic_write_bytes
+from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.mapper import ConvBKIMapper
+from convbki_core.tools.bench import PAPER_BOUNDS
+from convbki_core.tools.cli import UserError, positive, run
 
 PROG = "soak"
 # Seed 7 builds the longest loop of the generator's first sixteen seeds (582 m around 1 x 2
@@ -284,7 +284,7 @@ def ensure_drive(folder: Path, scans: int, seed: int, beams: int = 64, azimuth_s
     anything else is never overwritten.
     """
     from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-    from convbki_core.synthetic import read_synth_record
+    from convbki_core.tools.synth import read_synth_record
 
     sequence_folder = folder / "sequences" / "00"
     record = read_synth_record(sequence_folder)
@@ -295,7 +295,7 @@ def ensure_drive(folder: Path, scans: int, seed: int, beams: int = 64, azimuth_s
     if record is None and sequence_folder.exists() and any(sequence_folder.iterdir()):
         raise UserError(f"{sequence_folder} holds something that is not a synth drive; "
                         "pick an empty or new --drive-dir")
-    from convbki_core.synthetic import main as synth
+    from convbki_core.tools.synth import main as synth
 
     if not quiet:
         print(f"{PROG}: simulating a {scans}-scan drive (seed {seed}) into {folder}, about 0.25 s a scan; "

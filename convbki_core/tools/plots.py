@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from convbki_core.fileio import atomic_write_bytes
-from convbki_core.labels import LabelMap
+from convbki_core.datasets.labels import LabelMap
+from convbki_core.io.atomic import atomic_write_bytes
 
 if TYPE_CHECKING:
     from convbki_core.kernels import ConvBKIKernel

@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TypeVar
 
-from convbki_core.fileio import remove_stale_staging_folders, staging_prefix
+from convbki_core.io.atomic import remove_stale_staging_folders, staging_prefix
 
 T = TypeVar("T")
 
@@ -152,8 +152,8 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], parser: argparse.A
         argv: Sequence[str] | None) -> int:
     """Parse ``argv``, run ``body``; known input problems become ``prog: error: ...`` and exit 2."""
     from convbki_core.datasets import DatasetError
+    from convbki_core.io.map_file import MapFileError
     from convbki_core.kernels import KernelFileError
-    from convbki_core.mapfile import MapFileError
 
     # argparse prints the whole usage before its error; one line is easier to read in a log.
     parser.error = lambda message: parser.exit(2, f"{prog}: error: {message} (see {prog} --help)\n")

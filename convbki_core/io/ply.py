@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from convbki_core.fileio import atomic_write_with
-from convbki_core.labels import load_label_map
+from convbki_core.datasets.labels import load_label_map
+from convbki_core.io.atomic import atomic_write_with
 
 if TYPE_CHECKING:
     from convbki_core.mapper import VoxelSet

@@ -8,7 +8,7 @@ demo calls the node's ``~/save_map`` and ``~/export_ply`` services, stops the no
 SIGINT, draws the saved map from above (classes and variance) and scores it: the input
 segmentation and the final map against the ground truth, over every point of the drive.
 
-    .venv/bin/python -m convbki_ros.demo [--out out/demo] [--frames 150] [--dataset ROOT --sequence SS]
+    .venv/bin/python -m convbki_ros.tools.demo [--out out/demo] [--frames 150] [--dataset ROOT --sequence SS]
 """
 
 from __future__ import annotations
@@ -29,12 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.cli import UserError, positive, run
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.paths import config_dir, kernel_path
-from convbki_core.voxelize import transform_points
+from convbki_core.tools.cli import UserError, positive, run
+from convbki_core.volume import transform_points
 
 PROG = "demo"
 COUNTERS = re.compile(r"scans in (\d+), integrated (\d+), dropped (\d+).*queue (\d+)")
@@ -85,14 +85,14 @@ def _demo(args: argparse.Namespace) -> int:
         root, sequence = out / "data", "00"
         if not (root / "sequences" / sequence / "poses.txt").exists():
             _step(f"1/5 synthetic drive: {args.frames} scans -> {root} (about 2 s a scan)")
-            run_module("convbki_core.synthetic", "--out", str(root), "--sequence", sequence, "--frames",
+            run_module("convbki_core.tools.synth", "--out", str(root), "--sequence", sequence, "--frames",
                         str(args.frames), "--seed", str(args.seed), "--force")
         else:
             _step(f"1/5 synthetic drive: reusing {root / 'sequences' / sequence}")
     dataset = SemanticKittiSequence(root, sequence)
     bag = out / "bag"
     _step(f"2/5 kitti_to_bag -> {bag}")
-    run_module("convbki_ros.kitti_to_bag", "--dataset", str(root), "--sequence", sequence, "--out", str(bag),
+    run_module("convbki_ros.tools.kitti_to_bag", "--dataset", str(root), "--sequence", sequence, "--out", str(bag),
                 "--force")
 
     domain = os.environ.get("ROS_DOMAIN_ID") or str(random.randint(1, 100))
@@ -137,7 +137,7 @@ def _demo(args: argparse.Namespace) -> int:
     _step("4/5 scoring the saved map against the ground truth")
     scores = score_final_map(map_file, dataset)
     _step("5/5 pictures")
-    from convbki_core.plots import save_map_picture
+    from convbki_core.tools.plots import save_map_picture
 
     picture = out / "map.png"
     title = (f"convbki_ros demo: {len(dataset)} scans, {scores['voxels']:,} voxels; mIoU input "

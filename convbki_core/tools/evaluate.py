@@ -1,0 +1,300 @@
+"""``evaluate``: offline ConvBKI mapping and scoring of a SemanticKITTI-format sequence.
+
+Protocol (the paper's, INTERFACE.md section 6): frames in order; update the map with each
+frame, then label every point of that frame by the arg-max class of its voxel (points
+outside the window or in voxels with no evidence beyond the prior keep the input label);
+one confusion matrix over all frames, ground-truth class 0 ignored; IoU per class, mIoU over
+the classes present in the ground truth; the input segmentation is scored the same way.
+Several ``--kernel`` files are evaluated one after another on the same frames (ablations).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from convbki_core.datasets import DatasetError, parse_frames
+from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.io.atomic import atomic_write_bytes
+from convbki_core.kernels import load_kernel_file
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.metrics import ConfusionMatrix
+from convbki_core.paths import kernel_path
+from convbki_core.tools.cli import (
+    NewOutputs,
+    UserError,
+    device_arg,
+    frames_arg,
+    output_folder,
+    progress,
+    run,
+    sequence_arg,
+)
+from convbki_core.volume import transform_points
+
+PROG = "evaluate"
+DEFAULT_KERNEL = "semantic_kitti_compound"
+DEFAULT_PRIOR = 1e-3
+PAPER_BOUNDS = ((-40.0, -40.0, -2.6), (40.0, 40.0, 2.6))
+
+
+@dataclass
+class KernelRun:
+    """The outcome of mapping one sequence with one kernel."""
+
+    kernel_file: str
+    kernel: str
+    map_scores: ConfusionMatrix
+    update_ms: list[float] = field(default_factory=list)
+    query_ms: list[float] = field(default_factory=list)
+    mapper: ConvBKIMapper | None = None
+
+
+def map_frame_labels(mapper: ConvBKIMapper, points: np.ndarray, pose: np.ndarray,
+                     input_labels: np.ndarray) -> np.ndarray:
+    """The protocol's per-point labels after the frame was integrated: map label, else input label."""
+    points_map = transform_points(points, pose)
+    map_labels, has_evidence = mapper.labels_at(points_map)
+    return np.where(has_evidence, map_labels, input_labels)
+
+
+def write_label_file(path: Path, learning_labels: np.ndarray, label_map) -> None:
+    """One submission file: uint32 raw ids (learning_map_inv), file order kept.
+
+    Written plainly: the command writes into a staging folder that becomes visible only
+    when the whole run succeeded (``NewOutputs``).
+    """
+    path.write_bytes(label_map.to_raw(learning_labels).astype("<u4").tobytes())
+
+
+def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], kernel_file: str | Path, device: str,
+                    prior: float, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
+                    show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto") -> KernelRun:
+    """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
+
+    ``input_scores`` (when given) also receives the input segmentation's confusion counts;
+    ``labels_folder`` (when given, an existing folder) receives one NNNNNN.label per frame.
+    """
+    config = load_kernel_file(kernel_file)
+    label_map = dataset.label_map
+    if config.num_classes != label_map.num_classes:
+        raise UserError(f"{kernel_file}: kernel has {config.num_classes} classes, the dataset {label_map.num_classes}")
+    mapper = ConvBKIMapper(config, local_bounds=local_bounds, prior=prior, device=device,
+                           ignore_classes=label_map.ignore_classes, update_path=update_path)
+    run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
+                                                                             label_map.ignore_classes), mapper=mapper)
+    out_folder = labels_folder
+    frames = (dataset[position] for position in positions)
+    if show_progress:
+        frames = progress(frames, total=len(positions), description=f"{Path(kernel_file).stem}")
+    for frame in frames:
+        if frame.ground_truth is None:
+            raise DatasetError(f"{dataset.folder}: no labels/ folder, so there is no ground truth to score against")
+        input_labels = frame.input_labels if frame.input_labels is not None else frame.probabilities.argmax(axis=1)
+        result = mapper.integrate(frame.points, frame.input_values, frame.pose)
+        started = time.perf_counter()
+        predicted = map_frame_labels(mapper, frame.points, frame.pose, input_labels)
+        labelling_ms = 1e3 * (time.perf_counter() - started)
+        timing = result.timing_ms
+        run_result.update_ms.append(timing["voxelize"] + timing["update"])
+        run_result.query_ms.append(timing["query"] + labelling_ms)
+        run_result.map_scores.add(frame.ground_truth, predicted)
+        if input_scores is not None:
+            input_scores.add(frame.ground_truth, input_labels)
+        if out_folder is not None:
+            write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
+    return run_result
+
+
+def format_table(class_names: Sequence[str], input_scores: ConfusionMatrix, runs: Sequence[KernelRun]) -> str:
+    """Per-class IoU (%) table: one row per class present in the ground truth, one column per input/kernel."""
+    headers = ["class", "input"] + [Path(r.kernel_file).stem.replace("semantic_kitti_", "") for r in runs]
+    width = max(12, *(len(h) for h in headers[1:]))
+    lines = [f"{headers[0]:<14}" + "".join(f"{h:>{width + 1}}" for h in headers[1:])]
+    ious = [input_scores.iou()] + [r.map_scores.iou() for r in runs]
+    for class_id in np.flatnonzero(input_scores.present):
+        lines.append(f"{class_names[class_id]:<14}" + "".join(f"{100 * iou[class_id]:>{width + 1}.1f}" for iou in ious))
+    scores = [input_scores] + [r.map_scores for r in runs]
+    lines.append(f"{'mIoU':<14}" + "".join(f"{100 * s.miou():>{width + 1}.1f}" for s in scores))
+    lines.append(f"{'accuracy':<14}" + "".join(f"{100 * s.accuracy():>{width + 1}.1f}" for s in scores))
+    return "\n".join(lines)
+
+
+def build_report(sequence: str, frame_count: int, class_names: Sequence[str], input_scores: ConfusionMatrix,
+                 runs: Sequence[KernelRun]) -> dict:
+    """report.json (INTERFACE.md section 6): the first kernel at the top level, every kernel under "runs"."""
+
+    def run_entry(run_result: KernelRun) -> dict:
+        return {"kernel": run_result.kernel, "kernel_file": run_result.kernel_file,
+                "map": run_result.map_scores.summary(class_names),
+                "timing_ms": {"update_median": float(np.median(run_result.update_ms)),
+                              "query_median": float(np.median(run_result.query_ms))}}
+
+    entries = [run_entry(r) for r in runs]
+    report = {"sequence": sequence, "frames": frame_count, "kernel": entries[0]["kernel"],
+              "kernel_file": entries[0]["kernel_file"], "input": input_scores.summary(class_names),
+              "map": entries[0]["map"], "timing_ms": entries[0]["timing_ms"]}
+    if len(entries) > 1:
+        report["runs"] = entries
+    return report
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=PROG,
+        description="Map a SemanticKITTI-format sequence offline with ConvBKI and score the map's labels and the "
+        "input segmentation against the ground truth (IoU per class, mIoU over classes present in the ground "
+        "truth, accuracy). Prints a per-class table, writes report.json and a bird's-eye PNG of each map.")
+    p.add_argument("--dataset", required=True, metavar="ROOT",
+                   help="dataset root holding sequences/SS/{velodyne,labels,...}, poses.txt and calib.txt")
+    p.add_argument("--sequence", required=True, metavar="SS", type=sequence_arg, help="sequence id, e.g. 08")
+    p.add_argument("--predictions-dir", default="predictions", metavar="DIR",
+                   help="folder under sequences/SS with the input segmentation NNNNNN.label (uint32 raw ids) "
+                   "(default: %(default)s)")
+    p.add_argument("--probabilities-dir", default=None, metavar="DIR",
+                   help="folder under sequences/SS with per-point class probabilities NNNNNN.npy (N x C "
+                   "float16/float32); when given, the map is updated with these instead of one-hot labels")
+    p.add_argument("--kernel", nargs="+", default=None, metavar="FILE",
+                   help="one or more kernel files (YAML); each is evaluated on the same frames and reported "
+                   "(ablations). Default: config/kernels/semantic_kitti_compound.yaml")
+    p.add_argument("--frames", default=None, metavar="A:B", type=frames_arg,
+                   help="only frames A (inclusive) to B (exclusive); default: all")
+    p.add_argument("--report", required=True, metavar="JSON",
+                   help="write the report (sequence, frames, kernel, input and map mIoU, IoU per class, accuracy, "
+                   "median update and query times in ms) to this file; with several kernels, all are under 'runs'")
+    p.add_argument("--write-labels", default=None, metavar="OUTROOT",
+                   help="also write the map's labels as OUTROOT/sequences/SS/predictions/NNNNNN.label (uint32 raw "
+                   "ids, one per input point), the format the semantic-kitti-api evaluator reads (first kernel)")
+    p.add_argument("--picture", default=None, metavar="PNG",
+                   help="bird's-eye picture of the final map (classes and variance side by side); default: next "
+                   "to the report, REPORT_map.png (REPORT_<kernel>_map.png with several kernels)")
+    p.add_argument("--save-map", default=None, metavar="FILE",
+                   help="also write the final map (first kernel) as a map file (.npz) that the mapper node can "
+                   "load (map_file) and map_tool reads; written only when the whole run succeeded")
+    p.add_argument("--local-bounds", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX",
+                   "YMAX", "ZMAX"), help="local window around the sensor in metres (default: the paper's "
+                   "-40 -40 -2.6 40 40 2.6)")
+    p.add_argument("--device", default="auto", type=device_arg,
+                   help="torch device: auto (CUDA when present), cpu, cuda or cuda:N (default: %(default)s)")
+    p.add_argument("--update-path", default="auto", choices=("auto", "fast", "dense"),
+                   help="how the update is computed: fast (compiled sparse scatter, the CPU default), dense (the "
+                   "paper's depthwise conv3d, the CUDA default and the reference) (default: %(default)s)")
+    p.add_argument("--prior", default=DEFAULT_PRIOR, type=float,
+                   help="initial concentration of every class in a new voxel (default: %(default)s)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def check_writable_file(path: str | Path, flag: str) -> None:
+    """Refuse, before the long work, a file that could not be written at the end."""
+    folder = output_folder(path, flag.lstrip("-").replace("-", " "))
+    if Path(path).is_dir():
+        raise UserError(f"{path}: is a folder; {flag} names a file")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise UserError(f"{folder}: folder is not writable (for {flag} {path})")
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    outputs = NewOutputs()
+    try:
+        return _evaluate_into(args, outputs)
+    except BaseException:
+        outputs.discard()  # a failed run leaves none of its outputs (older results are kept)
+        raise
+
+
+def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
+    kernels = args.kernel or [str(kernel_path(DEFAULT_KERNEL))]
+    for kernel_file in kernels:
+        load_kernel_file(kernel_file)  # fail before any work on a bad kernel file
+    if not args.prior > 0:
+        raise UserError(f"--prior must be positive, got {args.prior}")
+    bounds = PAPER_BOUNDS
+    if args.local_bounds:
+        bounds = (tuple(args.local_bounds[:3]), tuple(args.local_bounds[3:]))
+        if any(not low < high for low, high in zip(*bounds)):
+            raise UserError(f"--local-bounds must have each minimum below its maximum, got {args.local_bounds}")
+    report_path = Path(args.report)
+    output_folder(report_path, "report")
+    if report_path.is_dir():
+        raise UserError(f"{report_path}: is a folder; --report names a JSON file")
+    if args.picture:
+        output_folder(args.picture, "picture")
+    if args.save_map:
+        check_writable_file(args.save_map, "--save-map")
+    dataset = SemanticKittiSequence(args.dataset, args.sequence, args.predictions_dir, args.probabilities_dir)
+    if dataset.predictions_folder is None and dataset.probabilities_folder is None:
+        raise UserError("no input segmentation: give --predictions-dir or --probabilities-dir")
+    if not dataset.has_ground_truth:
+        raise DatasetError(f"{dataset.folder}: no labels/ folder, so there is no ground truth to score against")
+    try:
+        positions = parse_frames(args.frames, len(dataset))
+    except ValueError as error:
+        raise UserError(str(error)) from None
+    dataset.check_files(positions)  # every file there and sized right, before anything is written
+    labels_folder = None
+    if args.write_labels:
+        if Path(args.write_labels).exists() and not Path(args.write_labels).is_dir():
+            raise UserError(f"{args.write_labels}: not a folder (--write-labels names a dataset root to write)")
+        labels_folder = outputs.staging(Path(args.write_labels) / "sequences" / dataset.sequence / "predictions")
+    label_map = dataset.label_map
+    input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
+    runs = []
+    for number, kernel_file in enumerate(kernels):
+        runs.append(evaluate_kernel(dataset, positions, kernel_file, args.device, args.prior,
+                                    input_scores if number == 0 else None,
+                                    labels_folder if number == 0 else None,
+                                    show_progress=not args.quiet, local_bounds=bounds,
+                                    update_path=args.update_path))
+    report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs)
+
+    from convbki_core.tools.plots import save_map_picture
+
+    pictures = []
+    for run_result in runs:
+        if args.picture and len(runs) == 1:
+            picture = Path(args.picture)
+        else:
+            suffix = "" if len(runs) == 1 else "_" + Path(run_result.kernel_file).stem
+            picture = report_path.with_name(f"{report_path.stem}{suffix}_map.png")
+        voxels = run_result.mapper.voxels()
+        title = (f"sequence {dataset.sequence}, {len(positions)} frames, {Path(run_result.kernel_file).stem}: "
+                 f"map mIoU {run_result.map_scores.miou():.3f} (input {input_scores.miou():.3f})")
+        save_map_picture(voxels, label_map, run_result.mapper.resolution, outputs.file(picture), title)
+        pictures.append(picture)
+    if args.save_map:
+        runs[0].mapper.save(outputs.file(args.save_map))  # atomic; removed again if the report fails
+    # The report and the labels last: they are what scripts look for to tell that a run finished.
+    atomic_write_bytes(outputs.file(report_path), (json.dumps(report, indent=2) + "\n").encode())
+    outputs.commit()
+
+    print(f"sequence {dataset.sequence}, {len(positions)} frames: IoU per class (%)")
+    print(format_table(label_map.class_names, input_scores, runs))
+    for run_result in runs:
+        print(f"{Path(run_result.kernel_file).stem}: map mIoU {run_result.map_scores.miou():.4f} vs input "
+              f"{input_scores.miou():.4f} ({run_result.map_scores.miou() - input_scores.miou():+.4f}); "
+              f"update {np.median(run_result.update_ms):.1f} ms, query {np.median(run_result.query_ms):.1f} ms "
+              f"(median), {len(run_result.mapper)} voxels")
+    print(f"report: {report_path}; pictures: {', '.join(map(str, pictures))}")
+    if args.write_labels:
+        print(f"labels: {Path(args.write_labels) / 'sequences' / dataset.sequence / 'predictions'}")
+    if args.save_map:
+        print(f"map: {args.save_map} ({len(runs[0].mapper)} voxels)")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the process exit code."""
+    return run(PROG, _evaluate, build_parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

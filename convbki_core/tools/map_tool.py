@@ -1,0 +1,311 @@
+"""``map_tool``: inspect, merge and export ConvBKI map files (the ``mapfile`` format).
+
+* ``info``: what a map holds (voxels, bounds, classes, settings, sizes);
+* ``merge``: the exact union of maps built in one frame. The ConvBKI update is a sum of
+  kernel-weighted evidence on top of the prior, so a voxel present in k maps has the
+  concentration sum_i alpha_i - (k - 1) * prior: the map one mapper would have built from
+  all their scans (up to float32 rounding);
+* ``export-ply``: the voxel centres in class colours, for CloudCompare, Open3D or MeshLab.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from convbki_core.tools.cli import UserError, output_folder, positive, run
+
+if TYPE_CHECKING:
+    from convbki_core.mapper import VoxelSet
+
+PROG = "map_tool"
+# Relative tolerance when comparing resolutions and priors read back from JSON metadata.
+SAME_VALUE = 1e-9
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse whose errors (subcommands' included) are one line and exit 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{PROG}: error: {message} (see {self.prog} --help)\n")
+
+
+def _steps(total: int, quiet: bool, description: str):
+    """A step progress bar on stderr; off with --quiet or when stderr is not a terminal (logs)."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=description, unit="step", file=sys.stderr, leave=False,
+                disable=True if quiet else None, dynamic_ncols=True)
+
+
+def _check_output(path: str, force: bool) -> Path:
+    """Refuse, before any work, an output that cannot be written or would replace a file unasked."""
+    out = Path(path)
+    output_folder(out)
+    if out.is_dir():
+        raise UserError(f"{out}: is a folder; --out names a file")
+    if out.exists() and not force:
+        raise UserError(f"{out}: already exists (use --force to replace it)")
+    return out
+
+
+# -- info ---------------------------------------------------------------------------------
+def class_names_for(metadata: dict) -> list[str] | None:
+    """Class names for the map's classes: the metadata's, else SemanticKITTI's when the count matches."""
+    from convbki_core.datasets.labels import load_label_map
+
+    names = metadata.get("class_names")
+    if isinstance(names, list) and len(names) == metadata["num_classes"]:
+        return [str(name) for name in names]
+    label_map = load_label_map("semantic_kitti")
+    return list(label_map.class_names) if label_map.num_classes == metadata["num_classes"] else None
+
+
+def map_info(path: str | Path) -> dict:
+    """Everything ``info`` reports about one map file, as JSON-ready values (lengths in m)."""
+    from convbki_core.io.map_file import read_map
+    from convbki_core.statistics import dirichlet_statistics
+
+    metadata, indices, alpha = read_map(path)
+    resolution = float(metadata["resolution"])
+    num_classes = metadata["num_classes"]
+    bounds = None
+    if len(indices):
+        low, high = indices.min(axis=0), indices.max(axis=0)
+        # Metres: the box the voxels fill, from the low corner of the first to the high corner of the last.
+        bounds = {"index_min": low.tolist(), "index_max": high.tolist(),
+                  "metres_min": [round(v, 9) for v in (low * resolution).tolist()],
+                  "metres_max": [round(v, 9) for v in ((high + 1) * resolution).tolist()]}
+    counts = np.bincount(dirichlet_statistics(alpha).label, minlength=num_classes)
+    names = class_names_for(metadata)
+    kernel = metadata.get("kernel")
+    voxel_bytes = num_classes * alpha.dtype.itemsize + 3 * indices.dtype.itemsize
+    return {
+        "file": str(path), "file_bytes": Path(path).stat().st_size,
+        "format": metadata.get("format"), "version": metadata.get("version"),
+        "frame_id": metadata.get("frame_id"), "resolution": resolution, "num_voxels": len(indices),
+        "bounds": bounds, "prior": metadata.get("prior"),
+        "kernel": kernel.get("kernel") if isinstance(kernel, dict) else None,
+        "scans_integrated": metadata.get("scans_integrated"), "num_classes": num_classes,
+        "class_voxels": [{"class": c, "name": names[c] if names else None, "voxels": int(counts[c])}
+                         for c in range(num_classes)],
+        "bytes_per_voxel": voxel_bytes, "memory_bytes": voxel_bytes * len(indices),
+        "merged_from": metadata.get("merged_from"),
+    }
+
+
+def format_info(info: dict) -> str:
+    """``info``'s plain-text report."""
+    lines = [f"map:         {info['file']} ({_size(info['file_bytes'])})",
+             f"frame_id:    {info['frame_id']}",
+             f"resolution:  {info['resolution']:g} m",
+             f"voxels:      {info['num_voxels']}"]
+    bounds = info["bounds"]
+    if bounds:
+        lines.append("bounds:      index " + ", ".join(f"{axis} {lo}..{hi}" for axis, lo, hi in
+                                                     zip("xyz", bounds["index_min"], bounds["index_max"])))
+        lines.append("             metres " + ", ".join(f"{axis} {lo:.2f}..{hi:.2f}" for axis, lo, hi in
+                                                      zip("xyz", bounds["metres_min"], bounds["metres_max"])))
+    lines += [f"prior:       {info['prior']}", f"kernel:      {info['kernel']}"]
+    if info["scans_integrated"] is not None:
+        lines.append(f"scans:       {info['scans_integrated']}")
+    if info["merged_from"]:
+        lines.append(f"merged from: {', '.join(map(str, info['merged_from']))}")
+    lines.append(f"memory:      {info['bytes_per_voxel']} bytes per voxel when loaded (alpha + indices), "
+                 f"{_size(info['memory_bytes'])} in all")
+    lines.append(f"classes:     {info['num_classes']} (voxels per expected class)")
+    width = max([len(entry["name"] or "") for entry in info["class_voxels"]] + [8])
+    for entry in info["class_voxels"]:
+        lines.append(f"  {entry['class']:>3} {entry['name'] or '':<{width}} {entry['voxels']:>10}")
+    return "\n".join(lines)
+
+
+def _size(count: int) -> str:
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if count >= scale:
+            return f"{count / scale:.1f} {unit}"
+    return f"{count} B"
+
+
+# -- merge --------------------------------------------------------------------------------
+def merge_arrays(parts: Sequence[tuple[np.ndarray, np.ndarray]], prior: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """The exact merge of maps built in one frame with the same ``prior``.
+
+    ``parts``: (indices (N_i, 3) int64, alpha (N_i, C) float32) per map, each without duplicate
+    voxels. Returns (indices (M, 3) int64 sorted x, y, z; alpha (M, C) float32; how many voxels
+    were in more than one map). Vectorised: one sort of all voxel keys, one scatter per map.
+    """
+    indices = np.concatenate([part[0] for part in parts]).astype(np.int64, copy=False)
+    order = np.lexsort(indices.T[::-1])
+    ordered = indices[order]
+    first = np.ones(len(order), bool)
+    first[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
+    group = np.empty(len(order), np.int64)
+    group[order] = np.cumsum(first) - 1  # each input row's row in the output
+    merged = np.zeros((int(first.sum()), parts[0][1].shape[1]), np.float32)
+    count = np.zeros(len(merged), np.int64)
+    start = 0
+    for part_indices, part_alpha in parts:
+        rows = group[start:start + len(part_indices)]
+        # A map holds each voxel once, so these rows are distinct and += adds every row exactly once.
+        merged[rows] += part_alpha
+        count[rows] += 1
+        start += len(part_indices)
+    shared = count > 1
+    # Each map started its voxels at the prior: keep it once. A voxel in one map keeps its row bit for bit.
+    merged[shared] -= ((count[shared] - 1) * prior).astype(np.float32)[:, None]
+    return ordered[first], merged, int(shared.sum())
+
+
+def _check_same(first: tuple[str, dict], other: tuple[str, dict]) -> None:
+    """Refuse to merge maps whose grids, classes, frames or priors differ: their sum would mean nothing."""
+    (name_a, meta_a), (name_b, meta_b) = first, other
+    for key, what in (("resolution", "resolution (m)"), ("num_classes", "num_classes"), ("frame_id", "frame_id"),
+                      ("prior", "prior")):
+        a, b = meta_a.get(key), meta_b.get(key)
+        same = (math.isclose(float(a), float(b), rel_tol=SAME_VALUE) if key in ("resolution", "prior") else a == b)
+        if not same:
+            raise UserError(f"cannot merge {name_a} and {name_b}: {what} differs ({a!r} vs {b!r})")
+
+
+def _merge(args: argparse.Namespace) -> int:
+    from convbki_core.io.map_file import MapSnapshot, read_map
+
+    names = [args.first, *args.rest]
+    out = _check_output(args.out, args.force)
+    seen: dict[Path, str] = {}
+    for name in names:
+        if Path(name).resolve() in seen:
+            raise UserError(f"{name}: given twice (as {seen[Path(name).resolve()]}); each map counts once")
+        seen[Path(name).resolve()] = name
+    maps = []
+    with _steps(len(names) + 2, args.quiet, "merge") as bar:
+        for name in names:
+            bar.set_description(f"reading {Path(name).name}")
+            metadata, indices, alpha = read_map(name)
+            prior = metadata.get("prior")
+            if isinstance(prior, bool) or not isinstance(prior, (int, float)) or not prior > 0:
+                raise UserError(f"{name}: metadata has no positive prior ({prior!r}), so the merge cannot count "
+                                "it once")
+            if maps:
+                _check_same((names[0], maps[0][0]), (name, metadata))
+            # Every class of every voxel starts at the prior and only grows: anything below was built otherwise.
+            if len(alpha) and alpha.min() < prior * (1 - 1e-6):
+                raise UserError(f"{name}: holds concentrations below its prior {prior}, so it was not built "
+                                "with that prior and the merge would not be exact")
+            maps.append((metadata, indices, alpha))
+            bar.update()
+        bar.set_description("merging")
+        prior = float(maps[0][0]["prior"])
+        indices, alpha, shared = merge_arrays([(m[1], m[2]) for m in maps], prior)
+        bar.update()
+        metadata = dict(maps[0][0], num_voxels=len(indices), merged_from=names)
+        scans = [m[0].get("scans_integrated") for m in maps]
+        if all(value is not None for value in scans):
+            metadata["scans_integrated"] = int(sum(scans))
+        else:
+            metadata.pop("scans_integrated", None)  # unknown for some input: a partial sum would mislead
+        bar.set_description(f"writing {out.name}")
+        MapSnapshot(metadata, indices, alpha).write(out)
+        bar.update()
+    sizes = " + ".join(str(len(m[1])) for m in maps)
+    print(f"merged {len(maps)} maps ({sizes} voxels) into {len(indices)} voxels, {shared} in more than one: {out}")
+    return 0
+
+
+# -- export-ply ---------------------------------------------------------------------------
+def voxel_set(indices: np.ndarray, alpha: np.ndarray, resolution: float) -> VoxelSet:
+    """A ``mapper.VoxelSet`` (centres in m, expected class, variance) of map-file arrays."""
+    from convbki_core.mapper import VoxelSet
+    from convbki_core.statistics import dirichlet_statistics
+    from convbki_core.volume import voxel_centres
+
+    stats = dirichlet_statistics(alpha)
+    return VoxelSet(indices, voxel_centres(indices, resolution).astype(np.float32), alpha, stats.label,
+                    stats.confidence, stats.variance)
+
+
+def _export_ply(args: argparse.Namespace) -> int:
+    from convbki_core.io.map_file import read_map
+    from convbki_core.io.ply import write_voxels_ply
+
+    out = _check_output(args.out, args.force)
+    with _steps(3, args.quiet, "export-ply") as bar:
+        bar.set_description(f"reading {Path(args.map).name}")
+        metadata, indices, alpha = read_map(args.map)
+        bar.update()
+        bar.set_description("statistics")
+        voxels = voxel_set(indices, alpha, float(metadata["resolution"]))
+        bar.update()
+        bar.set_description(f"writing {out.name}")
+        written = write_voxels_ply(voxels, out, max_variance=args.max_variance)
+        bar.update()
+    kept = f" (of {len(voxels)}; variance <= {args.max_variance:g})" if args.max_variance else ""
+    print(f"wrote {written} voxels{kept} to {out}")
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    import json
+
+    with _steps(1, args.quiet, f"reading {Path(args.map).name}") as bar:
+        info = map_info(args.map)
+        bar.update()
+    print(json.dumps(info) if args.json else format_info(info))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line parser: one subcommand per task."""
+    p = _Parser(
+        prog=PROG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Inspect, merge and export ConvBKI map files (written by the mapper node's save service, "
+        "its map_file autosave, or evaluate --save-map).",
+        epilog="commands:\n"
+        "  map_tool info MAP [--json]\n"
+        "  map_tool merge MAP MAP [MAP ...] --out MAP [--force]\n"
+        "  map_tool export-ply MAP --out PLY [--max-variance V] [--force]\n"
+        "  --json: one JSON object; --out: the file to write (atomically); --force: replace it if it exists;\n"
+        "  --max-variance: only voxels whose expected class has at most this variance; --quiet: no progress bar.\n"
+        "`map_tool COMMAND --help` explains each command.")
+    commands = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    info = commands.add_parser("info", help="print what a map holds", description="Print a map's voxel count, "
+                               "bounds (voxel indices and metres, in its frame), resolution, frame_id, prior, kernel, "
+                               "scans integrated, voxels per expected class, file size and memory per voxel.")
+    info.add_argument("map", metavar="MAP", help="map file to read")
+    info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    merge = commands.add_parser("merge", help="merge maps built in one frame, exactly", description="Merge maps "
+                                "built in one frame with the same resolution, classes and prior (e.g. two halves of "
+                                "a drive): a voxel in k maps gets the sum of their concentrations minus (k - 1) x "
+                                "prior, which is the map one mapper would have built from all their scans.")
+    merge.add_argument("first", metavar="MAP", help="first map; the output keeps its metadata")
+    merge.add_argument("rest", metavar="MAP", nargs="+", help="more maps to add")
+    merge.add_argument("--out", required=True, metavar="MAP", help="merged map file to write (atomically)")
+    merge.add_argument("--force", action="store_true", help="replace --out if it exists (it may be an input)")
+    export = commands.add_parser("export-ply", help="write a map as a PLY point cloud in class colours",
+                                 description="Write one vertex per voxel centre (m) with its class colour, class "
+                                 "id and variance of its expected class, as binary PLY.")
+    export.add_argument("map", metavar="MAP", help="map file to read")
+    export.add_argument("--out", required=True, metavar="PLY", help="PLY file to write (atomically)")
+    export.add_argument("--max-variance", type=positive(float, "--max-variance"), default=None, metavar="V",
+                        help="only voxels whose expected class has at most this variance (default: all)")
+    export.add_argument("--force", action="store_true", help="replace --out if it exists")
+    for command in (info, merge, export):
+        command.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the process exit code."""
+    commands = {"info": _info, "merge": _merge, "export-ply": _export_ply}
+    return run(PROG, lambda args: commands[args.command](args), build_parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

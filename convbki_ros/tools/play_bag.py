@@ -1,0 +1,497 @@
+"""``play_bag``: publish a rosbag2 on its topics, in stamp order (no ros2 bag needed).
+
+Messages go out at ``--rate`` x the pace of their bag timestamps, timed against one
+monotonic start instant (no drift accumulates). Messages sharing a timestamp go out
+together, transforms and odometry before the clouds that need them. With ``--clock``,
+/clock (rosgraph_msgs/Clock) carries each timestamp just before the messages stamped with it.
+
+A message is published as the bag's CDR bytes, unchanged, when the bag's type hash equals
+the installed message type's (the normal case); otherwise (or with ``--deserialize``) it is
+deserialised with a rosbags typestore built from the bag's own definitions and converted
+field by field into the installed rclpy class. Topics whose type has no installed Python
+package (e.g. tf2_msgs with the PyPI wheels) are skipped with one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import array
+import contextlib
+import importlib
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from convbki_core.tools.cli import UserError, run
+from convbki_ros.dds import use_large_data_profile
+from convbki_ros.ros_args import strip_ros_args
+
+PROG = "play_bag"
+NODE_NAME = "play_bag"
+CLOCK_TOPIC = "/clock"
+DEPTH = 100
+
+
+def rate_arg(text: str) -> float:
+    """Playback rate: a positive float."""
+    try:
+        rate = float(text)
+    except ValueError:
+        rate = -1.0
+    if not rate > 0.0 or rate == float("inf"):
+        raise argparse.ArgumentTypeError(f"rate must be a positive number, got {text!r}")
+    return rate
+
+
+def seconds_arg(text: str) -> float:
+    """A duration in seconds: a finite float >= 0."""
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = -1.0
+    if not 0.0 <= seconds < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0, got {text!r}")
+    return seconds
+
+
+def remap_arg(text: str) -> tuple[str, str]:
+    """``FROM:=TO`` -> (FROM, TO)."""
+    src, sep, dst = text.partition(":=")
+    if not sep or not src or not dst:
+        raise argparse.ArgumentTypeError(f"remap must be FROM:=TO, got {text!r}")
+    return src, dst
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line parser; ROS arguments (--ros-args ...) are removed before it runs."""
+    p = argparse.ArgumentParser(
+        prog=PROG,
+        description="Publish the messages of a rosbag2 (mcap or sqlite3) on their topics "
+        "in stamp order, paced by the stamps. ROS arguments (--ros-args -r ... ) are passed "
+        "to the node. Exits 0 when every message is out (or on Ctrl-C).",
+    )
+    p.add_argument("bag", metavar="BAG", help="bag directory (or its .mcap/.db3 file)")
+    p.add_argument("--rate", default=1.0, type=rate_arg, metavar="R",
+                   help="playback speed factor: 1 = real time, 2 = twice as fast "
+                   "(default: %(default)s)")
+    p.add_argument("--clock", action="store_true",
+                   help="also publish /clock (rosgraph_msgs/Clock) from the bag stamps, "
+                   "for nodes run with use_sim_time:=true")
+    p.add_argument("--remap", action="append", default=[], type=remap_arg,
+                   metavar="FROM:=TO",
+                   help="publish topic FROM of the bag on topic TO; repeatable")
+    p.add_argument("--qos", default="reliable", choices=("reliable", "best_effort"),
+                   help=f"reliability of the publishers (keep last {DEPTH}, volatile); reliable suits "
+                   "replay into a mapper, best_effort mimics a live sensor (default: %(default)s)")
+    p.add_argument("--wait-subscribers", default=3.0, type=seconds_arg, metavar="S",
+                   help="before the first message, wait up to S seconds for every topic to "
+                   "have a subscriber (stops waiting 1 s after the first one matches), so "
+                   "the first messages are not lost (default: %(default)s)")
+    p.add_argument("--start-delay", default=0.0, type=seconds_arg, metavar="S",
+                   help="sleep S seconds more before the first message (default: %(default)s)")
+    p.add_argument("--deserialize", action="store_true",
+                   help="always deserialise and convert messages to the installed types "
+                   "(slower; by default the bag's bytes are published unchanged when the "
+                   "type hashes match)")
+    return p
+
+
+# ----------------------------------------------------------------------------- rosbags -> rclpy
+
+
+_SEQUENCE_TYPECODES = {"float": "f", "double": "d", "int8": "b", "uint8": "B", "int16": "h", "uint16": "H",
+                       "int32": "i", "uint32": "I", "int64": "q", "uint64": "Q"}
+_NUMPY_TYPES = {"float": np.float32, "double": np.float64, "int8": np.int8, "uint8": np.uint8,
+                "int16": np.int16, "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32,
+                "int64": np.int64, "uint64": np.uint64}
+
+
+def rclpy_message_class(msgtype: str) -> type:
+    """``pkg/msg/Name`` -> the installed rclpy class (ImportError/AttributeError when absent)."""
+    package, kind, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+
+
+def _class_of(namespaced: Any) -> type:
+    return getattr(importlib.import_module(".".join(namespaced.namespaces)), namespaced.name)
+
+
+_PLANS: dict[type, list[tuple[str, Callable[[Any], Any]]]] = {}
+
+
+def _value_converter(slot: Any) -> Callable[[Any], Any]:
+    """A function turning a rosbags value into what the rclpy slot of type ``slot`` accepts."""
+    from rosidl_parser import definition as d
+
+    if isinstance(slot, d.NamespacedType):
+        cls = _class_of(slot)
+        return lambda value: to_rclpy(value, cls)
+    if isinstance(slot, d.AbstractNestedType):
+        inner = slot.value_type
+        if isinstance(inner, d.NamespacedType):
+            cls = _class_of(inner)
+            return lambda values: [to_rclpy(v, cls) for v in values]
+        if isinstance(inner, d.BasicType) and inner.typename in _NUMPY_TYPES:
+            dtype = _NUMPY_TYPES[inner.typename]
+            if isinstance(slot, d.Array):  # fixed-size numeric arrays are numpy arrays in rclpy
+                return lambda values: np.array(values, dtype=dtype)
+            typecode = _SEQUENCE_TYPECODES[inner.typename]
+
+            def sequence(values: Any) -> array.array:
+                out = array.array(typecode)
+                out.frombytes(np.ascontiguousarray(values, dtype=dtype).tobytes())
+                return out
+
+            return sequence
+        if isinstance(inner, d.BasicType) and inner.typename == "boolean":
+            return lambda values: [bool(v) for v in values]
+        return list
+    if isinstance(slot, d.BasicType):
+        if inner_kind := {"boolean": bool, "float": float, "double": float}.get(slot.typename):
+            return inner_kind
+        if slot.typename in _NUMPY_TYPES:
+            return int
+        if slot.typename == "octet":
+            return lambda value: bytes([int(value)]) if not isinstance(value, bytes) else value
+        if slot.typename in ("char",):
+            return lambda value: value if isinstance(value, str) else chr(int(value))
+    return lambda value: value  # strings and anything else pass through
+
+
+def to_rclpy(msg: Any, cls: type) -> Any:
+    """Convert a rosbags message (dataclass) into an instance of the rclpy class ``cls``.
+
+    Driven by ``cls``'s field list and slot types; fields the rosbags message lacks keep
+    their defaults (a bag of an older definition still converts).
+    """
+    plan = _PLANS.get(cls)
+    if plan is None:
+        names = list(cls.get_fields_and_field_types())
+        plan = [(name, _value_converter(slot)) for name, slot in zip(names, cls.SLOT_TYPES)]
+        _PLANS[cls] = plan
+    out = cls()
+    for name, convert in plan:
+        value = getattr(msg, name, None)
+        if value is None:
+            value = getattr(msg, f"{name}_", None)
+            if value is None:
+                continue
+        setattr(out, name, convert(value))
+    return out
+
+
+# ----------------------------------------------------------------------------- playback
+
+
+@dataclass
+class Channel:
+    """One bag connection and how its messages get out."""
+
+    topic: str  # topic published on (after --remap)
+    msgtype: str
+    publisher: Any = None
+    cls: type | None = None
+    raw: bool = True  # publish the CDR bytes as they are
+    priority: int = 1  # order among messages sharing a timestamp: lower first
+    skipped: str = ""
+    count: int = field(default=0)
+
+
+def _priority(msgtype: str) -> int:
+    if msgtype.startswith(("tf2_msgs/", "nav_msgs/msg/Odometry", "geometry_msgs/msg/Transform")):
+        return 0
+    if msgtype.startswith("sensor_msgs/msg/PointCloud2"):
+        return 2
+    return 1
+
+
+def open_bag(path: str) -> Any:
+    """An open rosbags Reader; a clear UserError when the bag cannot be read."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+
+    try:
+        reader = Reader(path)
+        reader.open()
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such bag (a rosbag2 folder with metadata.yaml, or a .mcap/.db3 file)") from None
+    except ReaderError as error:
+        raise UserError(f"{path}: cannot read the bag ({_one_line(error)})") from None
+    except Exception as error:  # a damaged file makes the reader fail in many ways (bad UTF-8, sizes, ...)
+        raise UserError(f"{path}: cannot read the bag, damaged ({error.__class__.__name__}: {_one_line(error)})") \
+            from None
+    return reader
+
+
+def _one_line(error: BaseException, limit: int = 200) -> str:
+    text = " ".join(str(error).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def checked_messages(messages: Iterator[Any], path: str) -> Iterator[Any]:
+    """The reader's messages; a failure inside the reader (a damaged bag) becomes a UserError.
+
+    Only the reading is guarded: errors of the code consuming the messages pass unchanged.
+    """
+    iterator = iter(messages)
+    count = 0
+    while True:
+        try:
+            item = next(iterator)
+        except StopIteration:
+            return
+        except Exception as error:  # whatever the damaged bytes made the reader trip over
+            raise UserError(f"{path}: damaged bag, reading stopped after {count} messages "
+                            f"({error.__class__.__name__}: {_one_line(error)})") from None
+        count += 1
+        yield item
+
+
+def grouped(messages: Iterator[tuple[Any, int, bytes]]) -> Iterator[tuple[int, list[tuple[Any, bytes]]]]:
+    """(connection, timestamp, data) in bag order -> (timestamp, [(connection, data), ...]) groups."""
+    stamp, group = None, []
+    for connection, timestamp, data in messages:
+        if timestamp != stamp and group:
+            yield stamp, group
+            group = []
+        stamp = timestamp
+        group.append((connection, data))
+    if group:
+        yield stamp, group
+
+
+class BagPlayer:
+    """Publishes one open bag through ``node``."""
+
+    def __init__(self, node: Any, reader: Any, args: argparse.Namespace):
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+        self.node = node
+        self.reader = reader
+        self.args = args
+        reliability = ReliabilityPolicy.RELIABLE if args.qos == "reliable" else ReliabilityPolicy.BEST_EFFORT
+        self.qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=DEPTH, reliability=reliability,
+                              durability=DurabilityPolicy.VOLATILE)
+        self.remaps = dict(args.remap)
+        self.channels: dict[int, Channel] = {}
+        self.publishers: dict[tuple[str, str], Any] = {}
+        self.typestore = None
+        self.clock_publisher = None
+        self.clock_class = None
+        self.sent = 0  # messages published so far
+        for connection in reader.connections:
+            self.channels[connection.id] = self._channel(connection)
+        if args.clock:
+            from rosgraph_msgs.msg import Clock
+
+            self.clock_class = Clock
+            self.clock_publisher = node.create_publisher(
+                Clock, CLOCK_TOPIC, QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=DEPTH,
+                                               reliability=ReliabilityPolicy.RELIABLE,
+                                               durability=DurabilityPolicy.VOLATILE))
+
+    def _channel(self, connection: Any) -> Channel:
+        topic = self.remaps.get(connection.topic, connection.topic)
+        channel = Channel(topic=topic, msgtype=connection.msgtype, priority=_priority(connection.msgtype))
+        try:
+            channel.cls = rclpy_message_class(connection.msgtype)
+        except (ImportError, AttributeError, ValueError):
+            channel.skipped = f"{connection.msgtype} is not installed for rclpy"
+            self.node.get_logger().info(f"skipping {connection.topic}: {channel.skipped}")
+            return channel
+        key = (topic, connection.msgtype)
+        if key not in self.publishers:
+            self.publishers[key] = self.node.create_publisher(channel.cls, topic, self.qos)
+        channel.publisher = self.publishers[key]
+        channel.raw = not self.args.deserialize and self._same_type(channel.publisher, connection.digest)
+        if not channel.raw:
+            self._ensure_typestore()
+        return channel
+
+    def _same_type(self, publisher: Any, digest: str | None) -> bool:
+        """Whether the installed type's hash equals the bag's (then its CDR bytes are ours)."""
+        if not digest:
+            return False
+        try:
+            infos = self.node.get_publishers_info_by_topic(publisher.topic_name)
+        except Exception:  # any graph error: fall back to converting
+            return False
+        hashes = {str(getattr(info, "topic_type_hash", "")) for info in infos
+                  if info.node_name == self.node.get_name() and info.node_namespace == self.node.get_namespace()}
+        return digest in hashes
+
+    def _ensure_typestore(self) -> None:
+        """Typestores for deserialising: the bag's own definitions, Jazzy's for what the bag lacks."""
+        if self.typestore is not None:
+            return
+        from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
+        bag_store = get_typestore(Stores.EMPTY)
+        for connection in self.reader.connections:
+            definition = connection.msgdef
+            if not definition.data:
+                continue
+            try:
+                if definition.format.name == "IDL":
+                    bag_store.register(get_types_from_idl(definition.data))
+                else:
+                    bag_store.register(get_types_from_msg(definition.data, connection.msgtype))
+            except Exception as error:  # fall back to the Jazzy definition
+                self.node.get_logger().debug(f"{connection.topic}: bag's type definition not used ({error})")
+        jazzy = get_typestore(Stores.ROS2_JAZZY)
+        self.typestore = {c.msgtype: bag_store if c.msgtype in bag_store.types else jazzy
+                          for c in self.reader.connections}
+
+    def wait_for_subscribers(self, timeout: float) -> None:
+        """Block until every publisher has a subscriber, 1 s after the first match, or ``timeout``."""
+        publishers = [*self.publishers.values(), *([self.clock_publisher] if self.clock_publisher else [])]
+        if not publishers or timeout <= 0:
+            return
+        deadline = time.monotonic() + timeout
+        first_match = None
+        while time.monotonic() < deadline:
+            matched = [p.get_subscription_count() > 0 for p in publishers]
+            if all(matched):
+                return
+            if any(matched) and first_match is None:
+                first_match = time.monotonic()
+            if first_match is not None and time.monotonic() - first_match > 1.0:
+                break
+            time.sleep(0.02)
+        missing = [p.topic_name for p in publishers if p.get_subscription_count() == 0]
+        if missing:
+            self.node.get_logger().info(f"starting with no subscriber on {', '.join(missing)}")
+
+    def _publish(self, channel: Channel, data: bytes, timestamp: int) -> None:
+        if channel.raw:
+            channel.publisher.publish(bytes(data))
+        else:
+            assert self.typestore is not None
+            message = self.typestore[channel.msgtype].deserialize_cdr(bytes(data), channel.msgtype)
+            channel.publisher.publish(to_rclpy(message, channel.cls))
+        channel.count += 1
+
+    def _publish_clock(self, timestamp: int) -> None:
+        if self.clock_publisher is None:
+            return
+        msg = self.clock_class()
+        msg.clock.sec, msg.clock.nanosec = divmod(int(timestamp), 1_000_000_000)
+        self.clock_publisher.publish(msg)
+
+    def play(self, ok: Callable[[], bool]) -> int:
+        """Publish every message; returns how many went out. Stops early when ``ok()`` is False."""
+        wanted = [c for c in self.reader.connections if not self.channels[c.id].skipped]
+        if not wanted:
+            return 0
+        total = sum(c.msgcount for c in wanted)
+        bar = _progress_bar(total)
+        start_wall = None
+        first_stamp = None
+        previous = None
+        try:
+            messages = checked_messages(self.reader.messages(connections=wanted), str(self.args.bag))
+            for timestamp, group in grouped(messages):
+                if start_wall is None:
+                    start_wall, first_stamp = time.monotonic(), timestamp
+                if previous is None or timestamp >= previous:
+                    target = start_wall + (timestamp - first_stamp) / 1e9 / self.args.rate
+                    if not _sleep_until(target, ok):
+                        break
+                    previous = timestamp
+                # else: out of order in the bag (split files): publish at once, keep the clock monotonic
+                self._publish_clock(max(timestamp, previous))
+                for connection, data in sorted(group, key=lambda item: self.channels[item[0].id].priority):
+                    self._publish(self.channels[connection.id], data, timestamp)
+                self.sent += len(group)
+                if bar is not None:
+                    bar.update(len(group))
+        finally:
+            if bar is not None:
+                bar.close()
+        return self.sent
+
+    def flush(self, timeout: float = 5.0) -> None:
+        """Wait (bounded) until reliable subscribers acknowledged everything published."""
+        from rclpy.duration import Duration
+
+        deadline = time.monotonic() + timeout
+        for publisher in [*self.publishers.values(), self.clock_publisher]:
+            if publisher is None:
+                continue
+            left = max(0.0, deadline - time.monotonic())
+            with contextlib.suppress(Exception):  # best effort publishers, or an rmw without acks
+                publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+
+
+def _sleep_until(target: float, ok: Callable[[], bool]) -> bool:
+    """Sleep until monotonic time ``target`` in short steps; False when ``ok()`` turns False."""
+    while True:
+        if not ok():
+            return False
+        left = target - time.monotonic()
+        if left <= 0:
+            return True
+        time.sleep(min(left, 0.1))
+
+
+def _progress_bar(total: int) -> Any:
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover - tqdm is a pinned dependency
+        return None
+    return tqdm(total=total, desc=PROG, unit="msg", file=sys.stderr, dynamic_ncols=True, mininterval=1.0)
+
+
+def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
+    """The command's body: open the bag, start rclpy, publish, shut down."""
+    reader = open_bag(args.bag)
+    try:
+        import rclpy
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            use_large_data_profile()
+            rclpy.init(args=ros_argv)
+        except Exception as error:  # rclpy's errors for bad --ros-args have no common public base
+            raise UserError(f"cannot start ROS 2 ({str(error).strip().splitlines()[0]})") from None
+        node = player = None
+        started = time.monotonic()
+        try:
+            node = rclpy.create_node(NODE_NAME)
+            player = BagPlayer(node, reader, args)
+            player.wait_for_subscribers(args.wait_subscribers)
+            if args.start_delay > 0 and not _sleep_until(time.monotonic() + args.start_delay, rclpy.ok):
+                return 0
+            started = time.monotonic()
+            sent = player.play(rclpy.ok)
+            elapsed = time.monotonic() - started
+            finished = rclpy.ok()
+            if finished:
+                player.flush()
+            counts = ", ".join(f"{c.topic} {c.count}" for c in player.channels.values() if not c.skipped)
+            what = "published" if finished else "interrupted after"
+            print(f"{PROG}: {what} {sent} messages in {elapsed:.2f} s ({counts})", file=sys.stderr)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            sent = player.sent if player is not None else 0
+            print(f"{PROG}: interrupted after {sent} messages in {time.monotonic() - started:.2f} s", file=sys.stderr)
+        finally:
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
+    finally:
+        reader.close()
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the process exit code."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    return run(PROG, lambda parsed: play(parsed, [PROG, *args]), build_parser(), strip_ros_args(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
