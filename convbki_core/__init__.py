@@ -17,8 +17,8 @@ decoder imports ``volume``) does not pull in torch.
 from importlib import import_module
 
 _PUBLIC = {
-    "ConvBKIKernel": "kernels", "KernelConfig": "kernels", "load_kernel_file": "kernels",
-    "save_kernel_file": "kernels", "sparse_kernel": "kernels", "ConvBKILayer": "layer",
+    "ConvBKIKernel": "kernels", "KernelConfig": "io.kernel_file", "load_kernel_file": "io.kernel_file",
+    "save_kernel_file": "io.kernel_file", "sparse_kernel": "kernels", "ConvBKILayer": "layer",
     "MapFileError": "io.map_file", "ConvBKIMapper": "mapper", "IntegrationResult": "mapper", "MapChanges": "mapper",
     "VoxelSet": "mapper", "dirichlet_statistics": "statistics",
 }

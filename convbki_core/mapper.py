@@ -25,7 +25,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.kernels import ConvBKIKernel, KernelConfig, load_kernel_file
+from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
+from convbki_core.io.map_file import MAP_FORMAT, MAP_VERSION, MapFileError, MapSnapshot, read_map
+from convbki_core.io.ply import write_voxels_ply
+from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
 from convbki_core.native import HAVE_NUMBA
 from convbki_core.records import RECORD, window_records
@@ -349,23 +352,40 @@ class ConvBKIMapper:
         """Write the whole map to one self-describing file, atomically."""
         self.snapshot().write(path)
 
-    def snapshot(self):
-        """A copy of the map's contents (``mapfile.MapSnapshot``): take it under a lock, ``write()`` it later."""
-        from convbki_core.io.map_file import snapshot_map
-
-        return snapshot_map(self)
+    def snapshot(self) -> MapSnapshot:
+        """A copy of everything a map file holds (``items()`` returns fresh arrays), with its
+        metadata: take it under a lock, ``write()`` it later."""
+        indices, alpha = self.items()
+        metadata = {
+            "format": MAP_FORMAT,
+            "version": MAP_VERSION,
+            "resolution": self.resolution,
+            "num_classes": self.num_classes,
+            "num_voxels": int(indices.shape[0]),
+            "frame_id": self.frame_id,
+            "prior": self.prior,
+            "local_bounds": [list(self.geometry.bounds_min), list(self.geometry.bounds_max)],
+            "kernel": kernel_config_to_dict(self.kernel.to_config()),
+            "scans_integrated": self.scans_integrated,
+        }
+        return MapSnapshot(metadata, indices, alpha)
 
     def load(self, path: str | Path) -> None:
-        """Replace the map's voxels with those of a map file (resolution and classes must match)."""
-        from convbki_core.io.map_file import load_map_into
-
-        load_map_into(self, path)  # resets the map first: its voxels count as removed
+        """Replace the map's voxels with those of a map file (resolution and classes must match);
+        the map is untouched if the file is unusable."""
+        metadata, indices, alpha = read_map(path)
+        if metadata["num_classes"] != self.num_classes:
+            raise MapFileError(f"{path}: map has {metadata['num_classes']} classes, the mapper {self.num_classes}")
+        if not np.isclose(float(metadata["resolution"]), self.resolution):
+            raise MapFileError(f"{path}: map resolution {metadata['resolution']} m differs from the mapper's "
+                               f"{self.resolution} m")
+        self.reset()  # its voxels count as removed
+        self.store.write(indices, alpha)
+        self.scans_integrated = int(metadata.get("scans_integrated", 0))
         self._everything_changed = True
 
     def export_ply(self, path: str | Path, max_variance: float | None = None) -> int:
         """Write the map as a PLY point cloud in class colours; returns the number of voxels written."""
-        from convbki_core.io.ply import write_voxels_ply
-
         return write_voxels_ply(self.voxels(), path, max_variance=max_variance)
 
 

@@ -10,7 +10,7 @@ received evidence (one to three of twenty, typically). So a chunk keeps, per vox
 12-bit chunk-local offset (uint16, sorted) and the number of classes whose value is not
 the prior (uint8); and per such class its id (uint8) and its float32 value, kept as the
 bit pattern (uint32). Classes left out are exactly the prior, so rows come back bit for bit.
-Rows go in and out dense, (n, C) float32; compiled kernels (numba) do the packing.
+Rows go in and out dense, (n, C) float32; ``compact_rows`` does the packing.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import sys
 
 import numpy as np
 
+from convbki_core.compact_rows import compress_rows, entry_ranges, entry_starts, expand_rows
 from convbki_core.native import HAVE_NUMBA
 from convbki_core.volume import linear_index, unravel_linear
 
@@ -70,44 +71,7 @@ def _decode_offsets(offsets: np.ndarray) -> np.ndarray:
     return np.stack([offsets >> (2 * CHUNK_SHIFT), (offsets >> CHUNK_SHIFT) & _MASK, offsets & _MASK], axis=1)
 
 
-def _starts(counts: np.ndarray) -> np.ndarray:
-    """(n + 1,) int64: where each voxel's classes begin, and the total."""
-    starts = np.zeros(counts.size + 1, np.int64)
-    np.cumsum(counts, out=starts[1:])
-    return starts
-
-
-def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """Concatenated aranges [starts[i], starts[i] + counts[i]) (numpy paths)."""
-    counts = counts.astype(np.int64)
-    ends = np.cumsum(counts)
-    return np.arange(int(ends[-1]) if ends.size else 0) + np.repeat(starts - (ends - counts), counts)
-
-
 if HAVE_NUMBA:
-
-    @njit(cache=True, nogil=True)
-    def _compress_numba(bits, order, prior_bits, counts, classes, values):  # pragma: no cover - compiled
-        m = 0
-        for i in range(order.size):
-            row = order[i]
-            first = m
-            for c in range(bits.shape[1]):
-                if bits[row, c] != prior_bits:
-                    classes[m] = c
-                    values[m] = bits[row, c]
-                    m += 1
-            counts[i] = m - first
-        return m
-
-    @njit(cache=True, nogil=True)
-    def _expand_numba(out, positions, starts, counts, classes, values, prior_bits):  # pragma: no cover - compiled
-        for k in range(positions.size):
-            p = positions[k]
-            for c in range(out.shape[1]):
-                out[k, c] = prior_bits
-            for e in range(starts[p], starts[p] + counts[p]):
-                out[k, classes[e]] = values[e]
 
     @njit(cache=True, nogil=True)
     def _window_linear_numba(offsets, first, shift, dims, linear, inside):  # pragma: no cover - compiled
@@ -151,51 +115,6 @@ if HAVE_NUMBA:
         return k, entry
 
 
-def _entry_types(num_classes: int) -> tuple[type, type]:
-    """dtypes of (class count, class id): one byte each up to 255 classes."""
-    return (np.uint8 if num_classes <= 255 else np.uint16), (np.uint8 if num_classes <= 256 else np.uint16)
-
-
-def compress_rows(alpha: np.ndarray, prior: float,
-                  order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Dense rows ``alpha[order]`` (N, C) float32 -> (class_count (N,), class_id (M,), value (M,) uint32
-    float32 bit patterns) of the values that are not ``prior`` (compared bit for bit), in row order."""
-    bits = np.ascontiguousarray(alpha, np.float32).view(np.uint32)
-    order = np.arange(bits.shape[0]) if order is None else order
-    prior_bits = np.float32(prior).view(np.uint32)
-    count_type, class_type = _entry_types(bits.shape[1])
-    if HAVE_NUMBA:
-        counts = np.empty(order.size, count_type)
-        # Room for every class of every row; memory that is never written is never touched.
-        classes = np.empty(order.size * bits.shape[1], class_type)
-        values = np.empty(order.size * bits.shape[1], np.uint32)
-        used = _compress_numba(bits, order, prior_bits, counts, classes, values)
-        return counts, classes[:used], values[:used]
-    rows = bits[order]
-    kept = rows != prior_bits
-    row, column = np.nonzero(kept)
-    return kept.sum(axis=1).astype(count_type), column.astype(class_type), rows[row, column]
-
-
-def expand_rows(counts: np.ndarray, classes: np.ndarray, values: np.ndarray, prior: float, num_classes: int,
-                positions: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
-    """Inverse of ``compress_rows``: dense float32 rows of the voxels at ``positions`` (default: all),
-    the prior in every class not listed; into ``out`` if given. Inputs are trusted (ids < C)."""
-    count_type, class_type = _entry_types(num_classes)
-    counts, classes = counts.astype(count_type, copy=False), classes.astype(class_type, copy=False)
-    values = np.ascontiguousarray(values).view(np.uint32)
-    positions = np.arange(counts.size) if positions is None else positions
-    out = np.empty((positions.size, num_classes), np.float32) if out is None else out
-    bits, starts, prior_bits = out.view(np.uint32), _starts(counts), np.float32(prior).view(np.uint32)
-    if HAVE_NUMBA:
-        _expand_numba(bits, positions, starts, counts, classes, values, prior_bits)
-        return out
-    bits[:positions.size] = prior_bits
-    entries = _ranges(starts[positions], counts[positions])
-    bits[np.repeat(np.arange(positions.size), counts[positions]), classes[entries]] = values[entries]
-    return out
-
-
 def _window_linear(offsets: np.ndarray, first: np.ndarray, shift: np.ndarray,
                    dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Window-linear index of each voxel (-1 outside) and the count inside per chunk.
@@ -225,7 +144,7 @@ def _merge(old: _Chunk, offsets: np.ndarray, counts: np.ndarray, classes: np.nda
     all_offsets = np.concatenate([old.offsets[keep], offsets])
     all_counts = np.concatenate([old.counts[keep], counts])
     sort = np.argsort(all_offsets, kind="stable")
-    entries = _ranges(_starts(all_counts)[:-1][sort], all_counts[sort])
+    entries = entry_ranges(entry_starts(all_counts)[:-1][sort], all_counts[sort])
     return _Chunk(all_offsets[sort], all_counts[sort], np.concatenate([old.classes[kept_entries], classes])[entries],
                   np.concatenate([old.values[kept_entries], values])[entries])
 
@@ -341,7 +260,7 @@ class VoxelStore:
         order, keys, offsets = order[last], keys[last], offsets[last]
         new_chunk = np.append(True, (keys[1:] != keys[:-1]).any(axis=1))
         counts, classes, values = compress_rows(alpha, self.prior, order)
-        starts = _starts(counts)
+        starts = entry_starts(counts)
         bounds = np.append(np.flatnonzero(new_chunk), order.size).tolist()
         for key, start, end in zip(map(tuple, keys[bounds[:-1]].tolist()), bounds[:-1], bounds[1:]):
             first, stop = int(starts[start]), int(starts[end])

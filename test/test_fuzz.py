@@ -18,7 +18,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from convbki_core.kernels import (
+from convbki_core.io.kernel_file import (
     KERNEL_KINDS,
     KernelConfig,
     KernelFileError,

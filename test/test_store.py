@@ -8,9 +8,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from convbki_core import compact_rows
 from convbki_core import store as store_module
+from convbki_core.compact_rows import compress_rows, expand_rows
 from convbki_core.io.map_file import MAP_VERSION, MapSnapshot, read_map
-from convbki_core.store import VoxelStore, compress_rows, expand_rows
+from convbki_core.store import VoxelStore
 
 PRIOR = np.float32(1e-3)
 # Bit patterns a row may hold besides ordinary values: both zeros, the smallest subnormal, the
@@ -111,6 +113,7 @@ def test_numpy_path_equals_a_dict_of_voxels_too(seed):
     """Without numba the same operations run as numpy: same answers."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(store_module, "HAVE_NUMBA", False)
+        patch.setattr(compact_rows, "HAVE_NUMBA", False)
         run_random_operations(seed, 5)
 
 
@@ -136,7 +139,7 @@ def test_compress_and_expand_are_exact_for_every_bit_pattern(prior):
     rows[6] = prior
     for path in (True, False):
         with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(store_module, "HAVE_NUMBA", path and store_module.HAVE_NUMBA)
+            patch.setattr(compact_rows, "HAVE_NUMBA", path and compact_rows.HAVE_NUMBA)
             counts, classes, values = compress_rows(rows, prior)
             kept = rows.view(np.uint32) != prior.view(np.uint32)
             assert counts.tolist() == kept.sum(axis=1).tolist() and classes.size == values.size == kept.sum()

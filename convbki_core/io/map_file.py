@@ -23,16 +23,11 @@ import math
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from convbki_core.compact_rows import compress_rows, expand_rows
 from convbki_core.io.atomic import atomic_write_with
-from convbki_core.kernels import kernel_config_to_dict
-from convbki_core.store import compress_rows, expand_rows
-
-if TYPE_CHECKING:
-    from convbki_core.mapper import ConvBKIMapper
 
 MAP_FORMAT = "convbki_map"
 MAP_VERSION = 2
@@ -75,28 +70,6 @@ class MapSnapshot:
             "value": values.view(np.float32),
         }
         atomic_write_with(path, lambda handle: np.savez(handle, **arrays))
-
-
-def snapshot_map(mapper: ConvBKIMapper) -> MapSnapshot:
-    """Copy everything a map file holds (``items()`` returns fresh arrays) with the metadata."""
-    indices, alpha = mapper.items()
-    metadata = {
-        "format": MAP_FORMAT,
-        "version": MAP_VERSION,
-        "resolution": mapper.resolution,
-        "num_classes": mapper.num_classes,
-        "num_voxels": int(indices.shape[0]),
-        "frame_id": mapper.frame_id,
-        "prior": mapper.prior,
-        "local_bounds": [list(mapper.geometry.bounds_min), list(mapper.geometry.bounds_max)],
-        "kernel": kernel_config_to_dict(mapper.kernel.to_config()),
-        "scans_integrated": mapper.scans_integrated,
-    }
-    return MapSnapshot(metadata, indices, alpha)
-
-
-def save_map(mapper: ConvBKIMapper, path: str | Path) -> None:
-    snapshot_map(mapper).write(path)
 
 
 def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
@@ -228,16 +201,3 @@ def _check_metadata(path: Path, metadata: dict) -> None:
         raise MapFileError(f"{path}: metadata scans_integrated must be a count, got {scans!r}")
     if not isinstance(metadata.get("frame_id", ""), str):
         raise MapFileError(f"{path}: metadata frame_id must be a string, got {metadata.get('frame_id')!r}")
-
-
-def load_map_into(mapper: ConvBKIMapper, path: str | Path) -> None:
-    """Replace ``mapper``'s voxels with the file's; the map is untouched if the file is unusable."""
-    metadata, indices, alpha = read_map(path)
-    if metadata["num_classes"] != mapper.num_classes:
-        raise MapFileError(f"{path}: map has {metadata['num_classes']} classes, the mapper {mapper.num_classes}")
-    if not np.isclose(float(metadata["resolution"]), mapper.resolution):
-        raise MapFileError(f"{path}: map resolution {metadata['resolution']} m differs from the mapper's "
-                           f"{mapper.resolution} m")
-    mapper.reset()
-    mapper.store.write(indices, alpha)
-    mapper.scans_integrated = int(metadata.get("scans_integrated", 0))

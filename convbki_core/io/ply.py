@@ -8,15 +8,22 @@ variance (float32). Written atomically.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.io.atomic import atomic_write_with
 
-if TYPE_CHECKING:
-    from convbki_core.mapper import VoxelSet
+
+class VoxelArrays(Protocol):
+    """What a PLY export reads: one row per voxel (``ConvBKIMapper.voxels()`` returns one)."""
+
+    centres: np.ndarray  # (N, 3) metres
+    label: np.ndarray  # (N,) learning ids
+    variance: np.ndarray  # (N,) variance of the expected class
+
+    def __len__(self) -> int: ...
 
 PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
                       ("blue", "u1"), ("label", "<u4"), ("variance", "<f4")])
@@ -34,7 +41,7 @@ def class_colours(labels: np.ndarray, colours: np.ndarray | None = None) -> np.n
     return result
 
 
-def write_voxels_ply(voxels: VoxelSet, path: str | Path, max_variance: float | None = None,
+def write_voxels_ply(voxels: VoxelArrays, path: str | Path, max_variance: float | None = None,
                      colours: np.ndarray | None = None) -> int:
     """Write ``voxels`` (optionally only those with variance <= ``max_variance``); returns the count."""
     keep = np.ones(len(voxels), bool) if not max_variance else voxels.variance <= max_variance

@@ -152,8 +152,8 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], parser: argparse.A
         argv: Sequence[str] | None) -> int:
     """Parse ``argv``, run ``body``; known input problems become ``prog: error: ...`` and exit 2."""
     from convbki_core.datasets import DatasetError
+    from convbki_core.io.kernel_file import KernelFileError
     from convbki_core.io.map_file import MapFileError
-    from convbki_core.kernels import KernelFileError
 
     # argparse prints the whole usage before its error; one line is easier to read in a log.
     parser.error = lambda message: parser.exit(2, f"{prog}: error: {message} (see {prog} --help)\n")

@@ -24,7 +24,7 @@ import numpy as np
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
-from convbki_core.kernels import load_kernel_file
+from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.paths import kernel_path
