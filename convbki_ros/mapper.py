@@ -19,8 +19,8 @@ from collections.abc import Sequence
 
 import yaml
 
+from convbki_core.io.kernel_file import KernelFileError
 from convbki_core.io.map_file import MapFileError
-from convbki_core.kernels import KernelFileError
 from convbki_ros.dds import publish_asynchronously, use_large_data_profile
 from convbki_ros.params import NODE_NAME, NOT_SET, PARAMETERS, StartupError
 from convbki_ros.ros_args import strip_ros_args

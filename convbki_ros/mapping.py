@@ -14,7 +14,7 @@ import threading
 
 import numpy as np
 
-from convbki_core.kernels import load_kernel_file
+from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_ros.params import (

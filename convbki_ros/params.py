@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.kernels import KernelConfig
+from convbki_core.io.kernel_file import KernelConfig
 
 NODE_NAME = "convbki_mapper"
 KERNEL_DECIDES = ("num_classes", "resolution", "filter_size")  # defaults come from the kernel file
