@@ -34,20 +34,19 @@ from convbki_core.native import HAVE_NUMBA
 from convbki_core.records import RECORD, window_records
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
-from convbki_core.update import FilterPlan, scatter_update, warm_up
+from convbki_core.update import FilterPlan, dense_volume, scatter_volume, warm_up
 from convbki_core.volume import (
     SparseVolume,
     VoxelizeStats,
     WindowGeometry,
     check_scan,
     transform_points,
-    unravel_linear,
     voxel_centres,
     voxel_indices,
     voxelize,
     voxelize_scan,
 )
-from convbki_core.window import CHANGED, EVIDENCE, RollingWindow
+from convbki_core.window import RollingWindow
 
 DEVICE_CHOICES = "auto, cpu or cuda[:N]"
 
@@ -249,24 +248,10 @@ class ConvBKIMapper:
         return self._plan
 
     def _update_fast(self, volume: SparseVolume) -> int:
-        """Sparse compiled scatter into the resident window; returns the count of new voxels."""
-        occupied = unravel_linear(volume.linear, volume.dims) + volume.origin
-        return scatter_update(occupied, volume.features, self._filter_plan(), volume.origin, volume.dims,
-                              self.window.alpha, self.window.mask)
+        return scatter_volume(volume, self._filter_plan(), self.window.alpha, self.window.mask)
 
     def _update_dense(self, volume: SparseVolume) -> int:
-        """The paper's dense depthwise convolution over the whole window (CUDA path, reference)."""
-        with torch.no_grad():
-            increment = self.layer.increment(volume.to_dense(self.device))
-            touched = (increment.amax(dim=0) > _evidence_threshold(self.device)).cpu().numpy()
-            increment = increment.clamp_min_(0.0).cpu().numpy()
-        # Window-local index i lives at (origin + i) mod dims on the torus.
-        shift = tuple(int(v) for v in volume.origin % volume.dims)
-        touched = np.roll(touched, shift, axis=(0, 1, 2))
-        new = int(np.count_nonzero(touched & (self.window.mask == 0)))
-        self.window.alpha += np.roll(increment, shift, axis=(1, 2, 3))
-        self.window.mask |= touched.astype(np.uint8) * np.uint8(EVIDENCE | CHANGED)
-        return new
+        return dense_volume(volume, self.layer, self.window.alpha, self.window.mask)
 
     # -- reading the map -------------------------------------------------------------------
     def labels_at(self, points_map: np.ndarray, within_window: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -387,10 +372,3 @@ class ConvBKIMapper:
     def export_ply(self, path: str | Path, max_variance: float | None = None) -> int:
         """Write the map as a PLY point cloud in class colours; returns the number of voxels written."""
         return write_voxels_ply(self.voxels(), path, max_variance=max_variance)
-
-
-def _evidence_threshold(device: torch.device) -> float:
-    # On the CPU the convolution of zeros is exactly zero, so "received evidence" is > 0.
-    # GPU convolution algorithms (FFT, Winograd) can leave rounding noise of order 1e-7
-    # where the exact result is zero; evidence below 1e-5 of one point is treated as none.
-    return 0.0 if device.type == "cpu" else 1e-5

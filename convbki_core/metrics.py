@@ -2,7 +2,7 @@
 
 IoU_c = TP / (TP + FP + FN); points whose ground truth is an ignored class (0, unlabeled)
 are left out entirely; the mean IoU is over the classes present in the ground truth
-(INTERFACE.md section 6).
+(docs/evaluation.md).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""The CPU fast path of the ConvBKI update: a compiled sparse scatter into the window.
+"""The ConvBKI update applied to the resident window: a compiled sparse scatter (the CPU path)
+and the paper's dense convolution (the reference and the GPU path), with one signature.
 
 The dense update convolves every voxel of the 400 x 400 x 26 x 20 window, but only about
 1 % of the window holds points. Written as a scatter, Eq. 4 is: every occupied voxel v
@@ -27,9 +28,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
+from convbki_core.layer import ConvBKILayer
 from convbki_core.native import HAVE_NUMBA
-from convbki_core.volume import voxelize_scan
+from convbki_core.volume import SparseVolume, unravel_linear, voxelize_scan
 from convbki_core.window import CHANGED, EVIDENCE, gather_window
 
 if HAVE_NUMBA:
@@ -196,6 +199,39 @@ def scatter_update(occupied: np.ndarray, features: np.ndarray, filters: np.ndarr
         return int(_scatter_numba(occupied, features, plan.filters, plan.k_lo, plan.k_hi, plan.support, origin,
                                   dims, alpha, mask, parts))
     return _scatter_numpy(occupied, features, plan.filters, origin, dims, alpha, mask)
+
+
+# Both ways to apply one scan's input volume F to the resident window share one signature:
+# (volume, filters, alpha, mask) -> the number of voxels that received their first evidence.
+
+
+def scatter_volume(volume: SparseVolume, plan: FilterPlan, alpha: np.ndarray, mask: np.ndarray) -> int:
+    """The sparse compiled scatter of ``volume`` into the torus window (``alpha``, ``mask``)."""
+    occupied = unravel_linear(volume.linear, volume.dims) + volume.origin
+    return scatter_update(occupied, volume.features, plan, volume.origin, volume.dims, alpha, mask)
+
+
+def dense_volume(volume: SparseVolume, layer: ConvBKILayer, alpha: np.ndarray, mask: np.ndarray) -> int:
+    """The paper's dense depthwise convolution over the whole window, on the layer's device."""
+    device = next(layer.kernel.parameters()).device
+    with torch.no_grad():
+        increment = layer.increment(volume.to_dense(device))
+        touched = (increment.amax(dim=0) > _evidence_threshold(device)).cpu().numpy()
+        increment = increment.clamp_min_(0.0).cpu().numpy()
+    # Window-local index i lives at (origin + i) mod dims on the torus.
+    shift = tuple(int(v) for v in volume.origin % volume.dims)
+    touched = np.roll(touched, shift, axis=(0, 1, 2))
+    new = int(np.count_nonzero(touched & (mask == 0)))
+    alpha += np.roll(increment, shift, axis=(1, 2, 3))
+    mask |= touched.astype(np.uint8) * np.uint8(EVIDENCE | CHANGED)
+    return new
+
+
+def _evidence_threshold(device: torch.device) -> float:
+    # On the CPU the convolution of zeros is exactly zero, so "received evidence" is > 0.
+    # GPU convolution algorithms (FFT, Winograd) can leave rounding noise of order 1e-7
+    # where the exact result is zero; evidence below 1e-5 of one point is treated as none.
+    return 0.0 if device.type == "cpu" else 1e-5
 
 
 _warmed_up = False

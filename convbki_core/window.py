@@ -228,7 +228,7 @@ def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims:
     alpha (n, C)), torus order; the bits ``clear`` are then cleared in them.
 
     One compiled pass instead of ``alpha[:, argwhere(mask)]``, which gathers each of the C
-    class planes separately (about 10x slower for a million voxels); the node does this
+    class planes separately (an order of magnitude slower); the node does this
     for every map it publishes. ``indices``/``values`` (n rows, n = the voxels selected):
     write into these (e.g. slices of a larger array) instead of new arrays.
     """

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Map-quality study (issue 3): train the three kernel variants on one synthetic drive and
+# Map-quality study: train the three kernel variants on one synthetic drive and
 # score every kernel on another drive with its own seed and layout.
 #
 #   scripts/quality_study.sh [OUT=out/quality] [FRAMES=300] [TRAIN_FRAMES=300] [EPOCHS=2] [TEST_SEED=2]

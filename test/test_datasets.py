@@ -1,4 +1,4 @@
-"""The SemanticKITTI reader and the scores (INTERFACE.md sections 3 and 6)."""
+"""The SemanticKITTI reader and the scores (docs/file_formats.md, docs/evaluation.md)."""
 
 import numpy as np
 import pytest

@@ -1,6 +1,6 @@
 """SemanticKITTI sequences (and anything written in their layout, like ``synth`` drives).
 
-Layout (INTERFACE.md section 3)::
+Layout (docs/file_formats.md)::
 
     ROOT/sequences/SS/velodyne/NNNNNN.bin      float32 x, y, z, remission (LiDAR frame)
     ROOT/sequences/SS/labels/NNNNNN.label      uint32 ground truth: raw id | instance << 16

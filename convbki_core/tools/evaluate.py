@@ -1,6 +1,6 @@
 """``evaluate``: offline ConvBKI mapping and scoring of a SemanticKITTI-format sequence.
 
-Protocol (the paper's, INTERFACE.md section 6): frames in order; update the map with each
+Protocol (the paper's, docs/evaluation.md): frames in order; update the map with each
 frame, then label every point of that frame by the arg-max class of its voxel (points
 outside the window or in voxels with no evidence beyond the prior keep the input label);
 one confusion matrix over all frames, ground-truth class 0 ignored; IoU per class, mIoU over
@@ -130,7 +130,7 @@ def format_table(class_names: Sequence[str], input_scores: ConfusionMatrix, runs
 
 def build_report(sequence: str, frame_count: int, class_names: Sequence[str], input_scores: ConfusionMatrix,
                  runs: Sequence[KernelRun]) -> dict:
-    """report.json (INTERFACE.md section 6): the first kernel at the top level, every kernel under "runs"."""
+    """report.json (docs/evaluation.md): the first kernel at the top level, every kernel under "runs"."""
 
     def run_entry(run_result: KernelRun) -> dict:
         return {"kernel": run_result.kernel, "kernel_file": run_result.kernel_file,

@@ -8,7 +8,7 @@ likelihood of scan t's ground truth under the expected probabilities alpha / sum
 Adam (lr 0.007), one epoch, lengths initialised at 0.5 m and kept positive.
 
 The convolution is evaluated only at the voxels the loss reads (``SparsePlan``), which
-equals the dense layer there (tested) and makes a training step about a second on a CPU.
+equals the dense layer there (tested) and keeps a training step cheap enough for a CPU.
 Class weights are 1 / sqrt(frequency) of the training ground truth, normalised to mean 1
 over the classes present (rare classes count more without letting a handful of points
 dominate); ignored classes (0) weigh nothing.
