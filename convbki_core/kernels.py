@@ -86,7 +86,8 @@ class ConvBKIKernel(torch.nn.Module):
 
     def __init__(self, kind: str = "compound", num_classes: int = 20, filter_size: int = 5,
                  resolution: float = 0.2, ell: float | Sequence[float] = 0.5,
-                 ell_h: float | Sequence[float] | None = None, ell_z: float | Sequence[float] | None = None):
+                 ell_h: float | Sequence[float] | None = None, ell_z: float | Sequence[float] | None = None,
+                 free_ell: float | None = None):
         super().__init__()
         if kind not in KERNEL_KINDS:
             raise ValueError(f"kernel kind must be one of {KERNEL_KINDS}, got {kind!r}")
@@ -112,14 +113,18 @@ class ConvBKIKernel(torch.nn.Module):
         else:
             self.ell_h = lengths(ell if ell_h is None else ell_h, self.num_classes)
             self.ell_z = lengths(ell if ell_z is None else ell_z, self.num_classes)
+        # The free-space category's spherical length (0: one voxel, the evidence stays where the
+        # rays passed). Kept as a Parameter so that training can learn it like the class lengths.
+        self.free_ell = torch.nn.Parameter(torch.tensor(0.0 if free_ell is None else float(free_ell)))
 
     @classmethod
     def from_config(cls, config: KernelConfig) -> ConvBKIKernel:
         config.validate()
         if config.kernel == "compound":
             return cls("compound", config.num_classes, config.filter_size, config.resolution,
-                       ell_h=config.ell_h, ell_z=config.ell_z)
-        return cls(config.kernel, config.num_classes, config.filter_size, config.resolution, ell=config.ell)
+                       ell_h=config.ell_h, ell_z=config.ell_z, free_ell=config.free_ell)
+        return cls(config.kernel, config.num_classes, config.filter_size, config.resolution, ell=config.ell,
+                   free_ell=config.free_ell)
 
     @classmethod
     def from_file(cls, path: str | Path) -> ConvBKIKernel:
@@ -134,6 +139,8 @@ class ConvBKIKernel(torch.nn.Module):
             config.ell_h, config.ell_z = values(self.ell_h), values(self.ell_z)
         else:
             config.ell = values(self.ell)
+        free_ell = float(self.free_ell.detach())
+        config.free_ell = free_ell if free_ell > MIN_ELL else None
         return config
 
     @torch.no_grad()
@@ -166,6 +173,18 @@ class ConvBKIKernel(torch.nn.Module):
                 weights = weights.expand(self.num_classes, -1, -1, -1)
         weights = weights * (weights >= MIN_TAP_WEIGHT)  # the mask is constant: gradients pass unchanged
         return weights.unsqueeze(1).to(parameter.dtype).contiguous()
+
+    def free_filter(self) -> torch.Tensor:
+        """The free-space filter (f, f, f): the sparse kernel of ``free_ell`` over the taps'
+        distances, the same floor as ``filters``. With a length of one voxel or less only the
+        centre tap (weight 1) is non-zero."""
+        half = self.filter_size // 2
+        steps = torch.arange(-half, half + 1, dtype=torch.float64, device=self.free_ell.device)
+        i, j, m = torch.meshgrid(steps, steps, steps, indexing="ij")
+        distance = self.resolution * torch.sqrt(i * i + j * j + m * m)
+        weights = sparse_kernel(distance, self.free_ell.double().clamp_min(MIN_ELL))
+        weights = weights * (weights >= MIN_TAP_WEIGHT)
+        return weights.to(self.free_ell.dtype).contiguous()
 
     def extra_repr(self) -> str:
         return (f"kind={self.kind}, num_classes={self.num_classes}, filter_size={self.filter_size}, "

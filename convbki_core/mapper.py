@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from convbki_core.free_space import FREE_CLASS, free_space_update, free_taps, ray_weights, scratch_counts
 from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
 from convbki_core.io.map_file import MAP_FORMAT, MAP_VERSION, MapFileError, MapSnapshot, read_map
 from convbki_core.io.ply import write_voxels_ply
@@ -41,12 +42,13 @@ from convbki_core.volume import (
     WindowGeometry,
     check_scan,
     transform_points,
+    unravel_linear,
     voxel_centres,
     voxel_indices,
     voxelize,
     voxelize_scan,
 )
-from convbki_core.window import RollingWindow
+from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
 
 DEVICE_CHOICES = "auto, cpu or cuda[:N]"
 
@@ -106,6 +108,7 @@ class IntegrationResult:
     window_origin: np.ndarray
     occupied_voxels: int = 0  # voxels of F with points
     new_voxels: int = 0  # voxels that received evidence for the first time
+    freed_voxels: int = 0  # voxels whose free-space evidence grew (free space on)
     timing_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -147,6 +150,8 @@ class ConvBKIMapper:
     metres, so a kernel may be evaluated on another grid). ``prior`` is the initial
     concentration of every class in a new voxel. ``track_changes``: remember what changed
     for ``take_changes`` (outputs that send only changes); off, nothing is kept for it.
+    ``free_space``: the rays between the sensor and its returns add evidence that the voxels
+    they cross are empty, into class 0 (``free_space`` module); class 0 must be ignored.
     """
 
     def __init__(self, kernel: ConvBKIKernel | KernelConfig | str | Path,
@@ -154,7 +159,7 @@ class ConvBKIMapper:
                      (-40.0, -40.0, -2.6), (40.0, 40.0, 2.6)),
                  prior: float = 1e-3, resolution: float | None = None, filter_size: int | None = None,
                  device: str = "auto", frame_id: str = "map", ignore_classes: tuple[int, ...] = (0,),
-                 update_path: str = "auto", track_changes: bool = False):
+                 update_path: str = "auto", track_changes: bool = False, free_space: bool = False):
         if isinstance(kernel, (str, Path)):
             kernel = load_kernel_file(kernel)
         if isinstance(kernel, KernelConfig):
@@ -173,6 +178,10 @@ class ConvBKIMapper:
         self.prior = float(prior)
         self.frame_id = frame_id
         self.ignore_classes = tuple(int(c) for c in ignore_classes)
+        if free_space and FREE_CLASS not in self.ignore_classes:
+            raise ValueError(f"free space is kept in class {FREE_CLASS}, which must be an ignored class "
+                             f"(ignored: {list(self.ignore_classes)})")
+        self.free_space = bool(free_space)
         self.store = VoxelStore(kernel.num_classes, prior=self.prior)
         self.window = RollingWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store, track_changes)
         if update_path not in ("auto", "fast", "dense"):
@@ -186,7 +195,9 @@ class ConvBKIMapper:
         self._removed: list[np.ndarray] = []  # voxels that left the map since the changes were taken
         self._everything_changed = False  # a load replaced the map: every voxel is a change
         self._plan: FilterPlan | None = None
+        self._free_taps: tuple[np.ndarray, np.ndarray] | None = None
         self._plan_key: tuple | None = None
+        self._free_counts = scratch_counts(self.geometry.dims) if self.free_space else None
 
     # -- properties ------------------------------------------------------------------------
     @property
@@ -229,29 +240,49 @@ class ConvBKIMapper:
         self.window.move_to(origin)
         moved = time.perf_counter()
         result = IntegrationResult(volume.stats, origin, occupied_voxels=volume.num_voxels)
+        marks = EVIDENCE | CHANGED | (TOUCHED if self.free_space else 0)
         if volume.num_voxels:
-            result.new_voxels = self._update_fast(volume) if self.update_path == "fast" else self._update_dense(volume)
+            result.new_voxels = (self._update_fast(volume, marks) if self.update_path == "fast"
+                                 else self._update_dense(volume, marks))
+        updated = time.perf_counter()
+        if self.free_space and volume.num_voxels:
+            offsets, tap_weights = self._free_space_taps()
+            occupied = unravel_linear(volume.linear, volume.dims) + volume.origin
+            result.freed_voxels = free_space_update(pose[:3, 3] / self.resolution, occupied,
+                                                    ray_weights(volume.features), offsets, tap_weights, origin,
+                                                    self.geometry.dims, self.window.alpha, self.window.mask,
+                                                    self._free_counts)
         self.scans_integrated += 1
         finished = time.perf_counter()
         result.timing_ms = {"voxelize": 1e3 * (voxelized - started), "query": 1e3 * (moved - voxelized),
-                            "update": 1e3 * (finished - moved), "total": 1e3 * (finished - started)}
+                            "update": 1e3 * (updated - moved), "free": 1e3 * (finished - updated),
+                            "total": 1e3 * (finished - started)}
         return result
 
-    def _filter_plan(self) -> FilterPlan:
-        """The kernel's filters prepared for the scatter, rebuilt only when its lengths change."""
+    def _refresh_filters(self) -> None:
+        """The kernel's filters prepared for the scatter and the free-space pass, rebuilt only
+        when its lengths change."""
         with torch.no_grad():
             key = (self.kernel.kind, self.kernel.resolution, self.kernel.filter_size,
                    *(parameter.detach().cpu().numpy().tobytes() for parameter in self.kernel.parameters()))
             if self._plan_key != key:
                 self._plan = FilterPlan.from_filters(self.kernel.filters().detach().cpu().numpy()[:, 0])
+                self._free_taps = free_taps(self.kernel.free_filter().detach().cpu().numpy())
                 self._plan_key = key
+
+    def _filter_plan(self) -> FilterPlan:
+        self._refresh_filters()
         return self._plan
 
-    def _update_fast(self, volume: SparseVolume) -> int:
-        return scatter_volume(volume, self._filter_plan(), self.window.alpha, self.window.mask)
+    def _free_space_taps(self) -> tuple[np.ndarray, np.ndarray]:
+        self._refresh_filters()
+        return self._free_taps
 
-    def _update_dense(self, volume: SparseVolume) -> int:
-        return dense_volume(volume, self.layer, self.window.alpha, self.window.mask)
+    def _update_fast(self, volume: SparseVolume, marks: int) -> int:
+        return scatter_volume(volume, self._filter_plan(), self.window.alpha, self.window.mask, marks)
+
+    def _update_dense(self, volume: SparseVolume, marks: int) -> int:
+        return dense_volume(volume, self.layer, self.window.alpha, self.window.mask, marks)
 
     # -- reading the map -------------------------------------------------------------------
     def labels_at(self, points_map: np.ndarray, within_window: bool = True) -> tuple[np.ndarray, np.ndarray]:

@@ -81,7 +81,7 @@ if HAVE_NUMBA:
 
     @njit(cache=True, parallel=True, nogil=True)  # nogil: ROS callbacks keep running during an update
     def _scatter_numba(occupied, features, filters, k_lo, k_hi, support, origin, dims, alpha, mask,
-                       parts):  # pragma: no cover - compiled; tested through scatter_update
+                       parts, marks):  # pragma: no cover - compiled; tested through scatter_update
         num_voxels = occupied.shape[0]
         num_classes = features.shape[1]
         size = filters.shape[1]
@@ -143,16 +143,16 @@ if HAVE_NUMBA:
                         for k in range(size):
                             z = target[m, 2, k]
                             if z >= 0 and union[(i * size + j) * size + k] != 0:
-                                marks = mask[x, y, z]
-                                if marks != EVIDENCE | CHANGED:  # write only what changes: no dirty lines
-                                    if marks == 0:
+                                current = mask[x, y, z]
+                                if current & marks != marks:  # write only what changes: no dirty lines
+                                    if current == 0:
                                         created += 1
-                                    mask[x, y, z] = EVIDENCE | CHANGED
+                                    mask[x, y, z] = current | marks
             new_counts[part] = created
         return new_counts.sum()
 
 
-def _scatter_numpy(occupied, features, filters, origin, dims, alpha, mask) -> int:
+def _scatter_numpy(occupied, features, filters, origin, dims, alpha, mask, marks=EVIDENCE | CHANGED) -> int:
     """The same scatter with numpy, one tap at a time (the fallback without numba)."""
     size = filters.shape[1]
     half = size // 2
@@ -172,19 +172,19 @@ def _scatter_numpy(occupied, features, filters, origin, dims, alpha, mask) -> in
                 plane = alpha.reshape(alpha.shape[0], -1)
                 for c in np.flatnonzero(weights > 0):
                     np.add.at(plane[c], flat, contribution[has, c])
-                mask.reshape(-1)[flat] = EVIDENCE | CHANGED
+                mask.reshape(-1)[flat] |= np.uint8(marks)
     return int(np.count_nonzero(mask)) - before
 
 
 def scatter_update(occupied: np.ndarray, features: np.ndarray, filters: np.ndarray | FilterPlan, origin: np.ndarray,
-                   dims: np.ndarray, alpha: np.ndarray, mask: np.ndarray) -> int:
+                   dims: np.ndarray, alpha: np.ndarray, mask: np.ndarray, marks: int = EVIDENCE | CHANGED) -> int:
     """Add conv3d(F, K) of the occupied voxels into the torus window, in place.
 
     ``occupied`` (M, 3) int64 global voxel indices with ``features`` (M, C) float32;
     ``filters`` (C, f, f, f) float32, or a ``FilterPlan`` of them (prepare it once per
     kernel); the window covers global indices origin .. origin + dims - 1 (zero padding
     beyond), stored at index mod dims in ``alpha`` (C, X, Y, Z) float32 and ``mask``
-    (X, Y, Z) uint8, which gets ``EVIDENCE | CHANGED`` where evidence arrives.
+    (X, Y, Z) uint8, which gets the bits ``marks`` where evidence arrives.
     Returns the number of voxels that received evidence for the first time.
     """
     plan = filters if isinstance(filters, FilterPlan) else FilterPlan.from_filters(filters)
@@ -197,21 +197,24 @@ def scatter_update(occupied: np.ndarray, features: np.ndarray, filters: np.ndarr
     if HAVE_NUMBA:
         parts = max(1, min(numba.get_num_threads(), int(dims[0])))
         return int(_scatter_numba(occupied, features, plan.filters, plan.k_lo, plan.k_hi, plan.support, origin,
-                                  dims, alpha, mask, parts))
-    return _scatter_numpy(occupied, features, plan.filters, origin, dims, alpha, mask)
+                                  dims, alpha, mask, parts, np.uint8(marks)))
+    return _scatter_numpy(occupied, features, plan.filters, origin, dims, alpha, mask, marks)
 
 
 # Both ways to apply one scan's input volume F to the resident window share one signature:
-# (volume, filters, alpha, mask) -> the number of voxels that received their first evidence.
+# (volume, filters, alpha, mask, marks) -> the number of voxels that received their first evidence;
+# ``marks``: the mask bits set where evidence arrives.
 
 
-def scatter_volume(volume: SparseVolume, plan: FilterPlan, alpha: np.ndarray, mask: np.ndarray) -> int:
+def scatter_volume(volume: SparseVolume, plan: FilterPlan, alpha: np.ndarray, mask: np.ndarray,
+                   marks: int = EVIDENCE | CHANGED) -> int:
     """The sparse compiled scatter of ``volume`` into the torus window (``alpha``, ``mask``)."""
     occupied = unravel_linear(volume.linear, volume.dims) + volume.origin
-    return scatter_update(occupied, volume.features, plan, volume.origin, volume.dims, alpha, mask)
+    return scatter_update(occupied, volume.features, plan, volume.origin, volume.dims, alpha, mask, marks)
 
 
-def dense_volume(volume: SparseVolume, layer: ConvBKILayer, alpha: np.ndarray, mask: np.ndarray) -> int:
+def dense_volume(volume: SparseVolume, layer: ConvBKILayer, alpha: np.ndarray, mask: np.ndarray,
+                 marks: int = EVIDENCE | CHANGED) -> int:
     """The paper's dense depthwise convolution over the whole window, on the layer's device."""
     device = next(layer.kernel.parameters()).device
     with torch.no_grad():
@@ -223,7 +226,7 @@ def dense_volume(volume: SparseVolume, layer: ConvBKILayer, alpha: np.ndarray, m
     touched = np.roll(touched, shift, axis=(0, 1, 2))
     new = int(np.count_nonzero(touched & (mask == 0)))
     alpha += np.roll(increment, shift, axis=(1, 2, 3))
-    mask |= touched.astype(np.uint8) * np.uint8(EVIDENCE | CHANGED)
+    mask |= touched.astype(np.uint8) * np.uint8(marks)
     return new
 
 

@@ -27,9 +27,11 @@ if HAVE_NUMBA:
     from numba import njit, prange
 
 # Bits of the window's byte mask: the voxel holds evidence; its concentrations changed since
-# the map's changes were last taken (``RollingWindow.take_changes``).
+# the map's changes were last taken (``RollingWindow.take_changes``); it received class
+# evidence from the scan being integrated (set and cleared within one update, with free space).
 EVIDENCE = 1
 CHANGED = 2
+TOUCHED = 4
 
 
 def box_difference(first_lo: np.ndarray, first_hi: np.ndarray, second_lo: np.ndarray,

@@ -33,6 +33,7 @@ class KernelConfig:
     ell: list[float] = field(default_factory=list)  # single: [l]; per_class: one per class
     ell_h: list[float] = field(default_factory=list)  # compound only
     ell_z: list[float] = field(default_factory=list)  # compound only
+    free_ell: float | None = None  # the free-space category's length; None: one voxel (no spreading)
 
     def validate(self) -> KernelConfig:
         """Raise ``KernelFileError`` with a readable reason when the config is inconsistent."""
@@ -52,6 +53,8 @@ class KernelConfig:
         for name in ("ell", "ell_h", "ell_z"):
             if name not in expected and getattr(self, name):
                 raise KernelFileError(f"a {self.kernel} kernel has no {name} (it uses {' and '.join(expected)})")
+        if self.free_ell is not None and not (_is_finite_number(self.free_ell) and self.free_ell > 0):
+            raise KernelFileError(f"free_ell must be a positive finite length in metres, got {_shown(self.free_ell)}")
         for name, count in expected.items():
             values = getattr(self, name)
             if len(values) != count:
@@ -128,7 +131,7 @@ def kernel_config_from_dict(data: dict) -> KernelConfig:
     """Build a validated ``KernelConfig`` from a kernel-file mapping."""
     if not isinstance(data, dict):
         raise KernelFileError(f"a kernel file is a mapping, found {type(data).__name__}")
-    known = {"kernel", "resolution", "filter_size", "num_classes", "ell", "ell_h", "ell_z"}
+    known = {"kernel", "resolution", "filter_size", "num_classes", "ell", "ell_h", "ell_z", "free_ell"}
     unknown = sorted(_shown(key, 30) for key in data if key not in known)  # quoted: a key may hold a newline
     if unknown:
         raise KernelFileError(f"unknown key(s) {', '.join(unknown[:5])}{' ...' if len(unknown) > 5 else ''}")
@@ -144,8 +147,11 @@ def kernel_config_from_dict(data: dict) -> KernelConfig:
 
     config = KernelConfig(kernel=data["kernel"], resolution=data["resolution"],
                           filter_size=data["filter_size"], num_classes=data["num_classes"],
-                          ell=as_list("ell"), ell_h=as_list("ell_h"), ell_z=as_list("ell_z"))
+                          ell=as_list("ell"), ell_h=as_list("ell_h"), ell_z=as_list("ell_z"),
+                          free_ell=data.get("free_ell"))
     config.validate()
+    if config.free_ell is not None:
+        config.free_ell = float(config.free_ell)
     config.resolution = float(config.resolution)
     # Lengths as floats: a file may write 1 for 1.0, and the kernel module expects floats.
     config.ell, config.ell_h, config.ell_z = ([float(v) for v in values]
@@ -164,6 +170,8 @@ def kernel_config_to_dict(config: KernelConfig) -> dict:
     else:
         data["ell_h"] = [round(float(v), 6) for v in config.ell_h]
         data["ell_z"] = [round(float(v), 6) for v in config.ell_z]
+    if config.free_ell is not None:
+        data["free_ell"] = round(float(config.free_ell), 6)
     return data
 
 

@@ -1,0 +1,271 @@
+"""Free space: rays empty the voxels they cross, movers leave no trail, thin structures stay.
+
+The oracle for the ray traversal is an exact segment/box intersection over every voxel of
+the segment's bounding box, independent of the stepping code; the mapper's free evidence is
+checked against it scan by scan, with rotated poses, moving windows and a free-space
+kernel wider than one voxel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from reference import sparse_kernel_np
+
+from convbki_core import ConvBKIKernel, ConvBKIMapper
+from convbki_core.free_space import _free_space_numpy, crossed_voxels, free_space_update, free_taps, scratch_counts
+
+CAR, ROAD, BUILDING, POLE = 1, 9, 13, 18
+# A house front across the street: what the LiDAR sees through the space a car has left.
+BUILDING_ACROSS = (np.array([12.0, -12.0, 0.0]), np.array([12.5, 12.0, 4.0]), BUILDING)
+BOUNDS = ((-12.0, -12.0, -3.0), (12.0, 12.0, 3.0))
+
+
+def segment_crosses_box(start: np.ndarray, end: np.ndarray, low: np.ndarray) -> bool:
+    """Whether the open segment start -> end passes through the interior of the unit box at
+    ``low`` for a positive length (slab method)."""
+    direction = end - start
+    t_enter, t_exit = 0.0, 1.0
+    for axis in range(3):
+        if abs(direction[axis]) < 1e-15:
+            if not (low[axis] < start[axis] < low[axis] + 1):
+                return False
+            continue
+        t0 = (low[axis] - start[axis]) / direction[axis]
+        t1 = (low[axis] + 1 - start[axis]) / direction[axis]
+        t_enter, t_exit = max(t_enter, min(t0, t1)), min(t_exit, max(t0, t1))
+    return t_exit - t_enter > 1e-9
+
+
+def brute_force_crossed(start: np.ndarray, end_voxel: np.ndarray) -> set[tuple[int, int, int]]:
+    end = end_voxel + 0.5
+    low = np.floor(np.minimum(start, end)).astype(int)
+    high = np.floor(np.maximum(start, end)).astype(int)
+    crossed = set()
+    for x in range(low[0], high[0] + 1):
+        for y in range(low[1], high[1] + 1):
+            for z in range(low[2], high[2] + 1):
+                voxel = np.array([x, y, z])
+                if not (voxel == end_voxel).all() and segment_crosses_box(start, end, voxel):
+                    crossed.add((x, y, z))
+    return crossed
+
+
+def test_the_traversal_visits_exactly_the_voxels_a_ray_passes_through():
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        start = rng.uniform(-8, 8, 3)
+        end_voxel = rng.integers(-12, 12, 3)
+        walked = crossed_voxels(start, end_voxel)
+        assert len(walked) == len(set(walked))  # each voxel once
+        assert set(walked) == brute_force_crossed(start, end_voxel)
+        if walked:  # a connected path from the sensor's voxel
+            assert walked[0] == tuple(np.floor(start).astype(int))
+            steps = np.abs(np.diff(np.array(walked + [tuple(end_voxel)]), axis=0)).sum(axis=1)
+            assert (steps == 1).all()
+
+
+def test_the_compiled_pass_equals_the_numpy_pass():
+    rng = np.random.default_rng(5)
+    for trial in range(8):
+        dims = np.array([18, 20, 10])
+        origin = rng.integers(-30, 30, 3)
+        sensor = rng.uniform(origin + 2, origin + dims - 2)
+        occupied = np.unique(rng.integers(origin, origin + dims, size=(250, 3)), axis=0)
+        weights = rng.integers(1, 5, len(occupied)).astype(np.float32)
+        alpha = rng.uniform(1e-3, 2, (3, *dims)).astype(np.float32)
+        mask = (rng.random(tuple(dims)) < 0.4).astype(np.uint8)
+        mask[(rng.random(tuple(dims)) < 0.2) & (mask == 1)] |= 4
+        free = np.zeros((3, 3, 3), np.float32)
+        free[1, 1, 1] = 1
+        if trial % 2:
+            free[1, 1, 0], free[0, 1, 1] = 0.3, 0.2
+        offsets, tap_weights = free_taps(free)
+        compiled_alpha, compiled_mask = alpha.copy(), mask.copy()
+        counts = scratch_counts(dims)
+        grew = free_space_update(sensor, occupied, weights, offsets, tap_weights, origin, dims, compiled_alpha,
+                                 compiled_mask, counts)
+        assert grew == _free_space_numpy(sensor, occupied, weights, offsets, tap_weights, origin, dims, alpha, mask)
+        assert grew > 0
+        np.testing.assert_allclose(compiled_alpha, alpha, rtol=1e-6)
+        assert (compiled_mask == mask).all() and not (mask & 4).any()
+        assert not counts[0].any() and not counts[1].any()  # the scratch is left zeroed
+
+
+def random_pose(rng: np.random.Generator, position: np.ndarray) -> np.ndarray:
+    yaw, pitch, roll = rng.uniform(-math.pi, math.pi), rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2)
+    cz, sz, cy, sy = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+    cx, sx = math.cos(roll), math.sin(roll)
+    rotation = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]) @ np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]]) \
+        @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rotation, position
+    return pose
+
+
+def brute_force_free_evidence(points, labels, pose, mapper, stored, touched, free_ell):
+    """The free evidence one scan adds: rays from the sensor to each used voxel's centre (one
+    per point), counted exactly per crossed voxel, spread by the free kernel, at the stored
+    voxels the scan's class evidence did not reach."""
+    resolution = mapper.resolution
+    world = points @ pose[:3, :3].T + pose[:3, 3]
+    voxels = np.floor(world / resolution).astype(np.int64)
+    origin, dims = mapper.last_origin, mapper.geometry.dims
+    inside = ((voxels >= origin) & (voxels < origin + dims)).all(axis=1) & (labels != 0)
+    ends, rays = np.unique(voxels[inside], axis=0, return_counts=True)
+    sensor = pose[:3, 3] / resolution
+    counts: dict[tuple, float] = {}
+    for end, weight in zip(ends, rays):
+        for voxel in brute_force_crossed(sensor, end):
+            counts[voxel] = counts.get(voxel, 0.0) + float(weight)
+    half = mapper.kernel.filter_size // 2
+    offsets = [np.array(index) - half for index in np.ndindex(2 * half + 1, 2 * half + 1, 2 * half + 1)]
+    taps = [(o, float(sparse_kernel_np(resolution * np.linalg.norm(o), max(free_ell, 1e-4)))) for o in offsets]
+    taps = [(o, w) for o, w in taps if w >= 1e-6]
+    expected = {}
+    for voxel in map(tuple, stored):
+        if voxel in touched:
+            continue
+        evidence = sum(w * counts.get(tuple(np.array(voxel) - o), 0.0) for o, w in taps
+                       if ((np.array(voxel) - o >= origin) & (np.array(voxel) - o < origin + dims)).all())
+        if evidence > 0:
+            expected[voxel] = evidence
+    return expected
+
+
+@pytest.mark.parametrize("free_ell", [None, 0.3])
+def test_free_evidence_equals_a_ray_by_ray_reference(tmp_path, free_ell):
+    """Scan by scan, free space adds to class 0 exactly the brute-force ray counts (through the
+    free kernel) at stored voxels outside the scan's class evidence, and nothing else."""
+    rng = np.random.default_rng(7 if free_ell is None else 8)
+    kernel = ConvBKIKernel("compound", 20, 3, 0.5, ell_h=0.7, ell_z=0.6, free_ell=free_ell)
+    bounds = ((-4.0, -4.0, -2.0), (4.0, 4.0, 2.0))
+    with_free = ConvBKIMapper(kernel, local_bounds=bounds, free_space=True, device="cpu")
+    position = np.zeros(3)
+    freed = 0
+    for scan in range(6):
+        position = position + rng.uniform(-1.5, 1.5, 3) * [1, 1, 0.3]  # the window moves between scans
+        pose = random_pose(rng, position)
+        # A few small clusters, so that later rays cross voxels this scan's evidence does not reach.
+        clusters = rng.uniform(-3.5, 3.5, (6, 3)) * [1, 1, 0.5]
+        points = clusters[rng.integers(0, 6, 400)] + rng.normal(0, 0.15, (400, 3))
+        labels = rng.integers(0, 20, 400)
+        labels[:40] = 0  # ignored points cast no ray
+        path = tmp_path / f"before_{scan}.npz"
+        with_free.save(path)
+        without = ConvBKIMapper(kernel, local_bounds=bounds, device="cpu", track_changes=True)
+        if scan:
+            without.load(path)
+        without.take_changes(everything=True)
+        with_free.integrate(points, labels, pose)
+        without.integrate(points, labels, pose)
+        touched = {tuple(v) for v in without.take_changes().indices}
+        indices, plain_alpha = without.items()
+        free_indices, free_alpha = with_free.items()
+        order, free_order = np.lexsort(indices.T), np.lexsort(free_indices.T)
+        assert (indices[order] == free_indices[free_order]).all()  # free space adds no voxel
+        plain_alpha, free_alpha = plain_alpha[order], free_alpha[free_order]
+        assert (plain_alpha[:, 1:] == free_alpha[:, 1:]).all()  # the classes are untouched
+        expected = brute_force_free_evidence(points, labels, pose, with_free, indices[order], touched,
+                                             0.0 if free_ell is None else free_ell)
+        added = free_alpha[:, 0] - plain_alpha[:, 0]
+        want = np.array([expected.get(tuple(v), 0.0) for v in indices[order]])
+        freed += np.count_nonzero(want)
+        np.testing.assert_allclose(added, want, rtol=1e-5, atol=1e-5 * (1 + np.abs(plain_alpha[:, 0])).max())
+    assert freed > 50
+
+
+def test_free_space_off_leaves_class_zero_at_the_prior_and_on_needs_class_zero_ignored():
+    rng = np.random.default_rng(2)
+    mapper = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS)
+    for _ in range(3):
+        mapper.integrate(rng.uniform(-8, 8, (2000, 3)), rng.integers(0, 20, 2000), np.eye(4))
+    assert (mapper.items()[1][:, 0] == np.float32(mapper.prior)).all()
+    with pytest.raises(ValueError, match="class 0"):
+        ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", ignore_classes=(), free_space=True)
+
+
+# -- scenes: a tiny ray caster over a ground plane and boxes ---------------------------------------
+
+def cast(sensor: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray, int]], max_range: float = 16.0):
+    """Returns (points in the world, labels) of a 64-beam, 0.5-degree LiDAR at ``sensor``:
+    the nearest hit of each ray on the ground (z = 0, road) or on an axis-aligned box."""
+    azimuth = np.radians(np.arange(0, 360, 0.5))
+    elevation = np.radians(np.linspace(-25, 3, 64))
+    a, e = np.meshgrid(azimuth, elevation)
+    directions = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    best = np.full(len(directions), np.inf)
+    label = np.zeros(len(directions), np.int64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ground = np.where(directions[:, 2] < 0, -sensor[2] / directions[:, 2], np.inf)
+        best, label = np.where(ground < best, ground, best), np.where(ground < best, ROAD, label)
+        for low, high, box_label in boxes:
+            t0, t1 = (low - sensor) / directions, (high - sensor) / directions
+            enter = np.nanmax(np.minimum(t0, t1), axis=1)
+            leave = np.nanmin(np.maximum(t0, t1), axis=1)
+            hit = (enter <= leave) & (enter > 0) & (enter < best)
+            best, label = np.where(hit, enter, best), np.where(hit, box_label, label)
+    keep = best < max_range
+    return sensor + directions[keep] * best[keep, None], label[keep]
+
+
+def integrate_world(mapper: ConvBKIMapper, sensor: np.ndarray, boxes) -> None:
+    points, labels = cast(sensor, boxes)
+    pose = np.eye(4)
+    pose[:3, 3] = sensor
+    mapper.integrate(points - sensor, labels, pose)
+
+
+def map_labels(mapper: ConvBKIMapper) -> tuple[np.ndarray, np.ndarray]:
+    voxels = mapper.voxels()
+    return voxels.centres, voxels.label
+
+
+@pytest.mark.parametrize("free_space", [False, True])
+def test_a_car_crossing_the_street_leaves_no_trail_once_the_street_is_seen_again(free_space):
+    mapper = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS,
+                           free_space=free_space, device="cpu")
+    car_low, car_high = np.array([-2.0, -0.9, 0.35]), np.array([2.0, 0.9, 1.85])  # 0.35 m above the road
+    for scan in range(30):
+        sensor = np.array([0.1 * scan, 0.05, 1.73])  # the ego vehicle creeps along x
+        boxes = [BUILDING_ACROSS]
+        if scan < 12:  # the car crosses in front (along y at x = 7), then has gone
+            centre = np.array([7.0, -6.0 + 1.0 * scan, 0.0])
+            boxes.append((centre + car_low, centre + car_high, CAR))
+        integrate_world(mapper, sensor, boxes)
+    centres, labels = map_labels(mapper)
+    # The space the car swept in front of the sensor, which the later scans see through to the house.
+    swept = ((np.abs(centres[:, 0] - 7.0) < 2.0) & (np.abs(centres[:, 1]) < 3.5)
+             & (centres[:, 2] > car_low[2]) & (centres[:, 2] < car_high[2]))
+    car_voxels = int(np.count_nonzero((labels == CAR) & swept))
+    if free_space:
+        assert car_voxels == 0
+        under = (np.abs(centres[:, 0] - 7.0) < 2.0) & (np.abs(centres[:, 1]) < 3.5) & (centres[:, 2] < 0.2)
+        assert np.count_nonzero((labels == ROAD) & under) >= 0.95 * np.count_nonzero(under)  # the street stays
+        assert np.count_nonzero(labels == BUILDING) > 500
+    else:
+        assert car_voxels > 1000  # plain ConvBKI keeps the trail
+
+
+def test_a_pole_seen_from_all_sides_stays_a_pole():
+    pole = (np.array([-0.1, -0.1, 0.0]), np.array([0.1, 0.1, 3.0]), POLE)
+    mapper = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS,
+                           free_space=True, device="cpu")
+    plain = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS, device="cpu")
+    for scan in range(36):  # a circle of 6 m around the pole
+        angle = math.radians(10 * scan)
+        sensor = np.array([6 * math.cos(angle), 6 * math.sin(angle), 1.73])
+        integrate_world(mapper, sensor, [pole])
+        integrate_world(plain, sensor, [pole])
+    layers = {}
+    for name, each in (("free", mapper), ("plain", plain)):
+        centres, labels = map_labels(each)
+        near = (np.abs(centres[:, 0]) < 0.2) & (np.abs(centres[:, 1]) < 0.2) & (centres[:, 2] > 0.2)
+        layers[name] = {round(float(z), 1) for z in centres[near & (labels == POLE), 2]}
+    # Every 0.2 m layer of the pole from 0.2 m (below, the road wins) to the highest beam's reach.
+    assert layers["free"] == layers["plain"] == {round(0.3 + 0.2 * i, 1) for i in range(12)}
+    _, free_labels = map_labels(mapper)
+    _, plain_labels = map_labels(plain)
+    assert np.count_nonzero(free_labels == POLE) >= 0.9 * np.count_nonzero(plain_labels == POLE)
