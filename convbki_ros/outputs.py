@@ -31,7 +31,7 @@ from sensor_msgs.msg import PointCloud2
 
 from convbki_core.records import RECORD, change_records, view_records
 from convbki_core.shown_map import ShownMap
-from convbki_ros.pointcloud import encode_cloud, records_cloud
+from convbki_ros.cloud_encoding import encode_cloud, records_cloud
 
 LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)

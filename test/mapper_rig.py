@@ -12,7 +12,7 @@ from ros_helpers import NodeLog, Probe, domain_id, start
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
-from convbki_ros.pointcloud import encode_cloud
+from convbki_ros.cloud_encoding import encode_cloud
 from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_odometry
 
 BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]

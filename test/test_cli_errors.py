@@ -7,11 +7,13 @@ call); a few run them as real processes to show that no traceback reaches the te
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -378,6 +380,34 @@ def test_bench_drive_folder_that_is_a_file(tmp_path, capsys):
     code = bench.main(["--drive-dir", str(target), "--scans", "3", "--skip-ablation"])
     one_line_error(capsys, code, "bench", "a_file", "not a folder")
     assert target.read_text() == "mine" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
+def test_bench_without_convbki_ros_keeps_the_keys_and_says_why(monkeypatch):
+    """The core runs without convbki_ros: bench then reports the ROS-side figures as not measured,
+    under the keys bench_ros fills when it is there."""
+    from convbki_core.pipeline import paper_mapper
+    from convbki_ros.tools import bench_ros
+
+    assert bench.ros_figures() is bench_ros
+    assert bench.ROS_ENCODE_KEYS == bench_ros.ENCODE_KEYS and bench.ROS_SCAN_TO_MAP_KEYS == bench_ros.SCAN_TO_MAP_KEYS
+    rng = np.random.default_rng(0)
+    frame = SimpleNamespace(points=rng.uniform(-5, 5, (2000, 3)).astype(np.float32),
+                            remission=np.zeros(2000, np.float32), input_labels=rng.integers(1, 20, 2000),
+                            pose=np.eye(4))
+    mapper = paper_mapper(local_bounds=((-8.0, -8.0, -2.0), (8.0, 8.0, 2.0)))
+    mapper.integrate(frame.points, frame.input_labels, frame.pose)
+    assert tuple(bench_ros.encode_figures(mapper, 1)) == bench_ros.ENCODE_KEYS
+    assert tuple(bench_ros.scan_to_map_figures([frame], 1)) == bench_ros.SCAN_TO_MAP_KEYS
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *rest: None if name == "convbki_ros" else find_spec(name, *rest))
+    assert bench.ros_figures() is None
+    figures = {**dict.fromkeys(bench.REPORTED, 1.0), "machine": "test",
+               **dict.fromkeys(bench.ROS_ENCODE_KEYS + bench.ROS_SCAN_TO_MAP_KEYS)}
+    rows = {line.split()[0]: line for line in bench.format_report(figures, []).splitlines()[3:] if line}
+    unmeasured = [key for key in bench.REPORTED if rows[key].endswith(bench.NOT_MEASURED)]
+    assert unmeasured == ["encode_ms_per_million", "scan_to_map_ms"]
 
 
 def test_demo_missing_dataset_creates_nothing(tmp_path, capsys):

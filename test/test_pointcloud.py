@@ -1,9 +1,9 @@
-"""PointCloud2 codec and pose helpers: property tests on every supported layout, real rclpy messages."""
+"""PointCloud2 codec (pointcloud, cloud_encoding) and pose helpers: property tests on every supported
+layout, real rclpy messages."""
 
 from __future__ import annotations
 
 import array
-import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,6 +11,8 @@ import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
+from convbki_core.records import RECORD
+from convbki_ros import cloud_encoding as enc
 from convbki_ros import pointcloud as pc
 from convbki_ros import transforms as tf
 
@@ -136,7 +138,7 @@ def test_encoder_round_trip_any_field_order(layout) -> None:
     from sensor_msgs.msg import PointCloud2
 
     fields = {name: layout.columns[name] for name in layout.order}
-    msg = pc.encode_cloud((7, 8), "velo_link", fields)
+    msg = enc.encode_cloud((7, 8), "velo_link", fields)
     assert isinstance(msg, PointCloud2)
     assert [f.name for f in msg.fields] == layout.order
     assert all(f.offset % np.dtype(fields[f.name].dtype).itemsize == 0 for f in msg.fields)  # aligned
@@ -161,7 +163,7 @@ def test_rosbags_encoding_is_read_by_rclpy() -> None:
     xyz = rng.normal(size=(500, 3)).astype(np.float32)
     labels = rng.integers(0, 2**32, 500, dtype=np.uint64).astype(np.uint32)
     probs = rng.random((500, 4)).astype(np.float32)
-    msg = pc.encode_cloud(1_700_000_000_123_456_789, "velo_link",
+    msg = enc.encode_cloud(1_700_000_000_123_456_789, "velo_link",
                           {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "label": labels, "prob": probs},
                           types=tf.message_types(store))
     back = deserialize_message(bytes(store.serialize_cdr(msg, msg.__msgtype__)), PointCloud2)
@@ -170,7 +172,7 @@ def test_rosbags_encoding_is_read_by_rclpy() -> None:
     assert decoded.points.tobytes() == xyz.tobytes()
     assert decoded.probabilities.tobytes() == probs.tobytes()  # probabilities win over label
     assert decoded.stamp_ns == 1_700_000_000_123_456_789
-    only_labels = pc.decode_cloud(pc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+    only_labels = pc.decode_cloud(enc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
                                                            "label": labels}))
     assert np.array_equal(only_labels.labels, labels.astype(np.int64))
 
@@ -184,7 +186,7 @@ def test_non_finite_points_are_dropped_and_counted(count: int, data) -> None:
     poison = data.draw(st.sampled_from([np.nan, np.inf, -np.inf]))
     axis = rng.integers(0, 3, count)
     xyz[bad, axis[bad]] = poison
-    msg = pc.encode_cloud(0, "velo_link", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "label": labels})
+    msg = enc.encode_cloud(0, "velo_link", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "label": labels})
     assert msg.is_dense == (not bad.any())
     decoded = pc.decode_cloud(msg)
     assert decoded.bad_points == {**dict.fromkeys(pc.BAD_POINT_REASONS, 0), "NaN/inf coordinates": int(bad.sum())}
@@ -215,7 +217,7 @@ def test_bad_probability_rows_are_dropped_and_counted_by_reason() -> None:
     ]
     xyz = np.array([[x, 0.0, 0.0] for x, _, _ in rows], np.float32)
     probs = np.array([p for _, p, _ in rows], np.float64)
-    msg = pc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "prob": probs})
+    msg = enc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "prob": probs})
     decoded = pc.decode_cloud(msg, 3)
     assert decoded.bad_points == {"NaN/inf coordinates": 1, "NaN/inf probabilities": 5, "negative probabilities": 2,
                                   "probabilities summing to zero": 3}
@@ -231,7 +233,7 @@ def test_bad_probability_rows_are_dropped_and_counted_by_reason() -> None:
 def test_bad_points_text_names_only_the_reasons_present() -> None:
     xyz = np.zeros((5, 3), np.float32)
     probs = np.array([[0.5, 0.5], [-0.5, 1.5], [0.0, 0.0], [-2.0, 0.0], [1.0, 0.0]], np.float32)
-    decoded = pc.decode_cloud(pc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+    decoded = pc.decode_cloud(enc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
                                                        "prob": probs}), 2)
     assert decoded.bad_points_text() == ("3 of 5 points dropped: 2 with negative probabilities, 1 with "
                                          "probabilities summing to zero")
@@ -265,7 +267,7 @@ def test_bad_probability_rows_any_mix(seed: int) -> None:
         return None
 
     reasons = [reason(point, row) for point, row in zip(xyz, probs)]
-    decoded = pc.decode_cloud(pc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+    decoded = pc.decode_cloud(enc.encode_cloud(0, "f", {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
                                                        "prob": probs}), classes)
     assert decoded.bad_points == {r: reasons.count(r) for r in pc.BAD_POINT_REASONS}
     assert decoded.dropped + len(decoded) == decoded.total_points == count
@@ -337,50 +339,36 @@ def test_big_endian_cloud_is_byte_swapped() -> None:
 @given(st.lists(st.tuples(st.integers(0, 255), st.integers(0, 255), st.integers(0, 255)), min_size=1, max_size=50))
 def test_rgb_pack_unpack_round_trip(colours) -> None:
     rgb = np.array(colours, np.uint8)
-    packed = pc.pack_rgb(rgb)
+    packed = enc.pack_rgb(rgb)
     assert packed.dtype == np.float32
     bits = packed.view(np.uint32)
     assert np.array_equal(bits, (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2])
-    assert np.array_equal(pc.unpack_rgb(packed), rgb)
+    assert np.array_equal(enc.unpack_rgb(packed), rgb)
 
 
 def test_rgb_known_value() -> None:
-    assert pc.pack_rgb(np.array([255, 0, 0], np.uint8)).view(np.uint32) == 0x00FF0000
-    assert pc.pack_rgb(np.array([[1, 2, 3]], np.uint8)).view(np.uint32)[0] == 0x00010203
+    assert enc.pack_rgb(np.array([255, 0, 0], np.uint8)).view(np.uint32) == 0x00FF0000
+    assert enc.pack_rgb(np.array([[1, 2, 3]], np.uint8)).view(np.uint32)[0] == 0x00010203
 
 
-def test_map_cloud_fields_and_encode_time() -> None:
+def test_map_cloud_fields_round_trip() -> None:
+    """The /semantic_map point fields survive encoding exactly, in the record layout the node sends."""
     rng = np.random.default_rng(0)
     colors = rng.integers(0, 256, (20, 3)).astype(np.uint8)
-
-    def voxels(n):
-        return SimpleNamespace(centres=rng.normal(size=(n, 3)).astype(np.float32), label=rng.integers(0, 20, n),
-                               variance=rng.random(n).astype(np.float32), confidence=rng.random(n).astype(np.float32))
-
-    small = voxels(100)
-    msg = pc.encode_map_cloud((1, 2), "map", small, colors)
-    assert [(f.name, f.datatype) for f in msg.fields] == [
-        ("x", pc.FLOAT32), ("y", pc.FLOAT32), ("z", pc.FLOAT32), ("rgb", pc.FLOAT32), ("label", pc.UINT32),
-        ("variance", pc.FLOAT32), ("confidence", pc.FLOAT32)]
-    assert msg.point_step == 28 and msg.header.frame_id == "map"
-    view = np.frombuffer(msg.data, dtype=np.dtype({"names": ["x", "y", "z", "rgb", "label", "variance", "confidence"],
-                                                   "formats": ["<f4"] * 4 + ["<u4", "<f4", "<f4"]}))
-    assert np.array_equal(np.stack([view["x"], view["y"], view["z"]], 1), small.centres)
-    assert np.array_equal(pc.unpack_rgb(view["rgb"]), colors[small.label])
-    assert np.array_equal(view["label"], small.label) and np.array_equal(view["variance"], small.variance)
-    assert np.array_equal(view["confidence"], small.confidence)
-    masked = pc.encode_map_cloud(0, "map", small, colors, mask=small.variance < 0.5)
-    assert masked.width == int((small.variance < 0.5).sum())
-    variance = pc.encode_cloud(0, "map", pc.variance_cloud_fields(small))
-    assert [f.name for f in variance.fields] == ["x", "y", "z", "intensity"]
-
-    big = voxels(1_000_000)
-    timings = []
-    for _ in range(5):
-        start = time.perf_counter()
-        pc.encode_map_cloud(0, "map", big, colors)
-        timings.append(time.perf_counter() - start)
-    print(f"\nencode /semantic_map: {1e3 * min(timings):.1f} ms per million voxels (best of 5, rclpy message)")
+    voxels = SimpleNamespace(centres=rng.normal(size=(100, 3)).astype(np.float32), label=rng.integers(0, 20, 100),
+                             variance=rng.random(100).astype(np.float32),
+                             confidence=rng.random(100).astype(np.float32))
+    msg = enc.encode_cloud((1, 2), "map", enc.map_cloud_fields(voxels, colors))
+    assert [(f.name, f.offset, f.datatype) for f in msg.fields] == [
+        (name, offset, pc.DTYPE_TO_DATATYPE[dtype.str[1:]]) for name, (dtype, offset) in RECORD.fields.items()]
+    assert msg.point_step == RECORD.itemsize and msg.width == 100 and msg.header.frame_id == "map"
+    view = np.frombuffer(msg.data, dtype=RECORD)
+    assert np.array_equal(np.stack([view["x"], view["y"], view["z"]], 1), voxels.centres)
+    assert np.array_equal(enc.unpack_rgb(view["rgb"]), colors[voxels.label])
+    assert np.array_equal(view["label"], voxels.label) and np.array_equal(view["variance"], voxels.variance)
+    assert np.array_equal(view["confidence"], voxels.confidence)
+    decoded = pc.decode_cloud(msg)  # the map's own clouds read back with the node's decoder
+    assert np.array_equal(decoded.points, voxels.centres) and np.array_equal(decoded.labels, voxels.label)
 
 
 # ----------------------------------------------------------------------------- transforms

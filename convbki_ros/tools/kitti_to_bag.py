@@ -93,7 +93,7 @@ def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, prob
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from convbki_ros.pointcloud import encode_cloud
+    from convbki_ros.cloud_encoding import encode_cloud
     from convbki_ros.transforms import message_types, pose_to_odometry, pose_to_transform_stamped, seconds_to_ns
 
     typestore = get_typestore(Stores.ROS2_JAZZY)

@@ -1,0 +1,190 @@
+"""The measurements of ``bench`` that need only the core: update, query, memory, publishing
+cost and the ablations, each on the paper's set-up (``pipeline.paper_mapper``).
+
+Timings are medians; the first scans of a mapper load compiled code and fill the window,
+so figures that time a few scans drop the first one where there is more than one.
+"""
+
+from __future__ import annotations
+
+import gc
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from convbki_core.datasets import SequenceDataset
+from convbki_core.datasets.labels import load_label_map
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.pipeline import integrate_frames, paper_mapper, query_ms, read_frames, update_ms
+from convbki_core.records import change_records, packed_palette, view_records
+from convbki_core.shown_map import ShownMap
+from convbki_core.tools.cli import progress
+from convbki_core.volume import WindowGeometry, transform_points, voxelize
+
+
+def median_ms(function: Callable[[], object], repeat: int) -> float:
+    """Median wall time of ``repeat`` calls of ``function``, in ms."""
+    times = []
+    for _ in range(repeat):
+        started = time.perf_counter()
+        function()
+        times.append(1e3 * (time.perf_counter() - started))
+    return statistics.median(times)
+
+
+def steady(times: list[float]) -> float:
+    """Median without the first scan, which pays for warming up (unless it is the only one)."""
+    return statistics.median(times[1:] or times)
+
+
+def soft_probabilities(labels: np.ndarray, num_classes: int, rng: np.random.Generator) -> np.ndarray:
+    """20-class probability rows peaked at ``labels`` (timing input for the probabilities path)."""
+    logits = rng.normal(0.0, 1.0, (labels.size, num_classes)).astype(np.float32)
+    logits[np.arange(labels.size), np.clip(labels, 0, num_classes - 1)] += 4.0
+    logits -= logits.max(axis=1, keepdims=True)
+    probabilities = np.exp(logits)
+    return probabilities / probabilities.sum(axis=1, keepdims=True)
+
+
+def map_memory_bytes(mapper: ConvBKIMapper) -> tuple[int, int]:
+    """(bytes of the global store incl. its bookkeeping, bytes of the resident window)."""
+    return mapper.store.resident_bytes, mapper.window.nbytes
+
+
+def drive_figures(dataset: SequenceDataset, scans: int, repeat: int) -> tuple[dict, ConvBKIMapper, list]:
+    """Map the drive with the paper's set-up; per-scan timings; the map at the end; and
+    ``repeat`` frames from the second half of the drive for the other figures."""
+    mapper = paper_mapper()
+    frames_kept, timings = [], []
+    frames = progress(read_frames(dataset, range(scans)), total=scans, description="drive")
+    for position, (frame, result) in enumerate(integrate_frames(mapper, frames)):
+        timings.append(result.timing_ms)
+        if len(frames_kept) < repeat and position >= scans // 2:
+            frames_kept.append(frame)
+    settled = timings[min(5, len(timings) - 1):]  # the first scans load compiled code and fill the window
+    figures = {
+        "voxelize_ms": statistics.median(t["voxelize"] for t in settled),
+        "update_ms": statistics.median(t["voxelize"] + t["update"] for t in settled),
+        "query_ms": statistics.median(t["query"] for t in settled),
+        "points_per_scan": int(np.median([len(dataset[p].points) for p in range(0, scans, max(1, scans // 10))])),
+        "drive_scans": scans,
+    }
+    return figures, mapper, frames_kept
+
+
+def probabilities_figure(frames: list, repeat: int) -> float:
+    """Update time with 20-class probabilities as input instead of labels."""
+    mapper = paper_mapper()
+    rng = np.random.default_rng(0)
+    inputs = [(f.points, soft_probabilities(f.input_labels, 20, rng), f.pose) for f in frames[:repeat]]
+    mapper.integrate(*inputs[0])  # warm up
+    return statistics.median(update_ms(mapper.integrate(*values)) for values in inputs)
+
+
+def dense_reference_figure(frame, repeat: int) -> float:
+    """The paper's dense update as the reference code runs it: conv3d(groups=C), default layout."""
+    mapper = paper_mapper(update_path="dense")
+    points_map = transform_points(frame.points, frame.pose)
+    origin = mapper.geometry.origin_for(frame.pose[:3, 3])
+
+    def dense_update():
+        volume = voxelize(points_map, frame.input_labels, origin, mapper.geometry.dims, 0.2, 20)
+        with torch.no_grad():
+            return mapper.layer(torch.full((20, *mapper.geometry.dims.tolist()), 1e-3), volume.to_dense())
+
+    dense_update()
+    return median_ms(dense_update, max(1, min(repeat, 3)))
+
+
+def far_strip(frames: list, count: int, num_classes: int, prior: float) -> tuple[np.ndarray, np.ndarray]:
+    """About ``count`` voxels of a long drive far from the benchmark frames (a street strip), each
+    with evidence for 1 to 3 classes like the voxels of a real map: (indices, alpha)."""
+    rng = np.random.default_rng(1)
+    far = frames[0].pose[:3, 3] / 0.2 + np.array([5000.0, 5000.0, 0.0])
+    strip = np.stack([rng.integers(0, count // 600 + 1, count), rng.integers(-150, 150, count),
+                      rng.integers(-10, 10, count)], axis=1) + far.astype(np.int64)
+    strip = np.unique(strip, axis=0)
+    alpha = np.full((len(strip), num_classes), prior, np.float32)
+    for _ in range(3):
+        rows = np.flatnonzero(rng.random(len(strip)) < 0.6)
+        alpha[rows, rng.integers(1, num_classes, len(rows))] += rng.random(len(rows), dtype=np.float32) * 5
+    return strip, alpha
+
+
+def large_map_ratio(frames: list, repeat: int) -> dict:
+    """Window moves (query + write-back) with 100 k vs 10 M voxels stored elsewhere in the map."""
+    results = {}
+    for stored in (100_000, 10_000_000):
+        mapper = paper_mapper()
+        strip, alpha = far_strip(frames, stored, mapper.num_classes, mapper.prior)
+        mapper.store.write(strip, alpha)
+        times = [query_ms(result) for _, result in integrate_frames(mapper, frames[:repeat])]
+        results[stored] = {"stored_elsewhere": len(strip), "query_ms": steady(times)}
+        del mapper, strip, alpha
+        gc.collect()
+    return results
+
+
+def publish_figures(frames: list, repeat: int) -> dict:
+    """One publish cycle of the node after one scan's change: the updates (the changed voxels as
+    point records, applied to the chunked whole map) and the view (the map within 30 m), with
+    1 M and with 10 M voxels stored elsewhere in the map; and the bytes of one scan's updates.
+    The whole map is sent at its own, slower period and is not part of the cycle."""
+    palette = packed_palette(load_label_map("semantic_kitti").colors)
+    results = {}
+    for stored in (1_000_000, 10_000_000):
+        mapper = paper_mapper(track_changes=True)
+        mapper.store.write(*far_strip(frames, stored, mapper.num_classes, mapper.prior))
+        shown = ShownMap()
+        changes = mapper.take_changes(everything=True)
+        shown.apply(changes.indices, change_records(changes.removed, changes.indices, changes.alpha,
+                                                    mapper.resolution, palette))
+        cycle_ms, update_bytes = [], []
+        for frame, _ in integrate_frames(mapper, frames[:repeat]):
+            started = time.perf_counter()
+            changes = mapper.take_changes()
+            records = change_records(changes.removed, changes.indices, changes.alpha, mapper.resolution, palette)
+            shown.apply(np.concatenate([changes.removed, changes.indices]), records)
+            view_records(mapper.window_records(palette), frame.pose[:3, 3], 30.0, 600_000)
+            cycle_ms.append(1e3 * (time.perf_counter() - started))
+            update_bytes.append(records.nbytes)
+        results[stored] = {"publish_ms": steady(cycle_ms), "updates_bytes_per_scan": steady(update_bytes),
+                           "shown_voxels": len(shown)}
+        del mapper, shown, changes
+        gc.collect()
+    return results
+
+
+def ablation(frames: list, repeat: int) -> list[dict]:
+    """Latency and peak memory of the update for the paper's resolution and filter-size ablations."""
+    rows = []
+    settings = [(0.4, 5), (0.2, 5), (0.1, 5), (0.2, 3), (0.2, 7), (0.2, 9)]
+    for resolution, filter_size in progress(settings, total=len(settings), description="ablation"):
+        gc.collect()
+        mapper = paper_mapper(resolution=resolution, filter_size=filter_size)
+        times = [update_ms(result) for _, result in integrate_frames(mapper, frames[:repeat])]
+        store_bytes, window_bytes = map_memory_bytes(mapper)
+        rows.append({"resolution": resolution, "filter_size": filter_size,
+                     "window": "x".join(str(int(d)) for d in WindowGeometry(resolution).dims),
+                     "update_ms": steady(times),
+                     "map_memory_mb": (store_bytes + window_bytes) / 2**20, "voxels": len(mapper)})
+        del mapper
+    return rows
+
+
+def points_sweep(frames: list, repeat: int) -> list[dict]:
+    """Update time against points per scan (random subsets of the same scans)."""
+    rows = []
+    rng = np.random.default_rng(2)
+    for fraction in (0.125, 0.25, 0.5, 1.0):
+        mapper = paper_mapper()
+        times, counts = [], []
+        for frame in frames[:repeat]:
+            keep = rng.random(len(frame.points)) < fraction
+            times.append(update_ms(mapper.integrate(frame.points[keep], frame.input_labels[keep], frame.pose)))
+            counts.append(int(keep.sum()))
+        rows.append({"points": int(np.median(counts)), "update_ms": steady(times)})
+    return rows
