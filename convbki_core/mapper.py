@@ -289,7 +289,9 @@ class ConvBKIMapper:
         """Expected class of the voxel under each map-frame point.
 
         Returns (labels (N,) int64, has_evidence (N,) bool); labels are -1 where the voxel
-        holds no evidence, or (with ``within_window``) lies outside the current window.
+        holds no evidence, or (with ``within_window``) lies outside the current window. With
+        free space, the class is the most likely of the others: a query point is a return,
+        so the question is what the surface there is, not whether the voxel is empty.
         """
         points_map = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
         usable = np.isfinite(points_map).all(axis=1)
@@ -303,6 +305,8 @@ class ConvBKIMapper:
             elsewhere = usable & ~in_window
             alpha[elsewhere], has_evidence[elsewhere] = self.store.lookup(indices[elsewhere])
         labels = np.full(points_map.shape[0], -1, np.int64)
+        if self.free_space:
+            alpha[:, FREE_CLASS] = 0.0
         labels[has_evidence] = dirichlet_statistics(alpha[has_evidence]).label
         return labels, has_evidence
 

@@ -137,13 +137,19 @@ class MapOutputs:
             self.node.status.published("cycle", 1e3 * (time.perf_counter() - started))
 
     def _shown(self, records: np.ndarray) -> np.ndarray:
+        """The records of voxels in the shown map: not empty (class 0, free space) and, with a
+        variance filter, confident enough."""
+        keep = records["label"] != 0
         max_variance = self.node.param("max_variance")
-        return records[records["variance"] <= max_variance] if max_variance > 0 else records
+        if max_variance > 0:
+            keep &= records["variance"] <= max_variance
+        return records if keep.all() else records[keep]
 
     # -- the local window ---------------------------------------------------------------------
     def _publish_local(self) -> None:
         if self.node.param("publish_local") and self.local.get_subscription_count():
             _, _, records = self.core.window_records(self.node.palette)
+            records = records[records["label"] != 0]  # voxels seen empty (free space) are not shown
             stamp = self.core.last_stamp or 0
             self.local.publish(records_cloud(stamp, self.core.frame, RECORD, len(records), _copy_into(records)))
 

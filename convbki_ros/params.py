@@ -83,6 +83,8 @@ PARAMETERS: tuple[Spec, ...] = (
          "metres", 0.5, 10000.0, run_time=True),
     Spec("view_max_points", 600_000, "at most this many voxels in semantic_map/view, the nearest first; count",
          1, 100_000_000, run_time=True),
+    Spec("free_space", True, "the rays between the sensor and its returns add evidence that the voxels they "
+         "cross are empty, so moving objects leave no trail; false: the paper's ConvBKI; bool"),
     Spec("device", "auto", "torch device: auto (CUDA when present, else CPU), cpu, cuda[:N]"),
     Spec("update_path", "auto", "how the update runs: auto, fast (compiled sparse scatter, CPU) or dense "
          "(depthwise conv3d, the paper's formulation)", choices=("auto", "fast", "dense")),

@@ -35,6 +35,7 @@ class Frame:
     probabilities: np.ndarray | None = None  # (N, C) float32 input class probabilities
     ground_truth: np.ndarray | None = None  # (N,) int64 learning ids
     raw_input_labels: np.ndarray | None = None  # (N,) uint32 label words as stored
+    moving: np.ndarray | None = None  # (N,) bool: the ground truth marks the point as a moving object
 
     @property
     def input_values(self) -> np.ndarray:

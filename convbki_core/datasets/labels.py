@@ -27,6 +27,21 @@ class LabelMap:
     colors: np.ndarray  # (C, 3) uint8 RGB
     ignore_classes: tuple[int, ...]
     known_raw: np.ndarray  # (65536,) bool: raw ids listed in the learning map
+    moving_raw: np.ndarray | None = None  # (65536,) bool: raw ids of moving objects (None: not marked)
+
+    @property
+    def movable_classes(self) -> tuple[int, ...]:
+        """Learning classes that moving objects map to (car, person, ...); empty when the label
+        map marks no moving ids."""
+        if self.moving_raw is None:
+            return ()
+        return tuple(sorted({int(c) for c in self.learning_map[np.flatnonzero(self.moving_raw)]} - {0}))
+
+    def is_moving(self, raw_labels: np.ndarray) -> np.ndarray:
+        """(N,) bool: label words of moving objects (all False when none are marked)."""
+        if self.moving_raw is None:
+            return np.zeros(np.shape(raw_labels), bool)
+        return self.moving_raw[np.asarray(raw_labels).astype(np.int64) & 0xFFFF]
 
     @property
     def num_classes(self) -> int:
@@ -70,8 +85,12 @@ def load_label_map_file(path: str | Path) -> LabelMap:
             raise ValueError(f"{path}: learning_map sends {raw_id} to unknown class {class_id}")
         forward[int(raw_id)] = int(class_id)
         known[int(raw_id)] = True
+    moving = None
+    if data.get("moving_raw_ids"):
+        moving = np.zeros(0x10000, bool)
+        moving[[int(raw_id) for raw_id in data["moving_raw_ids"]]] = True
     return LabelMap(str(data.get("name", path.stem)), forward, inverse, tuple(names), colors,
-                    tuple(int(c) for c in data.get("ignore_classes", [0])), known)
+                    tuple(int(c) for c in data.get("ignore_classes", [0])), known, moving)
 
 
 @cache

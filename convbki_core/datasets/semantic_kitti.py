@@ -227,7 +227,9 @@ class SemanticKittiSequence:
                       remission=scan[:, 3], pose=self.poses[position], stamp=float(self.times[position]))
         count = scan.shape[0]
         if self.has_ground_truth:
-            frame.ground_truth = self.label_map.to_learning(self._labels(self.labels_folder / f"{name}.label", count))
+            words = self._labels(self.labels_folder / f"{name}.label", count)
+            frame.ground_truth = self.label_map.to_learning(words)
+            frame.moving = self.label_map.is_moving(words)
         if self.predictions_folder is not None:
             frame.raw_input_labels = self._labels(self.predictions_folder / f"{name}.label", count)
             frame.input_labels = self.label_map.to_learning(frame.raw_input_labels)

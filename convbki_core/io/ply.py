@@ -43,8 +43,11 @@ def class_colours(labels: np.ndarray, colours: np.ndarray | None = None) -> np.n
 
 def write_voxels_ply(voxels: VoxelArrays, path: str | Path, max_variance: float | None = None,
                      colours: np.ndarray | None = None) -> int:
-    """Write ``voxels`` (optionally only those with variance <= ``max_variance``); returns the count."""
-    keep = np.ones(len(voxels), bool) if not max_variance else voxels.variance <= max_variance
+    """Write ``voxels`` (those of a class other than 0, optionally only those with variance <=
+    ``max_variance``); returns the count."""
+    keep = voxels.label != 0  # class 0 holds no semantic class (with free space: the voxel is empty)
+    if max_variance:
+        keep &= voxels.variance <= max_variance
     vertices = np.zeros(int(keep.sum()), PLY_DTYPE)
     vertices["x"], vertices["y"], vertices["z"] = voxels.centres[keep].T
     rgb = class_colours(voxels.label[keep], colours)

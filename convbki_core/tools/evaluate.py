@@ -28,6 +28,7 @@ from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.paths import kernel_path
+from convbki_core.pipeline import PAPER_BOUNDS
 from convbki_core.tools.cli import (
     NewOutputs,
     UserError,
@@ -38,12 +39,12 @@ from convbki_core.tools.cli import (
     run,
     sequence_arg,
 )
+from convbki_core.trails import SweptSpace
 from convbki_core.volume import transform_points
 
 PROG = "evaluate"
 DEFAULT_KERNEL = "semantic_kitti_compound"
 DEFAULT_PRIOR = 1e-3
-PAPER_BOUNDS = ((-40.0, -40.0, -2.6), (40.0, 40.0, 2.6))
 
 
 @dataclass
@@ -56,6 +57,7 @@ class KernelRun:
     update_ms: list[float] = field(default_factory=list)
     query_ms: list[float] = field(default_factory=list)
     mapper: ConvBKIMapper | None = None
+    trail_voxels: int | None = None  # None: the ground truth marks no moving objects
 
 
 def map_frame_labels(mapper: ConvBKIMapper, points: np.ndarray, pose: np.ndarray,
@@ -77,21 +79,24 @@ def write_label_file(path: Path, learning_labels: np.ndarray, label_map) -> None
 
 def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], kernel_file: str | Path, device: str,
                     prior: float, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
-                    show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto") -> KernelRun:
+                    show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto",
+                    free_space: bool = True) -> KernelRun:
     """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
 
     ``input_scores`` (when given) also receives the input segmentation's confusion counts;
     ``labels_folder`` (when given, an existing folder) receives one NNNNNN.label per frame.
+    Where the ground truth marks moving objects, the run also counts the map's trail voxels.
     """
     config = load_kernel_file(kernel_file)
     label_map = dataset.label_map
     if config.num_classes != label_map.num_classes:
         raise UserError(f"{kernel_file}: kernel has {config.num_classes} classes, the dataset {label_map.num_classes}")
     mapper = ConvBKIMapper(config, local_bounds=local_bounds, prior=prior, device=device,
-                           ignore_classes=label_map.ignore_classes, update_path=update_path)
+                           ignore_classes=label_map.ignore_classes, update_path=update_path, free_space=free_space)
     run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
                                                                              label_map.ignore_classes), mapper=mapper)
     out_folder = labels_folder
+    swept = SweptSpace(mapper.resolution)
     frames = (dataset[position] for position in positions)
     if show_progress:
         frames = progress(frames, total=len(positions), description=f"{Path(kernel_file).stem}")
@@ -104,13 +109,18 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
         predicted = map_frame_labels(mapper, frame.points, frame.pose, input_labels)
         labelling_ms = 1e3 * (time.perf_counter() - started)
         timing = result.timing_ms
-        run_result.update_ms.append(timing["voxelize"] + timing["update"])
+        run_result.update_ms.append(timing["voxelize"] + timing["update"] + timing["free"])
         run_result.query_ms.append(timing["query"] + labelling_ms)
         run_result.map_scores.add(frame.ground_truth, predicted)
         if input_scores is not None:
             input_scores.add(frame.ground_truth, input_labels)
         if out_folder is not None:
             write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
+        if frame.moving is not None and label_map.movable_classes:
+            swept.add(transform_points(frame.points, frame.pose), frame.moving)
+    if swept.moving_points:
+        voxels = mapper.voxels()
+        run_result.trail_voxels = swept.trail_voxels(voxels.indices, voxels.label, label_map.movable_classes)
     return run_result
 
 
@@ -133,8 +143,11 @@ def build_report(sequence: str, frame_count: int, class_names: Sequence[str], in
     """report.json (docs/evaluation.md): the first kernel at the top level, every kernel under "runs"."""
 
     def run_entry(run_result: KernelRun) -> dict:
+        scores = run_result.map_scores.summary(class_names)
+        if run_result.trail_voxels is not None:
+            scores["trail_voxels"] = run_result.trail_voxels
         return {"kernel": run_result.kernel, "kernel_file": run_result.kernel_file,
-                "map": run_result.map_scores.summary(class_names),
+                "free_space": run_result.mapper.free_space, "map": scores,
                 "timing_ms": {"update_median": float(np.median(run_result.update_ms)),
                               "query_median": float(np.median(run_result.query_ms))}}
 
@@ -187,6 +200,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--update-path", default="auto", choices=("auto", "fast", "dense"),
                    help="how the update is computed: fast (compiled sparse scatter, the CPU default), dense (the "
                    "paper's depthwise conv3d, the CUDA default and the reference) (default: %(default)s)")
+    p.add_argument("--no-free-space", dest="free_space", action="store_false",
+                   help="map without free space: the rays between the sensor and its returns add no evidence "
+                   "that the voxels they cross are empty (the paper's ConvBKI; movers then leave trails)")
     p.add_argument("--prior", default=DEFAULT_PRIOR, type=float,
                    help="initial concentration of every class in a new voxel (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -253,7 +269,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                                     input_scores if number == 0 else None,
                                     labels_folder if number == 0 else None,
                                     show_progress=not args.quiet, local_bounds=bounds,
-                                    update_path=args.update_path))
+                                    update_path=args.update_path, free_space=args.free_space))
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs)
 
     from convbki_core.tools.plots import save_map_picture
@@ -282,7 +298,8 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         print(f"{Path(run_result.kernel_file).stem}: map mIoU {run_result.map_scores.miou():.4f} vs input "
               f"{input_scores.miou():.4f} ({run_result.map_scores.miou() - input_scores.miou():+.4f}); "
               f"update {np.median(run_result.update_ms):.1f} ms, query {np.median(run_result.query_ms):.1f} ms "
-              f"(median), {len(run_result.mapper)} voxels")
+              f"(median), {len(run_result.mapper)} voxels"
+              + ("" if run_result.trail_voxels is None else f", {run_result.trail_voxels} trail voxels"))
     print(f"report: {report_path}; pictures: {', '.join(map(str, pictures))}")
     if args.write_labels:
         print(f"labels: {Path(args.write_labels) / 'sequences' / dataset.sequence / 'predictions'}")

@@ -42,20 +42,22 @@ def birds_eye_rasters(voxels: VoxelSet, colours: np.ndarray, resolution: float, 
     extent [x_min, x_max, y_min, y_max] in metres). Large maps use coarser cells so the
     image stays under ``max_pixels`` on a side.
     """
-    if len(voxels) == 0:
+    shown = voxels.label != 0  # class 0: no semantic class (with free space, seen empty)
+    if not shown.any():
         return np.ones((1, 1, 3)), np.full((1, 1), np.nan), [0, 1, 0, 1]
-    indices = voxels.indices
+    indices, alpha, labels, variances = voxels.indices[shown], voxels.alpha[shown], voxels.label[shown], \
+        voxels.variance[shown]
     low, high = indices[:, :2].min(axis=0), indices[:, :2].max(axis=0)
     step = max(1, int(np.ceil((high - low + 1).max() / max_pixels)))
     cell = (indices[:, :2] - low) // step
     width, height = (high - low) // step + 1
     # Sort by total concentration so that, per cell, the last write (the most evident voxel) wins.
-    order = np.argsort(voxels.alpha.sum(axis=1), kind="stable")
+    order = np.argsort(alpha.sum(axis=1), kind="stable")
     flat = cell[order, 1] * width + cell[order, 0]
     rgb = np.ones((height * width, 3))
     variance = np.full(height * width, np.nan)
-    rgb[flat] = colours[np.clip(voxels.label[order], 0, len(colours) - 1)] / 255.0
-    variance[flat] = voxels.variance[order]
+    rgb[flat] = colours[np.clip(labels[order], 0, len(colours) - 1)] / 255.0
+    variance[flat] = variances[order]
     extent = [low[0] * resolution, (high[0] + 1) * resolution, low[1] * resolution, (high[1] + 1) * resolution]
     return rgb.reshape(height, width, 3), variance.reshape(height, width), extent
 
@@ -71,7 +73,7 @@ def save_map_picture(voxels: VoxelSet, label_map: LabelMap, resolution: float, p
     figure, (left, right) = plt.subplots(1, 2, figsize=(15, max(4.0, min(12.0, 7.0 * aspect)) + 1.0))
     left.imshow(rgb, origin="lower", extent=extent, interpolation="nearest")
     left.set_title("expected class (most evident voxel per column)")
-    present = np.unique(voxels.label) if len(voxels) else []
+    present = [c for c in np.unique(voxels.label) if c != 0] if len(voxels) else []
     handles = [Patch(color=label_map.colors[c] / 255.0, label=label_map.class_names[c]) for c in present]
     if handles:
         figure.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), fontsize=9, frameon=False,

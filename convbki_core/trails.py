@@ -1,0 +1,66 @@
+"""Trail voxels: what moving objects leave behind in a map.
+
+A mover's points mark the space it swept, scan after scan. Once it has gone, a map that
+still shows a movable class (car, person, ...) there shows a trail. Counted from the
+ground truth alone, so any dataset whose labels mark moving objects can be scored
+(SemanticKITTI's raw ids 252-259):
+
+* swept: the voxels holding a moving point in any scan, grown by one voxel on every side
+  (the kernel spreads a point's evidence to its neighbours);
+* present at the end: the same, for the last scan's moving points;
+* trail voxels: voxels of the map whose expected class is movable, in swept space and not
+  in space a mover occupies at the end.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from convbki_core.volume import voxel_indices
+
+_BITS = 21
+_OFFSET = 1 << (_BITS - 1)
+_NEIGHBOURS = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
+
+
+def voxel_keys(indices: np.ndarray) -> np.ndarray:
+    """One int64 per voxel index (each axis within +-2^20 voxels)."""
+    shifted = np.asarray(indices, np.int64) + _OFFSET
+    return (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
+
+
+def _grown(indices: np.ndarray) -> np.ndarray:
+    """Keys of the voxels and their 26 neighbours, unique."""
+    if len(indices) == 0:
+        return np.zeros(0, np.int64)
+    return np.unique(voxel_keys((indices[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
+
+
+class SweptSpace:
+    """The space moving objects passed through during a drive, and where they are at its end."""
+
+    def __init__(self, resolution: float):
+        self.resolution = float(resolution)
+        self._swept: list[np.ndarray] = []
+        self._last = np.zeros((0, 3), np.int64)
+        self.moving_points = 0
+
+    def add(self, points_map: np.ndarray, moving: np.ndarray) -> None:
+        """One scan: its points in the map frame and which of them belong to moving objects."""
+        indices = np.unique(voxel_indices(points_map[moving], self.resolution), axis=0)
+        self._swept.append(indices)
+        self._last = indices
+        self.moving_points += int(np.count_nonzero(moving))
+
+    def trail_voxels(self, indices: np.ndarray, labels: np.ndarray, movable_classes: Sequence[int]) -> int:
+        """How many of the map's voxels (global ``indices`` (N, 3) with expected class
+        ``labels``) show a movable class where a mover was but is not at the end."""
+        if not self._swept:
+            return 0
+        swept = _grown(np.concatenate(self._swept))
+        present = _grown(self._last)
+        candidates = np.isin(labels, np.asarray(movable_classes, np.int64))
+        keys = voxel_keys(indices[candidates])
+        return int(np.count_nonzero(np.isin(keys, swept) & ~np.isin(keys, present)))
