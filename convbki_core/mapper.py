@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from convbki_core.devices import resolve_device
 from convbki_core.free_space import FREE_CLASS, free_space_update, free_taps, ray_weights, scratch_counts
 from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
 from convbki_core.io.map_file import MAP_FORMAT, MAP_VERSION, MapFileError, MapSnapshot, read_map
@@ -40,6 +41,7 @@ from convbki_core.volume import (
     SparseVolume,
     VoxelizeStats,
     WindowGeometry,
+    check_pose,
     check_scan,
     transform_points,
     unravel_linear,
@@ -49,55 +51,6 @@ from convbki_core.volume import (
     voxelize_scan,
 )
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
-
-DEVICE_CHOICES = "auto, cpu or cuda[:N]"
-
-
-def resolve_device(device: str | torch.device) -> torch.device:
-    """The torch device to map on: ``auto`` (or "") -> CUDA when present, else CPU; ``cpu``;
-    ``cuda`` or ``cuda:N``.
-
-    Raises ``ValueError`` with one line naming the device and why for a name torch does not
-    know, a device type other than CPU and CUDA, and a CUDA device this machine lacks, so
-    a program fails at once rather than at its first update.
-    """
-    name = str(device)
-    if name in ("", "auto"):
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        resolved = torch.device(name)
-    except (RuntimeError, ValueError, TypeError):
-        raise ValueError(f"unknown device {name!r}: use {DEVICE_CHOICES}") from None
-    if resolved.type == "cpu":
-        return resolved
-    if resolved.type != "cuda":
-        raise ValueError(f"device {name!r} is not supported: use {DEVICE_CHOICES}")
-    if not torch.cuda.is_available():
-        why = ("it is built without CUDA" if torch.version.cuda is None and torch.version.hip is None
-               else "no GPU is visible or its driver is missing")
-        raise ValueError(f"device {name!r} requested, but this torch ({torch.__version__}) has no CUDA device "
-                         f"({why}); use device auto or cpu")
-    count = torch.cuda.device_count()
-    if resolved.index is not None and resolved.index >= count:
-        present = "cuda:0" if count == 1 else f"cuda:0 .. cuda:{count - 1}"
-        raise ValueError(f"device {name!r} requested, but this machine has {count} CUDA "
-                         f"device{'' if count == 1 else 's'} ({present}); use device auto, cpu or {present}")
-    return resolved
-
-
-def check_pose(pose: np.ndarray) -> np.ndarray:
-    """Validate a 4x4 homogeneous SE(3) pose (map <- sensor); returns it as float64."""
-    pose = np.asarray(pose, dtype=np.float64)
-    if pose.shape != (4, 4):
-        raise ValueError(f"pose must be a 4x4 matrix, got shape {pose.shape}")
-    if not np.isfinite(pose).all():
-        raise ValueError("pose contains NaN or inf")
-    rotation = pose[:3, :3]
-    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) or np.linalg.det(rotation) < 0:
-        raise ValueError("pose rotation is not a proper rotation matrix (orthonormal, det +1)")
-    if not np.allclose(pose[3], [0, 0, 0, 1]):
-        raise ValueError("pose last row must be [0, 0, 0, 1]")
-    return pose
 
 
 @dataclass

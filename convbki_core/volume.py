@@ -69,6 +69,21 @@ class WindowGeometry:
         return sensor_voxel + self.offset
 
 
+def check_pose(pose: np.ndarray) -> np.ndarray:
+    """Validate a 4x4 homogeneous SE(3) pose (map <- sensor); returns it as float64."""
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (4, 4):
+        raise ValueError(f"pose must be a 4x4 matrix, got shape {pose.shape}")
+    if not np.isfinite(pose).all():
+        raise ValueError("pose contains NaN or inf")
+    rotation = pose[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) or np.linalg.det(rotation) < 0:
+        raise ValueError("pose rotation is not a proper rotation matrix (orthonormal, det +1)")
+    if not np.allclose(pose[3], [0, 0, 0, 1]):
+        raise ValueError("pose last row must be [0, 0, 0, 1]")
+    return pose
+
+
 def transform_points(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """Points (N, 3) moved by a 4x4 pose, in float64: ((x r0 + y r1) + z r2) + t per axis.
 

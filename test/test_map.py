@@ -10,13 +10,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError, dirichlet_statistics
+from convbki_core.datasets.labels import load_label_map
+from convbki_core.devices import resolve_device
 from convbki_core.io.ply import read_ply
-from convbki_core.mapper import resolve_device
 from convbki_core.paths import kernel_path
 from convbki_core.store import VoxelStore
 from convbki_core.volume import WindowGeometry
 
 NUM_CLASSES = 6
+ROAD = 9  # SemanticKITTI learning id of road
 BOUNDS = ((-3.0, -3.0, -1.0), (3.0, 3.0, 1.0))
 
 
@@ -390,7 +392,10 @@ def test_reset_empties_the_map():
 def test_ply_export_holds_every_voxel_in_class_colours(tmp_path):
     mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, device="cpu")
     rng = np.random.default_rng(10)
-    mapper.integrate(rng.uniform(-2, 2, (300, 3)), rng.integers(1, 20, 300), np.eye(4))
+    road_points = np.column_stack([rng.uniform(-1, 1, (400, 2)), rng.uniform(-0.55, -0.45, 400)])
+    points = np.concatenate([rng.uniform(-2, 2, (300, 3)), road_points])  # scattered classes and a road patch
+    labels = np.concatenate([rng.integers(1, 20, 300), np.full(400, ROAD)])
+    mapper.integrate(points, labels, np.eye(4))
     path = tmp_path / "map.ply"
     written = mapper.export_ply(path)
     vertices = read_ply(path)
@@ -401,7 +406,11 @@ def test_ply_export_holds_every_voxel_in_class_colours(tmp_path):
         assert f" {name}\n" in header
     np.testing.assert_array_equal(vertices["label"], voxels.label)
     np.testing.assert_allclose(vertices["x"], voxels.centres[:, 0])
-    road = vertices[vertices["label"] == 9]
-    assert road.size == 0 or ((road["red"] == 255).all() and (road["green"] == 0).all() and (road["blue"] == 255).all())
+    palette = load_label_map().colors
+    np.testing.assert_array_equal(np.column_stack([vertices["red"], vertices["green"], vertices["blue"]]),
+                                  palette[voxels.label])
+    road = vertices[vertices["label"] == ROAD]
+    assert road.shape[0] >= 100, "the 2 m x 2 m road patch covers 10 x 10 voxels"
+    assert (road["red"] == 255).all() and (road["green"] == 0).all() and (road["blue"] == 255).all()  # magenta
     limited = mapper.export_ply(tmp_path / "limited.ply", max_variance=float(np.median(voxels.variance)))
     assert 0 < limited < written

@@ -45,7 +45,7 @@ def frames_arg(text: str) -> str:
 def device_arg(text: str) -> str:
     """argparse type: a torch device this machine has (``auto``, ``cpu``, ``cuda[:N]``), checked
     while the arguments are parsed, before any work; returns ``text`` unchanged."""
-    from convbki_core.mapper import resolve_device
+    from convbki_core.devices import resolve_device
 
     try:
         resolve_device(text)
