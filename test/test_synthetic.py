@@ -1,7 +1,7 @@
 """The synthetic SemanticKITTI drive generator (``synth``, convbki_core.tools.synth / convbki_core.synth).
 
-Drives here are short (2-8 scans) and mostly low-resolution (--azimuth-steps) so the file runs
-in well under a minute on two cores; one full-size scan checks the ~120k point count.
+Drives here are short (2-8 scans) and mostly low-resolution (--azimuth-steps) so the file stays
+quick on two cores; one full-size scan checks the ~120k point count. Movers: test_synth_movers.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import torch
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.metrics import ConfusionMatrix
-from convbki_core.synth import DriveConfig, generate_drive, lidar_poses
+from convbki_core.synth.drive import DriveConfig, generate_drive, lidar_poses
 from convbki_core.synth.scene import build_scene
 from convbki_core.tools.synth import main
 

@@ -5,6 +5,10 @@ z = 0); the *map/world* frame of the written poses is the scene frame turned by 
 and shifted by a random offset (``world_from_scene``), so the first pose is an arbitrary one,
 never the identity; the *sensor* frame is the Velodyne's (x forward, y left, z up), in which
 the scans are written.
+
+With ``movers`` > 0 the drive also has moving road users (``traffic`` plans them, ``movers``
+poses and casts them, and writes ``movers.json``); with 0, the default, none of that runs:
+the scene, the scans and every file are those of the static drive, byte for byte.
 """
 
 from __future__ import annotations
@@ -19,11 +23,12 @@ import numpy as np
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.metrics import ConfusionMatrix
-from convbki_core.synth import lidar, writer
+from convbki_core.synth import lidar, movers, traffic, writer
 from convbki_core.synth.noise import BLUR_WIDTH, CalibrationSample, NoiseModel, PointNoise, calibrate
 from convbki_core.synth.primitives import OUTLIER
 from convbki_core.synth.route import Trajectory, drive
 from convbki_core.synth.scene import Scene, build_scene
+from convbki_core.synth.streets import StreetLayout
 
 VERSION = 1
 OUTLIER_RATE = 0.002  # spurious returns (dust, multi-path), labelled "outlier" (learning class 0)
@@ -61,6 +66,7 @@ class DriveConfig:
     max_range: float = 90.0
     range_noise: float = 0.02  # sigma, m
     force: bool = False
+    movers: int = 0  # moving road users planned over the drive
 
 
 @dataclass
@@ -88,6 +94,8 @@ class DriveResult:
     confusion: ConfusionMatrix
     class_points: np.ndarray
     info: dict = field(default_factory=dict)
+    placed_movers: list[movers.Mover] = field(default_factory=list)  # may be fewer than asked
+    moving_points: list[int] = field(default_factory=list)  # points with a moving raw id, per frame
 
 
 def world_from_scene(seed: int) -> np.ndarray:
@@ -102,6 +110,15 @@ def world_from_scene(seed: int) -> np.ndarray:
 
 def _trajectory(scene: Scene, config: DriveConfig) -> Trajectory:
     return drive(scene.route, config.frames, config.speed, scene.start_s, np.random.default_rng([config.seed, 0xD21]))
+
+
+def _traffic(config: DriveConfig) -> Callable[[StreetLayout], list[movers.Mover]]:
+    """The mover planner of ``config``: around the very trajectory ``_trajectory`` gives."""
+    def plan(layout: StreetLayout) -> list[movers.Mover]:
+        ego = drive(layout.route_, config.frames, config.speed, layout.start_s,
+                    np.random.default_rng([config.seed, 0xD21]))
+        return traffic.plan(layout, ego, config.movers, config.seed, config.speed)
+    return plan
 
 
 def lidar_poses(config: DriveConfig, scene: Scene | None = None) -> np.ndarray:
@@ -121,6 +138,7 @@ class Simulator:
         self.prim_tint = lidar.hash_uniform(config.seed * 16 + 9, np.arange(len(scene.kind), dtype=np.int64),
                                             np.zeros(len(scene.kind), np.int64), np.zeros(len(scene.kind), np.int64))
         self.part = np.where(scene.instance > 0, scene.part, -1).astype(np.int64)
+        self.mover_tints = movers.tints(scene.movers, config.seed * 16 + 10)
 
     def scan(self, pose: np.ndarray, frame: int, beams: lidar.Beams) -> Scan:
         """Scan from scene-frame ``pose`` (4x4, scene <- sensor) for scan number ``frame``."""
@@ -130,8 +148,16 @@ class Simulator:
         salt = (cfg.seed * 1_000_003 + frame) * 16 + 8
         t, prim, cos = lidar.cast_rays(origin, dirs, cfg.max_range, salt, sc.kind, sc.param, grid.start, grid.items,
                                        grid.x0, grid.y0, grid.cell, grid.nx, grid.ny)
+        frame_movers = movers.frame_of(sc.movers, frame, self.mover_tints) if sc.movers else None
+        if frame_movers is not None:
+            # Movers hide what is behind them; prim -3 marks a mover hit, ``which`` says whose.
+            mt, which, mcos = movers.cast(origin, dirs, np.minimum(t, cfg.max_range), frame_movers)
+            nearer = which >= 0
+            t, cos = np.where(nearer, mt, t), np.where(nearer, mcos, cos)
+            prim = np.where(nearer, -3, prim).astype(np.int32)
         keep = np.flatnonzero(np.isfinite(t) & ~beams.ego)
         t, prim, cos = t[keep], prim[keep], cos[keep]
+        which = which[keep] if frame_movers is not None else None
         n = len(keep)
         rng = np.random.default_rng([cfg.seed, frame, 0x5CA7])
         measured = t + rng.normal(0.0, cfg.range_noise, n) if cfg.range_noise > 0 else t.copy()
@@ -144,16 +170,21 @@ class Simulator:
         raster = sc.raster
         ix = np.clip(((hit[:, 0] - raster.x0) / raster.res).astype(np.int64), 0, raster.nx - 1)
         iy = np.clip(((hit[:, 1] - raster.y0) / raster.res).astype(np.int64), 0, raster.ny - 1)
-        ground = prim < 0
-        obj = np.where(ground, 0, prim)
+        moving = prim == -3
+        ground = (prim < 0) & ~moving
+        obj = np.where(prim < 0, 0, prim)
         raw = np.where(ground, sc.ground_raw[iy, ix], sc.raw[obj]).astype(np.uint32)
         instance = np.where(ground, 0, sc.instance[obj]).astype(np.uint32)
-        surface = self.labels.learning_map[raw].astype(np.int64)
         part = np.where(ground, -1, self.part[obj])
+        tint = np.where(ground, 0.5, self.prim_tint[obj])
+        if which is not None:
+            q = which[moving]
+            raw[moving], instance[moving] = frame_movers.raw[q], frame_movers.instance[q]
+            part[moving], tint[moving] = frame_movers.part[q], frame_movers.tint[q]
+        surface = self.labels.learning_map[raw].astype(np.int64)
         gt_raw = np.where(outlier, OUTLIER, raw).astype(np.uint32)
         instance[outlier] = 0
         # Remission: class reflectivity, per-object tint, lane paint, incidence angle, range, noise.
-        tint = np.where(ground, 0.5, self.prim_tint[obj])
         base = np.where(ground & sc.marking[iy, ix], MARKING_REMISSION, self.remission_base[surface])
         angle = np.where(surface == self.labels.class_names.index("traffic-sign"), 0.85 + 0.15 * cos, 0.4 + 0.6 * cos)
         remission = base * (0.75 + 0.5 * tint) * angle * (1.0 - 0.2 * np.minimum(t / 80.0, 1.0))
@@ -162,6 +193,9 @@ class Simulator:
                                                   grid.items, grid.x0, grid.y0, grid.cell, grid.nx, grid.ny, sc.top,
                                                   sc.nb_class, sc.nb_dist, raster.x0, raster.y0, raster.res,
                                                   BLUR_WIDTH)
+        if frame_movers is not None:
+            nb_class, nb_dist = movers.neighbours(seen, surface, frame_movers, self.labels.learning_map, BLUR_WIDTH,
+                                                  nb_class, nb_dist)
         noise = self.model.features(seen, surface, measured, part, nb_class, nb_dist, frame)
         points = (beams.dirs[keep] * measured[:, None]).astype(np.float32)
         truth = self.labels.learning_map[gt_raw].astype(np.int64)
@@ -194,7 +228,9 @@ def generate_drive(config: DriveConfig, progress: Callable[[int], None] | None =
     started = time.perf_counter()
     labels = load_label_map()
     say("building the scene")
-    scene = build_scene(config.seed)
+    if config.movers:
+        say("planning the movers")
+    scene = build_scene(config.seed, _traffic(config) if config.movers else None)
     trajectory = _trajectory(scene, config)
     model = NoiseModel(labels, config.seed)
     sim = Simulator(scene, config, model)
@@ -225,6 +261,7 @@ def generate_drive(config: DriveConfig, progress: Callable[[int], None] | None =
     matrix = ConfusionMatrix(labels.num_classes, labels.ignore_classes)
     class_points = np.zeros(labels.num_classes, np.int64)
     counts: list[int] = []
+    moving_counts: list[int] = []
     say("writing scans")
     for k in range(config.frames):
         scan = sim.scan(trajectory.poses[k], k, beams)
@@ -234,14 +271,20 @@ def generate_drive(config: DriveConfig, progress: Callable[[int], None] | None =
         matrix.add(scan.truth, pred)
         class_points += np.bincount(scan.truth, minlength=labels.num_classes)
         counts.append(len(scan.points))
+        if config.movers:
+            moving_counts.append(int(np.count_nonzero((scan.label_words & 0xFFFF) >= movers.MOVING_RAW.start)))
         if progress:
             progress(k + 1 + (config.frames if config.noise_strength is None else 0))
     elapsed = time.perf_counter() - started
     writer.write_text(seq / "calib.txt", writer.calib_text(tr))
     writer.write_text(seq / "poses.txt", writer.poses_text(poses, tr))
     writer.write_text(seq / "times.txt", writer.times_text(trajectory.times))
+    if config.movers:
+        writer.write_text(seq / "movers.json", movers.sidecar(scene.movers, world_from_scene(config.seed),
+                                                              config.frames))
     result = DriveResult(seq, config.frames, counts, elapsed / config.frames, strength,
-                         config.noise_strength is None, sample_miou, matrix, class_points, dict(scene.info))
+                         config.noise_strength is None, sample_miou, matrix, class_points, dict(scene.info),
+                         scene.movers, moving_counts)
     writer.write_yaml(seq / "synth.yaml", _record(config, result, labels.class_names, trajectory))
     return result
 
@@ -249,7 +292,7 @@ def generate_drive(config: DriveConfig, progress: Callable[[int], None] | None =
 def _record(config: DriveConfig, result: DriveResult, names: tuple[str, ...], trajectory: Trajectory) -> dict:
     """Contents of synth.yaml: the settings and what was measured on the written files."""
     summary = result.confusion.summary(names)
-    return {
+    record = {
         "generator": "convbki_core.tools.synth (synth)",
         "version": VERSION,
         "seed": config.seed,
@@ -273,3 +316,14 @@ def _record(config: DriveConfig, result: DriveResult, names: tuple[str, ...], tr
         "points_per_frame_mean": round(float(np.mean(result.points)), 1),
         "class_points": {names[c]: int(n) for c, n in enumerate(result.class_points) if n},
     }
+    if config.movers:  # absent without movers: such a drive's synth.yaml stays as it always was
+        kinds = [movers.KINDS[m.kind][2] for m in result.placed_movers]
+        record["movers"] = {
+            "requested": config.movers,
+            "planned": len(result.placed_movers),
+            "classes": {name: kinds.count(name) for name in sorted(set(kinds))},
+            "behaviours": {b: sum(m.behaviour == b for m in result.placed_movers) for b in traffic.BEHAVIOURS},
+            "moving_points_per_frame_mean": round(float(np.mean(result.moving_points)), 1),
+            "sidecar": "movers.json",
+        }
+    return record

@@ -8,7 +8,7 @@ of cells outward from the sensor (Amanatides-Woo), so a ray only tests primitive
 path. Porous primitives (foliage, mesh fences) are hit at a random depth or passed through.
 
 All kernels are compiled with ``cache=True`` (the first run in a fresh environment compiles
-them, about 10-20 s; later runs load them from numba's cache). Frames: ray directions are
+them, which takes a while; later runs load them from numba's cache). Frames: ray directions are
 given in the scene frame; the sensor frame only matters to ``Beams`` and the ego-body mask.
 """
 

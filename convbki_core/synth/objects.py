@@ -88,15 +88,27 @@ def other_vehicle(b: SceneBuilder, rng: np.random.Generator, x: float, y: float,
     obj = b.new()
     obj.new_part()
     if rng.random() < 0.7:
-        length = rng.uniform(10.0, 12.5)
-        obj.box(x, y, z0 + 0.35, z0 + rng.uniform(3.0, 3.3), length, 2.55, yaw, OTHER_VEHICLE, base=z0)
-        _wheels(obj, x, y, yaw, z0, [length / 2 - 2.5, -length / 2 + 3.0], 2.1, 0.5, 0.3, OTHER_VEHICLE)
+        _bus_body(obj, rng, x, y, yaw, z0)
     else:
         length = rng.uniform(4.5, 6.5)
         obj.box(x, y, z0 + 0.5, z0 + rng.uniform(2.4, 2.8), length, 2.3, yaw, OTHER_VEHICLE, base=z0)
         hx, hy = _at(x, y, yaw, length / 2 + 0.6, 0)
         obj.box(hx, hy, z0 + 0.45, z0 + 0.55, 1.2, 0.1, yaw, OTHER_VEHICLE, base=z0)
         _wheels(obj, x, y, yaw, z0, [0.0], 2.1, 0.33, 0.2, OTHER_VEHICLE)
+    return obj
+
+
+def _bus_body(obj: SceneObject, rng: np.random.Generator, x: float, y: float, yaw: float, z0: float) -> None:
+    length = rng.uniform(10.0, 12.5)
+    obj.box(x, y, z0 + 0.35, z0 + rng.uniform(3.0, 3.3), length, 2.55, yaw, OTHER_VEHICLE, base=z0)
+    _wheels(obj, x, y, yaw, z0, [length / 2 - 2.5, -length / 2 + 3.0], 2.1, 0.5, 0.3, OTHER_VEHICLE)
+
+
+def bus(b: SceneBuilder, rng: np.random.Generator, x: float, y: float, yaw: float, z0: float = 0.0) -> SceneObject:
+    """City bus, 10-12.5 m (SemanticKITTI's other-vehicle; a moving one is moving-bus)."""
+    obj = b.new()
+    obj.new_part()
+    _bus_body(obj, rng, x, y, yaw, z0)
     return obj
 
 

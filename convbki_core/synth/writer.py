@@ -1,9 +1,10 @@
 """SemanticKITTI files of a synthetic drive, written atomically (convbki_core.io.atomic).
 
-Layout (INTERFACE.md section 3): ``ROOT/sequences/SS/`` with ``velodyne/NNNNNN.bin`` (float32
+Layout: ``ROOT/sequences/SS/`` with ``velodyne/NNNNNN.bin`` (float32
 x, y, z, remission; sensor frame, m), ``labels/NNNNNN.label`` and ``predictions/NNNNNN.label``
 (uint32: raw semantic id | instance << 16), optionally ``probabilities/NNNNNN.npy`` (float16,
-(N, 20)), and ``calib.txt``, ``poses.txt``, ``times.txt``, ``synth.yaml``.
+(N, 20)), and ``calib.txt``, ``poses.txt``, ``times.txt``, ``synth.yaml``, and with movers
+``movers.json`` (format in ``movers``).
 """
 
 from __future__ import annotations

@@ -3,11 +3,14 @@
 A procedural street scene (roads, parking lanes, raised sidewalks with curbs, buildings,
 fences, hedges, street trees, poles, traffic signs, parked cars, trucks, buses, bicycles,
 motorcycles, people, cyclists; all static) is scanned by a simulated Velodyne HDL-64E on a
-car driving a loop of city blocks at 10 Hz. Output: ROOT/sequences/SS/ with velodyne/,
+car driving a loop of city blocks at 10 Hz. With ``--movers N`` it also has N moving road
+users (cars, trucks, buses, cyclists, motorcyclists, pedestrians), labelled with the moving
+raw ids (252-259) and their own instance ids. Output: ROOT/sequences/SS/ with velodyne/,
 labels/ (ground truth with instance ids), predictions/ (the ground truth with realistic,
 calibrated segmentation noise: the input segmentation), optionally probabilities/, and
-calib.txt, poses.txt, times.txt, synth.yaml (the settings and what was measured). See
-convbki_core/synth/ for the models.
+calib.txt, poses.txt, times.txt, synth.yaml (the settings and what was measured), plus
+movers.json with movers (their boxes, scan by scan; format in convbki_core.synth.movers).
+See convbki_core/synth/ for the models.
 """
 
 from __future__ import annotations
@@ -50,6 +53,18 @@ def _positive_int(what: str, upper: int | None = None):
 
 
 frames_count = _positive_int("frames")
+
+
+def _count(what: str, upper: int):
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            n = -1
+        if not 0 <= n <= upper:
+            raise argparse.ArgumentTypeError(f"{what} must be an integer in 0..{upper}, got {text!r}")
+        return n
+    return parse
 
 
 def _float_in(what: str, lo: float, hi: float, lo_open: bool = False):
@@ -116,6 +131,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="LiDAR range in m: rays with no hit closer are dropped (default: %(default)s)")
     p.add_argument("--range-noise", default=0.02, type=_float_in("--range-noise", 0.0, 1.0), metavar="SIGMA",
                    help="standard deviation of the gaussian range noise in m (default: %(default)s)")
+    p.add_argument("--movers", default=0, type=_count("--movers", 1000), metavar="N",
+                   help="moving road users over the drive: cars and trucks or buses oncoming and ahead, "
+                   "pedestrians crossing in front of the car, cyclists and vehicles on cross streets; labelled "
+                   "moving-car, moving-person, ... (raw ids 252-259) with their own instance ids, predicted as the "
+                   "static class; their boxes, scan by scan, go to movers.json. Fewer are placed when a short "
+                   "drive has no room for them (default: %(default)s: a static scene)")
     p.add_argument("--force", action="store_true",
                    help="write into an existing non-empty sequence folder, replacing its scans")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
@@ -133,6 +154,9 @@ def _summary(result, names) -> str:
         f"{result.strength:.3f}{', calibrated' if result.calibrated else ''})",
         "  input IoU:    " + ", ".join(f"{k} {v:.2f}" for k, v in summary["iou"].items()),
     ]
+    if result.moving_points:
+        placed, mean = len(result.placed_movers), sum(result.moving_points) / len(result.moving_points)
+        lines.append(f"  movers:       {placed} placed, {mean:.0f} moving points/frame (movers.json)")
     return "\n".join(lines)
 
 
@@ -149,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from tqdm import tqdm
 
         from convbki_core.datasets.labels import load_label_map
-        from convbki_core.synth import DriveConfig, SynthError, check_destination, generate_drive
+        from convbki_core.synth.drive import DriveConfig, SynthError, check_destination, generate_drive
         from convbki_core.synth.lidar import MissingDependency, require_numba
     except ImportError as error:
         print(f"{PROG}: error: {error}", file=sys.stderr)
@@ -157,7 +181,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     config = DriveConfig(out=args.out, sequence=args.sequence, frames=args.frames, seed=args.seed,
                          input_miou=args.input_miou, noise_strength=args.noise_strength,
                          probabilities=args.probabilities, beams=args.beams, azimuth_steps=args.azimuth_steps,
-                         speed=args.speed, max_range=args.max_range, range_noise=args.range_noise, force=args.force)
+                         speed=args.speed, max_range=args.max_range, range_noise=args.range_noise, force=args.force,
+                         movers=args.movers)
     bar = None
     # The top-most folder of ROOT/sequences/SS that this run creates: removed again on failure.
     sequence_folder = Path(args.out) / "sequences" / args.sequence
