@@ -25,8 +25,9 @@ Why the two conditions:
 Rays: returns that fall into the same voxel share one ray, from the sensor to that voxel's
 centre, weighted by their number (the evidence sum of the voxel: one per labelled point);
 octomap's discretised insertion does the same. Each ray is walked voxel by voxel (the
-Amanatides-Woo traversal) through the window, which holds the whole segment: the window is
-a box around the sensor and every return used lies inside it.
+Amanatides-Woo traversal). Returns beyond the window (far, or above or below it) still say
+that the window's part of their ray is empty: they share rays by the boundary voxel where
+they leave the window, which those rays cross too.
 
 The compiled pass counts the rays on two cores without sharing a voxel (rays ending on either
 side of the sensor's x plane), then each core adds the counts of its own x planes into the map.
@@ -65,7 +66,7 @@ def ray_weights(features: np.ndarray) -> np.ndarray:
 
 def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndarray, offsets: np.ndarray,
                       tap_weights: np.ndarray, origin: np.ndarray, dims: np.ndarray, alpha: np.ndarray,
-                      mask: np.ndarray, counts: np.ndarray) -> int:
+                      mask: np.ndarray, counts: np.ndarray, through: np.ndarray | None = None) -> int:
     """Add one scan's free-space evidence into the torus window, in place; returns the number
     of voxels whose free concentration grew.
 
@@ -74,16 +75,47 @@ def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndar
     ``weights`` (M,) float32 rays each; ``offsets``/``tap_weights`` from ``free_taps``; the
     window as in ``update.scatter_update``: voxels with ``TOUCHED`` in ``mask`` received
     this scan's class evidence and take no free evidence; the bit is cleared here.
-    ``counts``: the scratch of ``scratch_counts``.
+    ``counts``: the scratch of ``scratch_counts``. ``through`` (M,) bool: rays whose return
+    lies beyond the window; they end in the window's boundary voxel ``occupied[m]``, which
+    they cross too (``window_exits``).
     """
     occupied = np.ascontiguousarray(occupied, np.int64)
+    through = np.zeros(len(occupied), np.bool_) if through is None else np.ascontiguousarray(through, np.bool_)
     origin = np.ascontiguousarray(origin, np.int64)
     dims = np.ascontiguousarray(dims, np.int64)
     sensor = np.ascontiguousarray(sensor, np.float64)
     if HAVE_NUMBA:
-        return int(_free_space_numba(sensor, occupied, np.ascontiguousarray(weights, np.float32), offsets,
+        return int(_free_space_numba(sensor, occupied, np.ascontiguousarray(weights, np.float32), through, offsets,
                                      tap_weights, origin, dims, alpha, mask, counts))
-    return _free_space_numpy(sensor, occupied, weights, offsets, tap_weights, origin, dims, alpha, mask)
+    return _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask)
+
+
+def window_exits(sensor: np.ndarray, points: np.ndarray, origin: np.ndarray,
+                 dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For returns beyond the window (``points`` (N, 3) in voxel units, finite; those inside
+    are skipped): the window voxels where their rays leave it, unique, with the number of
+    rays each."""
+    sensor = np.ascontiguousarray(sensor, np.float64)
+    origin = np.ascontiguousarray(origin, np.int64)
+    dims = np.ascontiguousarray(dims, np.int64)
+    if HAVE_NUMBA:
+        linear = _exit_linear_numba(np.ascontiguousarray(points, np.float64), sensor, origin, dims)
+    else:
+        linear = _exit_linear_numpy(np.asarray(points, np.float64), sensor, origin, dims)
+    linear, rays = np.unique(linear, return_counts=True)
+    local = np.stack(np.unravel_index(linear, tuple(int(d) for d in dims)), axis=1)
+    return local + origin, rays.astype(np.float32)
+
+
+def _exit_linear_numpy(points, sensor, origin, dims) -> np.ndarray:
+    outside = ((points < origin) | (points >= origin + dims)).any(axis=1)
+    direction = points[outside] - sensor
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = np.where(direction > 0, (origin + dims).astype(np.float64), origin.astype(np.float64))
+        leave = np.where(direction != 0, (bound - sensor) / direction, np.inf).min(axis=1)
+    exits = np.floor(sensor + direction * (leave[:, None] * (1 - 1e-9)))
+    local = np.clip(exits, origin, origin + dims - 1).astype(np.int64) - origin
+    return (local[:, 0] * dims[1] + local[:, 1]) * dims[2] + local[:, 2]
 
 
 def scratch_counts(dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -93,20 +125,21 @@ def scratch_counts(dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.zeros(shape, np.float32), np.zeros(shape[1:], np.float32)
 
 
-def crossed_voxels(start: np.ndarray, end_voxel: np.ndarray) -> list[tuple[int, int, int]]:
+def crossed_voxels(start: np.ndarray, end_voxel: np.ndarray, through: bool = False) -> list[tuple[int, int, int]]:
     """The voxels a ray from ``start`` (voxel units) to the centre of ``end_voxel`` passes
-    through, in order, the end voxel left out (the traversal the compiled pass runs)."""
+    through, in order, the end voxel left out unless ``through`` (the traversal the
+    compiled pass runs)."""
     crossed = []
-    _walk_ray(np.asarray(start, np.float64), np.asarray(end_voxel, np.int64), crossed.append)
+    _walk_ray(np.asarray(start, np.float64), np.asarray(end_voxel, np.int64), crossed.append, through)
     return crossed
 
 
-def _walk_ray(start, end_voxel, visit) -> None:
+def _walk_ray(start, end_voxel, visit, through=False) -> None:
     """Amanatides-Woo: step into the neighbour whose boundary the ray meets first."""
     end = end_voxel + 0.5
     direction = end - start
     voxel = np.floor(start).astype(np.int64)
-    steps = int(np.abs(end_voxel - voxel).sum())
+    steps = int(np.abs(end_voxel - voxel).sum()) + int(through)
     step = np.where(direction > 0, 1, -1)
     with np.errstate(divide="ignore", invalid="ignore"):
         delta = np.where(direction != 0, np.abs(1.0 / direction), np.inf)
@@ -119,7 +152,7 @@ def _walk_ray(start, end_voxel, visit) -> None:
         t_max[axis] += delta[axis]
 
 
-def _free_space_numpy(sensor, occupied, weights, offsets, tap_weights, origin, dims, alpha, mask) -> int:
+def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask) -> int:
     """The same pass in Python loops and numpy (the fallback without numba, and a reference)."""
     counts = np.zeros(tuple(int(d) for d in dims), np.float64)
 
@@ -127,7 +160,7 @@ def _free_space_numpy(sensor, occupied, weights, offsets, tap_weights, origin, d
         counts[tuple(np.mod(voxel, dims))] += weight
 
     for m in range(occupied.shape[0]):
-        _walk_ray(sensor, occupied[m], lambda voxel, w=float(weights[m]): count(np.array(voxel), w))
+        _walk_ray(sensor, occupied[m], lambda voxel, w=float(weights[m]): count(np.array(voxel), w), bool(through[m]))
     counts = counts.astype(np.float32)
     takes = (mask & EVIDENCE != 0) & (mask & TOUCHED == 0)
     physical = np.argwhere(takes)
@@ -149,16 +182,17 @@ def _free_space_numpy(sensor, occupied, weights, offsets, tap_weights, origin, d
 if HAVE_NUMBA:
 
     @njit(cache=True, nogil=True, inline="always")
-    def _count_ray(sensor, end_voxel, weight, dims, counts, shared_x, shared_plane):  # pragma: no cover
-        """Add ``weight`` to the count of every voxel the ray crosses before its end voxel; counts
-        of the physical x plane ``shared_x`` go to ``shared_plane`` (Y, Z) instead (-1: none)."""
+    def _count_ray(sensor, end_voxel, weight, through, dims, counts, shared_x, shared_plane):  # pragma: no cover
+        """Add ``weight`` to the count of every voxel the ray crosses before its end voxel (and
+        the end voxel too when ``through``); counts of the physical x plane ``shared_x`` go to
+        ``shared_plane`` (Y, Z) instead (-1: none)."""
         vx = np.int64(np.floor(sensor[0]))
         vy = np.int64(np.floor(sensor[1]))
         vz = np.int64(np.floor(sensor[2]))
         dx = end_voxel[0] + 0.5 - sensor[0]
         dy = end_voxel[1] + 0.5 - sensor[1]
         dz = end_voxel[2] + 0.5 - sensor[2]
-        steps = abs(end_voxel[0] - vx) + abs(end_voxel[1] - vy) + abs(end_voxel[2] - vz)
+        steps = abs(end_voxel[0] - vx) + abs(end_voxel[1] - vy) + abs(end_voxel[2] - vz) + (1 if through else 0)
         sx = 1 if dx > 0 else -1
         sy = 1 if dy > 0 else -1
         sz = 1 if dz > 0 else -1
@@ -202,7 +236,7 @@ if HAVE_NUMBA:
                     pz = dims[2] - 1
 
     @njit(cache=True, parallel=True, nogil=True)
-    def _count_rays(sensor, occupied, weights, dims, counts, shared_plane):  # pragma: no cover - compiled
+    def _count_rays(sensor, occupied, weights, through, dims, counts, shared_plane):  # pragma: no cover
         """Two threads, no shared voxel: rays that end at or beyond the sensor's x plane only
         visit planes on that side, the others only planes below it; the sensor's own plane,
         which both visit, is counted separately for the second group."""
@@ -210,7 +244,7 @@ if HAVE_NUMBA:
         for group in prange(2):
             for m in range(occupied.shape[0]):
                 if (occupied[m, 0] >= sensor_x) == (group == 0):
-                    _count_ray(sensor, occupied[m], weights[m], dims, counts,
+                    _count_ray(sensor, occupied[m], weights[m], through[m], dims, counts,
                                -1 if group == 0 else sensor_x % dims[0], shared_plane)
 
     @njit(cache=True, parallel=True, nogil=True)
@@ -267,9 +301,37 @@ if HAVE_NUMBA:
             counts[:] = 0.0
         return grew.sum()
 
-    def _free_space_numba(sensor, occupied, weights, offsets, tap_weights, origin, dims, alpha, mask, counts):
+    @njit(cache=True, nogil=True)
+    def _exit_linear_numba(points, sensor, origin, dims):  # pragma: no cover - compiled; tested against numpy
+        """Window-local linear index of the voxel where each outside point's ray leaves the window."""
+        out = np.empty(points.shape[0], np.int64)
+        count = 0
+        for i in range(points.shape[0]):
+            outside = False
+            for axis in range(3):
+                if points[i, axis] < origin[axis] or points[i, axis] >= origin[axis] + dims[axis]:
+                    outside = True
+            if not outside:
+                continue
+            leave = np.inf
+            for axis in range(3):
+                direction = points[i, axis] - sensor[axis]
+                if direction > 0:
+                    leave = min(leave, (origin[axis] + dims[axis] - sensor[axis]) / direction)
+                elif direction < 0:
+                    leave = min(leave, (origin[axis] - sensor[axis]) / direction)
+            local = np.empty(3, np.int64)
+            for axis in range(3):
+                position = np.floor(sensor[axis] + (points[i, axis] - sensor[axis]) * (leave * (1 - 1e-9)))
+                local[axis] = min(max(np.int64(position), origin[axis]), origin[axis] + dims[axis] - 1) - origin[axis]
+            out[count] = (local[0] * dims[1] + local[1]) * dims[2] + local[2]
+            count += 1
+        return out[:count]
+
+    def _free_space_numba(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
+                          counts):
         volume, shared_plane = counts
-        _count_rays(sensor, occupied, weights, dims, volume, shared_plane)
+        _count_rays(sensor, occupied, weights, through, dims, volume, shared_plane)
         sensor_x = int(np.floor(sensor[0])) % int(dims[0])
         parts = max(1, min(numba.get_num_threads(), int(dims[0])))
         return _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, volume, shared_plane, parts)

@@ -26,7 +26,14 @@ import numpy as np
 import torch
 
 from convbki_core.devices import resolve_device
-from convbki_core.free_space import FREE_CLASS, free_space_update, free_taps, ray_weights, scratch_counts
+from convbki_core.free_space import (
+    FREE_CLASS,
+    free_space_update,
+    free_taps,
+    ray_weights,
+    scratch_counts,
+    window_exits,
+)
 from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
 from convbki_core.io.map_file import MAP_FORMAT, MAP_VERSION, MapFileError, MapSnapshot, read_map
 from convbki_core.io.ply import write_voxels_ply
@@ -200,17 +207,29 @@ class ConvBKIMapper:
         updated = time.perf_counter()
         if self.free_space and volume.num_voxels:
             offsets, tap_weights = self._free_space_taps()
-            occupied = unravel_linear(volume.linear, volume.dims) + volume.origin
-            result.freed_voxels = free_space_update(pose[:3, 3] / self.resolution, occupied,
-                                                    ray_weights(volume.features), offsets, tap_weights, origin,
-                                                    self.geometry.dims, self.window.alpha, self.window.mask,
-                                                    self._free_counts)
+            ends, weights, through = self._free_space_rays(points, pose, volume)
+            result.freed_voxels = free_space_update(pose[:3, 3] / self.resolution, ends, weights, offsets,
+                                                    tap_weights, origin, self.geometry.dims, self.window.alpha,
+                                                    self.window.mask, self._free_counts, through)
         self.scans_integrated += 1
         finished = time.perf_counter()
         result.timing_ms = {"voxelize": 1e3 * (voxelized - started), "query": 1e3 * (moved - voxelized),
                             "update": 1e3 * (updated - moved), "free": 1e3 * (finished - updated),
                             "total": 1e3 * (finished - started)}
         return result
+
+    def _free_space_rays(self, points: np.ndarray, pose: np.ndarray,
+                         volume: SparseVolume) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The scan's rays: one per voxel holding returns (weighted by their evidence), and one
+        per window voxel where rays to returns beyond the window leave it."""
+        ends = unravel_linear(volume.linear, volume.dims) + volume.origin
+        weights = ray_weights(volume.features)
+        dropped = points[volume.point_linear < 0]
+        beyond = (dropped @ pose[:3, :3].T + pose[:3, 3]) / self.resolution
+        beyond = beyond[np.isfinite(beyond).all(axis=1)]
+        exits, rays = window_exits(pose[:3, 3] / self.resolution, beyond, volume.origin, volume.dims)
+        through = np.concatenate([np.zeros(len(ends), np.bool_), np.ones(len(exits), np.bool_)])
+        return np.concatenate([ends, exits]), np.concatenate([weights, rays]), through
 
     def _refresh_filters(self) -> None:
         """The kernel's filters prepared for the scatter and the free-space pass, rebuilt only

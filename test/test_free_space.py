@@ -39,7 +39,7 @@ def segment_crosses_box(start: np.ndarray, end: np.ndarray, low: np.ndarray) -> 
     return t_exit - t_enter > 1e-9
 
 
-def brute_force_crossed(start: np.ndarray, end_voxel: np.ndarray) -> set[tuple[int, int, int]]:
+def brute_force_crossed(start: np.ndarray, end_voxel: np.ndarray, through: bool = False) -> set[tuple[int, int, int]]:
     end = end_voxel + 0.5
     low = np.floor(np.minimum(start, end)).astype(int)
     high = np.floor(np.maximum(start, end)).astype(int)
@@ -48,9 +48,25 @@ def brute_force_crossed(start: np.ndarray, end_voxel: np.ndarray) -> set[tuple[i
         for y in range(low[1], high[1] + 1):
             for z in range(low[2], high[2] + 1):
                 voxel = np.array([x, y, z])
-                if not (voxel == end_voxel).all() and segment_crosses_box(start, end, voxel):
+                if (through or not (voxel == end_voxel).all()) and segment_crosses_box(start, end, voxel):
                     crossed.add((x, y, z))
+    if through:
+        crossed.add(tuple(int(v) for v in end_voxel))
     return crossed
+
+
+def exit_voxel(start: np.ndarray, point: np.ndarray, origin: np.ndarray, dims: np.ndarray) -> tuple[int, ...]:
+    """The window voxel where the segment start -> point (point outside) leaves the window,
+    found by bisection on the segment."""
+    inside, outside = 0.0, 1.0
+    for _ in range(60):
+        middle = (inside + outside) / 2
+        position = start + middle * (point - start)
+        if ((position >= origin) & (position < origin + dims)).all():
+            inside = middle
+        else:
+            outside = middle
+    return tuple(int(v) for v in np.floor(start + inside * (point - start)))
 
 
 def test_the_traversal_visits_exactly_the_voxels_a_ray_passes_through():
@@ -58,12 +74,13 @@ def test_the_traversal_visits_exactly_the_voxels_a_ray_passes_through():
     for _ in range(300):
         start = rng.uniform(-8, 8, 3)
         end_voxel = rng.integers(-12, 12, 3)
-        walked = crossed_voxels(start, end_voxel)
+        through = bool(rng.random() < 0.5)
+        walked = crossed_voxels(start, end_voxel, through)
         assert len(walked) == len(set(walked))  # each voxel once
-        assert set(walked) == brute_force_crossed(start, end_voxel)
+        assert set(walked) == brute_force_crossed(start, end_voxel, through)
         if walked:  # a connected path from the sensor's voxel
             assert walked[0] == tuple(np.floor(start).astype(int))
-            steps = np.abs(np.diff(np.array(walked + [tuple(end_voxel)]), axis=0)).sum(axis=1)
+            steps = np.abs(np.diff(np.array(walked + ([] if through else [tuple(end_voxel)])), axis=0)).sum(axis=1)
             assert (steps == 1).all()
 
 
@@ -75,6 +92,7 @@ def test_the_compiled_pass_equals_the_numpy_pass():
         sensor = rng.uniform(origin + 2, origin + dims - 2)
         occupied = np.unique(rng.integers(origin, origin + dims, size=(250, 3)), axis=0)
         weights = rng.integers(1, 5, len(occupied)).astype(np.float32)
+        through = rng.random(len(occupied)) < 0.3
         alpha = rng.uniform(1e-3, 2, (3, *dims)).astype(np.float32)
         mask = (rng.random(tuple(dims)) < 0.4).astype(np.uint8)
         mask[(rng.random(tuple(dims)) < 0.2) & (mask == 1)] |= 4
@@ -86,8 +104,9 @@ def test_the_compiled_pass_equals_the_numpy_pass():
         compiled_alpha, compiled_mask = alpha.copy(), mask.copy()
         counts = scratch_counts(dims)
         grew = free_space_update(sensor, occupied, weights, offsets, tap_weights, origin, dims, compiled_alpha,
-                                 compiled_mask, counts)
-        assert grew == _free_space_numpy(sensor, occupied, weights, offsets, tap_weights, origin, dims, alpha, mask)
+                                 compiled_mask, counts, through)
+        assert grew == _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha,
+                                         mask)
         assert grew > 0
         np.testing.assert_allclose(compiled_alpha, alpha, rtol=1e-6)
         assert (compiled_mask == mask).all() and not (mask & 4).any()
@@ -107,8 +126,9 @@ def random_pose(rng: np.random.Generator, position: np.ndarray) -> np.ndarray:
 
 def brute_force_free_evidence(points, labels, pose, mapper, stored, touched, free_ell):
     """The free evidence one scan adds: rays from the sensor to each used voxel's centre (one
-    per point), counted exactly per crossed voxel, spread by the free kernel, at the stored
-    voxels the scan's class evidence did not reach."""
+    per point), and through the window to the voxel where the rays to returns beyond it leave
+    it, counted exactly per crossed voxel, spread by the free kernel, at the stored voxels
+    the scan's class evidence did not reach."""
     resolution = mapper.resolution
     world = points @ pose[:3, :3].T + pose[:3, 3]
     voxels = np.floor(world / resolution).astype(np.int64)
@@ -116,9 +136,15 @@ def brute_force_free_evidence(points, labels, pose, mapper, stored, touched, fre
     inside = ((voxels >= origin) & (voxels < origin + dims)).all(axis=1) & (labels != 0)
     ends, rays = np.unique(voxels[inside], axis=0, return_counts=True)
     sensor = pose[:3, 3] / resolution
+    beyond = world[~((voxels >= origin) & (voxels < origin + dims)).all(axis=1)] / resolution
+    exits: dict[tuple, int] = {}
+    for point in beyond:
+        key = exit_voxel(sensor, point, origin, dims)
+        exits[key] = exits.get(key, 0) + 1
     counts: dict[tuple, float] = {}
-    for end, weight in zip(ends, rays):
-        for voxel in brute_force_crossed(sensor, end):
+    for end, weight, through in [(e, w, False) for e, w in zip(ends, rays)] + [
+            (np.array(k), w, True) for k, w in exits.items()]:
+        for voxel in brute_force_crossed(sensor, end, through):
             counts[voxel] = counts.get(voxel, 0.0) + float(weight)
     half = mapper.kernel.filter_size // 2
     offsets = [np.array(index) - half for index in np.ndindex(2 * half + 1, 2 * half + 1, 2 * half + 1)]
@@ -151,6 +177,9 @@ def test_free_evidence_equals_a_ray_by_ray_reference(tmp_path, free_ell):
         # A few small clusters, so that later rays cross voxels this scan's evidence does not reach.
         clusters = rng.uniform(-3.5, 3.5, (6, 3)) * [1, 1, 0.5]
         points = clusters[rng.integers(0, 6, 400)] + rng.normal(0, 0.15, (400, 3))
+        # and returns beyond the window, whose rays still cross it
+        far = rng.normal(0, 1, (60, 3))
+        points[-60:] = far / np.linalg.norm(far, axis=1, keepdims=True) * rng.uniform(5, 9, (60, 1))
         labels = rng.integers(0, 20, 400)
         labels[:40] = 0  # ignored points cast no ray
         path = tmp_path / f"before_{scan}.npz"
@@ -269,3 +298,20 @@ def test_a_pole_seen_from_all_sides_stays_a_pole():
     _, free_labels = map_labels(mapper)
     _, plain_labels = map_labels(plain)
     assert np.count_nonzero(free_labels == POLE) >= 0.9 * np.count_nonzero(plain_labels == POLE)
+
+
+def test_window_exits_compiled_equals_numpy_and_lie_on_the_boundary():
+    from convbki_core.free_space import _exit_linear_numba, _exit_linear_numpy, window_exits
+
+    rng = np.random.default_rng(4)
+    origin, dims, sensor = np.array([-10, -12, -5]), np.array([20, 24, 10]), np.array([0.3, -0.2, 0.1])
+    points = rng.uniform(-40, 40, (3000, 3))
+    compiled = _exit_linear_numba(points, sensor, origin, dims)
+    assert (compiled == _exit_linear_numpy(points, sensor, origin, dims)).all()
+    exits, rays = window_exits(sensor, points, origin, dims)
+    outside = ((points < origin) | (points >= origin + dims)).any(axis=1)
+    assert rays.sum() == outside.sum() == len(compiled)
+    on_boundary = ((exits == origin) | (exits == origin + dims - 1)).any(axis=1)
+    assert on_boundary.all()
+    for point in points[outside][:200]:  # each ray leaves through the voxel the bisection finds
+        assert exit_voxel(sensor, point, origin, dims) in {tuple(e) for e in exits}

@@ -34,6 +34,8 @@ from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.paths import config_dir, kernel_path
 from convbki_core.tools.cli import UserError, positive, run
+from convbki_core.tools.synth import read_synth_record
+from convbki_core.trails import SweptSpace
 from convbki_core.volume import transform_points
 
 PROG = "demo"
@@ -56,9 +58,11 @@ def run_module(module: str, *args: str) -> None:
 
 
 def score_final_map(map_file: Path, dataset: SemanticKittiSequence) -> dict:
-    """Input and final-map scores over every point of the drive (points without map evidence keep the input label)."""
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), device="cpu")
+    """Input and final-map scores over every point of the drive (points without map evidence keep the input
+    label), and the map's trail voxels where the ground truth marks moving objects."""
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), device="cpu", free_space=True)
     mapper.load(map_file)
+    swept = SweptSpace(mapper.resolution)
     label_map = dataset.label_map
     input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
     map_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
@@ -67,8 +71,13 @@ def score_final_map(map_file: Path, dataset: SemanticKittiSequence) -> dict:
         labels, has_evidence = mapper.labels_at(points_map, within_window=False)
         input_scores.add(frame.ground_truth, frame.input_labels)
         map_scores.add(frame.ground_truth, np.where(has_evidence, labels, frame.input_labels))
+        if frame.moving is not None:
+            swept.add(points_map, frame.moving)
+    voxels = mapper.voxels()
+    trails = swept.trail_voxels(voxels.indices, voxels.label, label_map.movable_classes)
     return {"input": input_scores.summary(label_map.class_names), "map": map_scores.summary(label_map.class_names),
-            "voxels": len(mapper), "mapper": mapper}
+            "voxels": int(np.count_nonzero(voxels.label != 0)), "trail_voxels": trails,
+            "moving_points": swept.moving_points, "mapper": mapper}
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -83,10 +92,13 @@ def _demo(args: argparse.Namespace) -> int:
         root, sequence = Path(args.dataset), args.sequence
     else:
         root, sequence = out / "data", "00"
-        if not (root / "sequences" / sequence / "poses.txt").exists():
-            _step(f"1/5 synthetic drive: {args.frames} scans -> {root} (about 2 s a scan)")
+        record = read_synth_record(root / "sequences" / sequence) or {}
+        wanted = (args.seed, args.frames, args.movers)
+        written = (record.get("seed"), record.get("frames"), (record.get("movers") or {}).get("requested", 0))
+        if written != wanted or not (root / "sequences" / sequence / "poses.txt").exists():
+            _step(f"1/5 synthetic drive: {args.frames} scans -> {root}")
             run_module("convbki_core.tools.synth", "--out", str(root), "--sequence", sequence, "--frames",
-                        str(args.frames), "--seed", str(args.seed), "--force")
+                        str(args.frames), "--seed", str(args.seed), "--movers", str(args.movers), "--force")
         else:
             _step(f"1/5 synthetic drive: reusing {root / 'sequences' / sequence}")
     dataset = SemanticKittiSequence(root, sequence)
@@ -145,11 +157,13 @@ def _demo(args: argparse.Namespace) -> int:
     save_map_picture(scores.pop("mapper").voxels(), dataset.label_map, 0.2, picture, title)
     summary = {"scans": len(dataset), "integrated": counters[1], "dropped": counters[2], "voxels": scores["voxels"],
                "input_miou": scores["input"]["miou"], "map_miou": scores["map"]["miou"],
+               "moving_points": scores["moving_points"], "trail_voxels": scores["trail_voxels"],
                "iou": {"input": scores["input"]["iou"], "map": scores["map"]["iou"]},
                "seconds": round(time.monotonic() - started, 1)}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print()
-    print(f"  scans {len(dataset)}: integrated {counters[1]}, dropped {counters[2]}; map voxels {scores['voxels']:,}")
+    print(f"  scans {len(dataset)}: integrated {counters[1]}, dropped {counters[2]}; map voxels {scores['voxels']:,}; "
+          f"trail voxels {scores['trail_voxels']:,} ({scores['moving_points']:,} moving points in the drive)")
     print(f"  {'class':<14}{'input IoU':>10}{'map IoU':>10}")
     for name, value in scores["input"]["iou"].items():
         print(f"  {name:<14}{100 * value:>10.1f}{100 * scores['map']['iou'][name]:>10.1f}")
@@ -230,6 +244,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=positive(int, "frames"), default=150,
                    help="scans of the synthetic drive (default: %(default)s)")
     p.add_argument("--seed", type=int, default=11, help="seed of the synthetic drive (default: %(default)s)")
+    p.add_argument("--movers", type=int, default=12,
+                   help="moving road users (cars, trucks, cyclists, pedestrians) in the synthetic drive "
+                   "(default: %(default)s)")
     p.add_argument("--rate", type=positive(float, "rate"), default=1.0,
                    help="bag replay rate (default: %(default)s = real time)")
     p.add_argument("--dataset", default=None, metavar="ROOT",
