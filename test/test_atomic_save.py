@@ -1,11 +1,18 @@
-"""Map saves survive kill -9 at any moment, and broken map files are refused with a reason.
+"""Map saves survive kill -9 at any point of a save, and broken map files are refused with a reason.
 
 The kill test runs a real writer: a process that builds a ConvBKIMapper holding a map of
-a few hundred thousand voxels and saves it to one path over and over, each save a new,
-recognisable version (``scans_integrated`` = version, and a block of marker voxels whose
-every concentration equals the version). To avoid paying the torch import for every kill,
-the writer forks a child per round and the child does the saving; the test SIGKILLs the
-child at a random moment, then checks the file on disk.
+tens of thousands of voxels and saves it to one path, each save a new, recognisable
+version (``scans_integrated`` = version, and a block of marker voxels whose every
+concentration equals the version). To avoid paying the torch import for every kill, the
+writer forks a child per round and the child does the saving.
+
+Kills land at chosen points, not at random moments: the child's file operations are
+instrumented (the temporary file's creation, each write to it, the fsyncs, the rename),
+and when the child reaches the point the test chose for the round it says so and stops
+itself (SIGSTOP); the test then checks the files on disk and SIGKILLs it. So every
+phase of a save is killed on every run, whatever the machine's speed, and what the file
+must hold afterwards is known exactly: the previous version before the rename, the new
+one from the rename on.
 """
 
 from __future__ import annotations
@@ -13,7 +20,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import random
 import selectors
 import signal
 import subprocess
@@ -32,49 +38,93 @@ from convbki_core.io.atomic import atomic_write_bytes, remove_stale_temp_files, 
 from convbki_core.io.map_file import MAP_VERSION, read_map
 
 REPO = Path(__file__).resolve().parents[1]
-KILLS = 25
 MARKERS = 2000  # voxels whose concentrations carry the version number
+GRID = (300, 12, 20)  # the map: a 60 m x 2.4 m x 4 m slab of 0.2 m voxels (72,000 voxels)
 
 # The writer process. Versions: 0 written before the first fork; round r's child writes
-# r * 1000 + 1, + 2, ... until killed. Lines on stdout: "ready SECONDS" (one save's time),
-# "child PID", "start V", "done V", "dead PID". Both write whole lines with os.write
-# (unbuffered, one write a line, so lines never interleave), and every line the child wrote
-# is in the pipe before the parent reports its death.
+# r * 1000 + 1, + 2, ... until it reaches the round's kill point. Points of a save, in order:
+# "start" (nothing done yet), "open" (temporary file created, empty), "write" (after each write
+# to it), "fsync" (1: the temporary file's, before the rename; 2: the folder's, after it),
+# "replace" (just before the rename), "replaced" (just after it). Lines on stdout: "ready WRITES"
+# (writes of one save), "child PID", "at PHASE COUNT VERSION" (the child stopped there), "done V",
+# "dead PID". Both write whole lines with os.write (unbuffered, one write a line, so lines never
+# interleave), and every line the child wrote is in the pipe before the parent reports its death.
 WRITER = r"""
-import os, sys, time
+import os, signal, sys
 import numpy as np
-from convbki_core.kernels import KernelConfig
-from convbki_core.mapper import ConvBKIMapper
+from convbki_core import ConvBKIMapper, KernelConfig
+import convbki_core.io.atomic as atomic
 
-path, markers = sys.argv[1], int(sys.argv[2])
+path, markers, grid_shape = sys.argv[1], int(sys.argv[2]), [int(v) for v in sys.argv[3].split(",")]
 config = KernelConfig("single", 0.2, 3, 20, ell=[0.3])
 mapper = ConvBKIMapper(config, local_bounds=((-2, -2, -1), (2, 2, 1)), device="cpu")
-# A realistic map: a 240 m x 60 m x 4 m slab of 0.2 m voxels (~ 300k voxels), random concentrations.
-grid = np.stack(np.meshgrid(np.arange(1200), np.arange(12), np.arange(20), indexing="ij"), -1).reshape(-1, 3)
+grid = np.stack(np.meshgrid(*(np.arange(n) for n in grid_shape), indexing="ij"), -1).reshape(-1, 3)
 rng = np.random.default_rng(0)
-alpha = rng.random((len(grid), 20), dtype=np.float32) + 0.001
-mapper.store.write(grid, alpha)
+mapper.store.write(grid, rng.random((len(grid), 20), dtype=np.float32) + 0.001)
 marker_index = grid[:markers]
+target, counts, state = None, {}, {"save": 0, "version": 0}
+
+def point(phase):
+    counts[phase] = counts.get(phase, 0) + 1
+    if target == (phase, state["save"], counts[phase]):
+        os.write(1, f"at {phase} {counts[phase]} {state['version']}\n".encode())
+        os.kill(os.getpid(), signal.SIGSTOP)  # the test kills it here
+
+class Watched:
+    def __init__(self, handle):
+        self.handle = handle
+    def __getattr__(self, name):
+        return getattr(self.handle, name)
+    def __enter__(self):
+        self.handle.__enter__()
+        return self
+    def __exit__(self, *exc):
+        return self.handle.__exit__(*exc)
+    def write(self, data):
+        written = self.handle.write(data)
+        point("write")
+        return written
+
+real_temporary, real_fsync, real_replace = atomic.tempfile.NamedTemporaryFile, os.fsync, os.replace
+
+def temporary(*args, **kwargs):
+    handle = real_temporary(*args, **kwargs)
+    point("open")
+    return Watched(handle)
+
+def fsync(descriptor):
+    point("fsync")
+    real_fsync(descriptor)
+
+def replace(source, destination):
+    point("replace")
+    real_replace(source, destination)
+    point("replaced")
+
+atomic.tempfile.NamedTemporaryFile, os.fsync, os.replace = temporary, fsync, replace
 
 def save(version):
+    counts.clear()
+    state["save"] += 1
+    state["version"] = version
+    point("start")
     mapper.store.write(marker_index, np.full((markers, 20), float(version), np.float32))
     mapper.scans_integrated = version
     mapper.save(path)
 
-started = time.perf_counter()
 save(0)
-os.write(1, f"ready {time.perf_counter() - started:.4f}\n".encode())
+os.write(1, f"ready {counts['write']}\n".encode())
 for line in sys.stdin:
-    command, _, argument = line.strip().partition(" ")
+    command, *argument = line.split()
     if command != "fork":
         break
-    round_number = int(argument)
+    round_number, phase, save_number, count = int(argument[0]), argument[1], int(argument[2]), int(argument[3])
     pid = os.fork()
     if pid == 0:
+        target, state["save"] = (phase, save_number, count), 0
         version = round_number * 1000
         while True:
             version += 1
-            os.write(1, f"start {version}\n".encode())
             save(version)
             os.write(1, f"done {version}\n".encode())
     os.write(1, f"child {pid}\n".encode())
@@ -92,7 +142,7 @@ class LineReader:
         self.selector.register(stream, selectors.EVENT_READ)
         self.buffer = b""
 
-    def line(self, timeout: float = 60.0) -> str:
+    def line(self, timeout: float = 120.0) -> str:
         deadline = time.monotonic() + timeout
         while b"\n" not in self.buffer:
             left = deadline - time.monotonic()
@@ -112,64 +162,73 @@ def sorted_map(path: Path) -> tuple[int, np.ndarray, np.ndarray]:
     return metadata["scans_integrated"], indices[order], alpha[order]
 
 
-def test_map_save_survives_kill_9_at_random_moments(tmp_path):
+def kill_points(writes: int) -> list[tuple[str, int, int]]:
+    """(phase, save of the child, occurrence in that save) of every round's kill."""
+    return [("start", 2, 1), ("open", 1, 1), ("write", 1, 1), ("write", 2, max(1, writes // 2)),
+            ("write", 1, writes), ("fsync", 2, 1), ("replace", 1, 1), ("replaced", 1, 1), ("fsync", 2, 2),
+            ("start", 3, 1), ("write", 2, 2)]  # the last one leaves a staging file behind
+
+
+BEFORE_RENAME = {"open", "write", "replace"}  # and fsync 1
+
+
+def test_map_save_survives_kill_9_at_every_point_of_a_save(tmp_path):
     path = tmp_path / "map.npz"
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
                # One thread for torch/OpenMP/numba: the writer forks, and a thread pool does not survive fork.
                OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
-    writer = subprocess.Popen([sys.executable, "-c", WRITER, str(path), str(MARKERS)], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, env=env, cwd=tmp_path)
-    rng = random.Random(1234)
+    writer = subprocess.Popen([sys.executable, "-c", WRITER, str(path), str(MARKERS), ",".join(map(str, GRID))],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, cwd=tmp_path)
     try:
         reader = LineReader(writer.stdout)
         ready = reader.line(timeout=180)
         assert ready.startswith("ready "), ready
-        save_seconds = float(ready.split()[1])
+        writes = int(ready.split()[1])
+        assert writes >= 3, "a save writes its file in several pieces, so a kill can land between them"
         version, reference_index, reference_alpha = sorted_map(path)
-        assert version == 0 and len(reference_index) == 1200 * 12 * 20
+        assert version == 0 and len(reference_index) == int(np.prod(GRID))
         marker = np.zeros(len(reference_index), bool)
         marker[:MARKERS] = True  # the grid's first rows are also first in sorted order
-        last_done, killed_mid_write, versions_seen, children = 0, 0, {0}, set()
-        for round_number in range(1, KILLS + 1):
-            writer.stdin.write(f"fork {round_number}\n".encode())
+        last_done = 0
+        for round_number, (phase, save_number, count) in enumerate(kill_points(writes), start=1):
+            writer.stdin.write(f"fork {round_number} {phase} {save_number} {count}\n".encode())
             writer.stdin.flush()
-            last_started = last_done
-            child = None
-
-            def follow(line: str) -> None:
-                nonlocal last_started, last_done
-                kind, number = line.split()
-                if kind == "start":
-                    last_started = int(number)
+            child, stopped_at = None, None
+            while stopped_at is None:
+                kind, *rest = reader.line().split()
+                if kind == "child":
+                    child = int(rest[0])
                 elif kind == "done":
-                    last_done = int(number)
+                    last_done = int(rest[0])
                 else:
-                    raise AssertionError(line)
+                    assert kind == "at", kind
+                    stopped_at = (rest[0], int(rest[1]), int(rest[2]))
+            if child is None:  # the child may speak before its parent names it
+                kind, pid = reader.line().split()
+                assert kind == "child", kind
+                child = int(pid)
+            this_version = round_number * 1000 + save_number
+            assert stopped_at == (phase, count, this_version)
+            if save_number > 1:  # the child's earlier saves completed
+                assert last_done == this_version - 1
 
-            while not (line := reader.line()).startswith("child "):
-                follow(line)  # the child may speak before its parent names it
-            child = int(line.split()[1])
-            children.add(child)
-            # Anywhere in the first ~3 saves, so kills land in every phase of a save.
-            time.sleep(rng.uniform(0.0, 3.0 * save_seconds))
-            live_temp = [p for p in temp_files(path) if f".{child}." in p.name]
+            # What is on disk at the kill: the child's staging file exists exactly while it writes.
+            staging = [p for p in temp_files(path) if f".{child}." in p.name]
+            renamed = phase == "replaced" or (phase == "fsync" and count == 2)
+            mid_save = phase in BEFORE_RENAME or (phase == "fsync" and count == 1)
+            assert len(staging) == (1 if mid_save else 0), (phase, count, staging)
             os.kill(child, signal.SIGKILL)
-            while (line := reader.line()) != f"dead {child}":
-                follow(line)
-            left = temp_files(path)
-            # Stale files never pile up: every save first removes the temporary files of dead
-            # writers, so at most one remains, that of the last child killed after it created
-            # its file (this one, or an earlier one when the later children died before saving).
-            assert len(left) <= 1 and all(int(p.name.split(".")[3]) in children for p in left), left
-            killed_mid_write += bool(left and live_temp)
+            assert reader.line() == f"dead {child}"
 
+            # Stale files never pile up: a save first removes the temporary files of dead writers
+            # (the earlier rounds'), so only the staging file of the child just killed is left.
+            assert temp_files(path) == staging
             version, index, alpha = sorted_map(path)  # the file must load after every kill
-            assert version in {last_done, last_started}, (version, last_done, last_started)
+            assert version == (this_version if renamed else last_done), (phase, count, version)
             np.testing.assert_array_equal(index, reference_index)
             assert (alpha[marker] == float(version)).all()
             np.testing.assert_array_equal(alpha[~marker], reference_alpha[~marker])
             last_done = version
-            versions_seen.add(version)
         writer.stdin.write(b"quit\n")
         writer.stdin.flush()
         assert writer.wait(timeout=60) == 0
@@ -177,14 +236,9 @@ def test_map_save_survives_kill_9_at_random_moments(tmp_path):
         if writer.poll() is None:
             writer.kill()
             writer.wait()
-    # Some kills hit a save after its temporary file existed and before its rename (else the
-    # test proved nothing), and saves did complete between kills.
-    print(f"save {save_seconds:.3f} s, {killed_mid_write} of {KILLS} kills mid-write, versions {sorted(versions_seen)}")
-    assert killed_mid_write >= 3, killed_mid_write
-    assert len(versions_seen) >= 3, versions_seen  # low bar: a loaded CI machine saves slowly
-    # A writer killed mid-save leaves its temporary file; the next save of the file removes it.
-    stale = temp_files(path)
-    assert len(stale) <= 1 and remove_stale_temp_files(path) == len(stale)
+    # The last writer, killed mid-save, left its temporary file; removing stale files removes it.
+    assert len(temp_files(path)) == 1
+    assert remove_stale_temp_files(path) == 1
     assert temp_files(path) == []
 
 

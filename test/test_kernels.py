@@ -1,6 +1,7 @@
 """The sparse kernel and the filters built from it (paper Eqs. 5-7)."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,16 +11,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 from reference import sparse_kernel_np
 
-from convbki_core.kernels import (
-    ConvBKIKernel,
-    KernelConfig,
+from convbki_core import ConvBKIKernel, KernelConfig
+from convbki_core.io.kernel_file import (
     KernelFileError,
     kernel_config_from_dict,
+    kernel_config_to_dict,
     load_kernel_file,
     save_kernel_file,
-    sparse_kernel,
-    tap_offsets,
 )
+from convbki_core.kernels import sparse_kernel, tap_offsets
 from convbki_core.paths import kernel_path
 
 lengths = st.floats(min_value=0.01, max_value=5.0, allow_nan=False)
@@ -96,7 +96,8 @@ def test_gradients_reach_every_length(kind, seed):
     kernel = random_kernel(kind, 6, 5, 0.2, rng, low=0.25, high=1.2)  # every length spans > 1 voxel
     weights = torch.from_numpy(rng.uniform(0.5, 1.5, (6, 1, 5, 5, 5))).float()
     (kernel.filters() * weights).sum().backward()
-    for name, parameter in kernel.named_parameters():
+    for name in ("ell_h", "ell_z") if kind == "compound" else ("ell",):  # the class lengths the filters use
+        parameter = getattr(kernel, name)
         assert parameter.grad is not None, name
         assert torch.isfinite(parameter.grad).all(), name
         assert torch.all(parameter.grad.abs() > 0), f"some {name} got no gradient: {parameter.grad}"
@@ -130,29 +131,29 @@ def test_kernel_file_round_trip(tmp_path, kind):
     assert not list(tmp_path.glob(".*tmp")), "no temporary file may be left behind"
 
 
-def test_shipped_kernels_hold_the_published_lengths():
-    published = {  # the published SemanticKITTI values (shared/reference/convbki_semantickitti_kernels.yaml)
-        "compound_h_road": 0.677, "compound_z_road": 0.301, "compound_h_pole": 0.325, "compound_z_pole": 0.968,
-        "per_class_car": 0.388, "single": 0.664, "sbki": 0.3}
-    compound = load_kernel_file(kernel_path("semantic_kitti_compound"))
-    assert compound.kernel == "compound" and compound.filter_size == 5 and compound.resolution == 0.2
-    assert compound.ell_h[9] == published["compound_h_road"] and compound.ell_z[9] == published["compound_z_road"]
-    assert compound.ell_h[18] == published["compound_h_pole"] and compound.ell_z[18] == published["compound_z_pole"]
-    assert load_kernel_file(kernel_path("semantic_kitti_per_class")).ell[1] == published["per_class_car"]
-    assert load_kernel_file(kernel_path("semantic_kitti_single")).ell == [published["single"]]
-    sbki = load_kernel_file(kernel_path("semantic_kitti_sbki"))
-    assert sbki.kernel == "single" and sbki.ell == [published["sbki"]]
+PUBLISHED = yaml.safe_load((Path(__file__).resolve().parent / "data" / "published_kernel_lengths.yaml").read_text())
 
 
-def test_shipped_kernels_match_reference_file():
-    from pathlib import Path
+@pytest.mark.parametrize("kind", ["single", "per_class", "compound"])
+def test_shipped_kernels_hold_the_published_lengths(kind):
+    """Every length of each shipped SemanticKITTI kernel equals the published value
+    (test/data/published_kernel_lengths.yaml: 20 classes, 0.2 m, f = 5)."""
+    config = load_kernel_file(kernel_path(f"semantic_kitti_{kind}"))
+    assert (config.kernel, config.num_classes, config.resolution, config.filter_size) == (kind, 20, 0.2, 5)
+    published = PUBLISHED[kind]
+    names = ("ell_h", "ell_z") if kind == "compound" else ("ell",)
+    assert set(published) == set(names)
+    for name in names:
+        expected = published[name] if isinstance(published[name], list) else [published[name]]
+        assert len(expected) == (1 if kind == "single" else 20)
+        assert getattr(config, name) == expected, name
 
-    reference = Path(__file__).resolve().parent / "data" / "published_kernel_lengths.yaml"
-    published = yaml.safe_load(reference.read_text())
-    compound = load_kernel_file(kernel_path("semantic_kitti_compound"))
-    assert compound.ell_h == published["compound"]["ell_h"] and compound.ell_z == published["compound"]["ell_z"]
-    assert load_kernel_file(kernel_path("semantic_kitti_per_class")).ell == published["per_class"]["ell"]
-    assert load_kernel_file(kernel_path("semantic_kitti_single")).ell == [published["single"]["ell"]]
+
+def test_shipped_sbki_kernel_is_the_untrained_baseline():
+    """S-BKI: one 0.3 m length for every class, on the same grid as the trained kernels."""
+    config = load_kernel_file(kernel_path("semantic_kitti_sbki"))
+    assert (config.kernel, config.num_classes, config.resolution, config.filter_size) == ("single", 20, 0.2, 5)
+    assert config.ell == [0.3]
 
 
 @pytest.mark.parametrize("change, message", [
@@ -188,7 +189,5 @@ def test_unreadable_kernel_file_names_the_file(tmp_path):
 
 def test_config_round_trip_is_exact():
     config = KernelConfig("compound", 0.2, 5, 3, ell_h=[0.3, 0.4, 0.5], ell_z=[0.6, 0.7, 0.8])
-    from convbki_core.kernels import kernel_config_to_dict
-
     assert kernel_config_from_dict(kernel_config_to_dict(config)) == config
     assert math.isclose(ConvBKIKernel.from_config(config).to_config().ell_h[1], 0.4, rel_tol=1e-6)

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.package
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "convbki_ros"
 
-# INTERFACE.md section 2: exe -> (module, flags its --help must explain).
+# Every executable the package installs: exe -> (module, flags its --help must explain).
 EXECUTABLES: dict[str, tuple[str, tuple[str, ...]]] = {
     "mapper": ("convbki_ros.mapper", ("--ros-args", "--params-file")),
     "kitti_to_bag": ("convbki_ros.tools.kitti_to_bag", (
@@ -45,15 +45,11 @@ EXECUTABLES: dict[str, tuple[str, tuple[str, ...]]] = {
         "--publication-mode")),
 }
 
-# The contract's parameters of the mapper node, with the paper's defaults (the kernel file
-# holds resolution, filter_size and num_classes).
-PAPER_DEFAULTS = {
-    "kernel_file": "", "num_classes": 20, "resolution": 0.2, "filter_size": 5,
-    "local_bounds": [-40.0, -40.0, -2.6, 40.0, 40.0, 2.6], "prior": 0.001,
-    "label_space": "raw", "map_frame": "", "max_variance": 0.0, "publish_period": 1.0,
-    "device": "auto", "update_path": "auto", "input_qos": "reliable", "map_file": "", "autosave_period": 0.0,
-}
-KERNEL_DECIDES = ("num_classes", "resolution", "filter_size")
+# The paper's SemanticKITTI set-up: the window around the sensor, and the grid (which the
+# kernel file decides; the shipped kernels are trained for it). The node's other defaults are
+# checked against its declarations (convbki_ros.params), not repeated here.
+PAPER_WINDOW = [-40.0, -40.0, -2.6, 40.0, 40.0, 2.6]
+PAPER_GRID = {"num_classes": 20, "resolution": 0.2, "filter_size": 5}
 
 # Arguments that parse (used with a bad flag added).
 VALID_ARGS = {
@@ -201,8 +197,10 @@ def test_installed_executable_help(exe: str, ros_env: dict[str, str], tmp_path: 
     for flag in EXECUTABLES[exe][1]:
         assert flag in result.stdout, f"{exe} --help does not mention {flag}"
     if exe == "mapper":
-        for name in [*PAPER_DEFAULTS, "base_to_sensor"]:
-            assert name in result.stdout, f"mapper --help does not explain parameter {name}"
+        from convbki_ros.params import PARAMETERS
+
+        for spec in PARAMETERS:
+            assert spec.name in result.stdout, f"mapper --help does not explain parameter {spec.name}"
 
 
 @pytest.mark.parametrize("exe", sorted(EXECUTABLES))
@@ -278,7 +276,7 @@ def test_mapper_params_file_documents_every_declared_parameter() -> None:
     params = yaml.safe_load(text)["/**"]["ros__parameters"]
     declared = {spec.name: spec.default for spec in PARAMETERS}
     left_unset = {name for name, default in declared.items() if default is NOT_SET} | set(DECIDED)
-    assert set(DECIDED) == set(KERNEL_DECIDES)
+    assert set(DECIDED) == set(PAPER_GRID)
     assert set(params) == set(declared) - left_unset
     for name in left_unset:
         assert f"# {name}: " in text, f"config/mapper.yaml does not document {name}"
@@ -289,20 +287,26 @@ def test_mapper_params_file_documents_every_declared_parameter() -> None:
 
 
 def test_mapper_defaults_are_the_papers() -> None:
-    from convbki_core.kernels import load_kernel_file
-    from convbki_core.paths import kernel_path
-    from convbki_ros.params import SPECS, kernel_defaults
+    """The node's declared defaults give the paper's set-up, and rclpy's own parser (the one
+    --params-file uses) reads config/mapper.yaml as exactly those declared defaults."""
+    from rclpy.parameter import parameter_dict_from_yaml_file, parameter_value_to_python
 
-    for name, default in PAPER_DEFAULTS.items():
-        assert SPECS[name].default == (default if isinstance(default, str) else pytest.approx(default)), name
-    shipped = kernel_defaults(load_kernel_file(kernel_path("semantic_kitti_compound")))
-    assert shipped == {name: PAPER_DEFAULTS[name] for name in KERNEL_DECIDES}
-    # rclpy's own parser (the one --params-file uses) accepts the shipped file for the node.
-    from rclpy.parameter import parameter_dict_from_yaml_file
+    from convbki_core.io.kernel_file import load_kernel_file
+    from convbki_core.paths import kernel_path
+    from convbki_ros.params import KERNEL_DECIDES, NOT_SET, SPECS, kernel_defaults
+
+    assert SPECS["local_bounds"].default == PAPER_WINDOW
+    assert SPECS["kernel_file"].default == ""  # "" = the shipped compound kernel
+    assert kernel_defaults(load_kernel_file(kernel_path("semantic_kitti_compound"))) == PAPER_GRID
+    # Without a kernel to say otherwise, the declared grid is the paper's too.
+    assert {name: SPECS[name].default for name in KERNEL_DECIDES} == PAPER_GRID
 
     parsed = parameter_dict_from_yaml_file(str(REPO / "config" / "mapper.yaml"), use_wildcard=True)
-    assert set(PAPER_DEFAULTS) - set(KERNEL_DECIDES) <= set(parsed)
-    assert list(parsed["local_bounds"].value.double_array_value) == pytest.approx(PAPER_DEFAULTS["local_bounds"])
+    values = {name: parameter_value_to_python(parameter.value) for name, parameter in parsed.items()}
+    expected = {name: spec.default for name, spec in SPECS.items()
+                if spec.default is not NOT_SET and name not in KERNEL_DECIDES}
+    assert values == expected
+    assert all(type(values[name]) is type(default) for name, default in expected.items())
 
 
 def test_node_reference_documents_every_parameter() -> None:

@@ -5,13 +5,16 @@ import pytest
 import torch
 from hypothesis import given
 from hypothesis import strategies as st
-from reference import brute_force_alpha
+from reference import BruteForceMap, filter_table, pose_matrix
 
 from convbki_core import ConvBKIKernel, ConvBKILayer, ConvBKIMapper
 
 NUM_CLASSES = 5
 RESOLUTION = 0.2
-BOUNDS = ((-1.0, -0.8, -0.6), (0.8, 0.8, 0.8))  # a 9 x 8 x 7 window
+PRIOR = 1e-3
+# A 10 x 8 x 7 window; the bounds lie half a voxel off the grid, so rounding them outwards
+# to whole voxels is unambiguous.
+BOUNDS = ((-0.9, -0.7, -0.5), (0.9, 0.7, 0.7))
 
 
 def make_kernel(kind, filter_size, rng):
@@ -36,55 +39,102 @@ def random_scan(rng, count):
     return points, labels
 
 
-def assert_map_equals(mapper, expected, prior=1e-3):
-    """Every voxel with evidence is stored with the brute-force concentrations (1e-5 relative).
+def random_rotation(rng):
+    """A pose rotation with yaw, pitch and roll all far from zero (any of them may exceed 90 degrees)."""
+    yaw, pitch, roll = rng.choice([-1, 1], 3) * rng.uniform(0.3, 3.0, 3)
+    return yaw, pitch, roll
 
-    Evidence below 1e-9 of a point (a tap a hair inside the kernel's support, where float64
-    and float32 may disagree on "inside") may or may not create a voxel.
-    """
-    voxels = mapper.voxels()
-    stored = {tuple(index): alpha for index, alpha in zip(voxels.indices.tolist(), voxels.alpha)}
-    significant = {key for key, alpha in expected.items() if (alpha - prior).max() > 1e-9}
-    assert significant <= set(stored), "every voxel that received evidence must be in the map"
-    for key, alpha in stored.items():
-        reference = expected.get(key, np.full(len(alpha), prior))
-        np.testing.assert_allclose(alpha, reference, rtol=1e-5, atol=0)
+
+def trajectory(rng):
+    """Sensor positions (map frame, m) that move the 10 x 8 x 7 window: a partial shift, a jump
+    far enough that the first window leaves entirely, a return that brings its voxels back
+    from the store, and a partial shift again."""
+    base = rng.uniform(-0.5, 0.5, 3)
+    partial = lambda: rng.choice([-1, 1], 3) * rng.uniform(0.25, 0.7, 3)  # noqa: E731
+    far = base + np.array([rng.choice([-1, 1]) * rng.uniform(2.5, 4.0), rng.uniform(-2.0, 2.0), 0.0])
+    back = base + rng.uniform(-0.15, 0.15, 3)
+    return [base, base + partial(), far, back, back + partial()]
+
+
+def random_values(rng, count, evidence):
+    """Labels (including 0, ignored, and C, unknown) or probability rows: sparse Dirichlet draws
+    plus rows that are dropped (all zero, negative, NaN) and rows whose mass is all in class 0."""
+    if evidence == "labels":
+        return rng.integers(0, NUM_CLASSES + 1, count)
+    rows = rng.dirichlet(np.full(NUM_CLASSES, 0.7), count) * (rng.random((count, NUM_CLASSES)) < 0.7)
+    kind = rng.random(count)
+    rows[kind < 0.04] = 0.0
+    rows[(kind >= 0.04) & (kind < 0.07), 1] = -0.2
+    rows[(kind >= 0.07) & (kind < 0.10), 2] = np.nan
+    rows[(kind >= 0.10) & (kind < 0.14)] = np.eye(NUM_CLASSES)[0]
+    return rows.astype(np.float32)
+
+
+def assert_map_is(mapper, oracle):
+    """The mapper holds exactly the oracle's voxels, each with its concentrations to 1e-5 relative."""
+    indices, alpha = mapper.items()
+    stored = {tuple(index): row for index, row in zip(indices.tolist(), alpha)}
+    assert len(stored) == len(indices), "a voxel is stored twice"
+    missing, extra = set(oracle.alpha) - set(stored), set(stored) - set(oracle.alpha)
+    assert not missing and not extra, f"{len(missing)} voxels missing, {len(extra)} not expected"
+    keys = sorted(oracle.alpha)
+    np.testing.assert_allclose(np.array([stored[k] for k in keys]), np.array([oracle.alpha[k] for k in keys]),
+                               rtol=1e-5, atol=0)
 
 
 @pytest.mark.parametrize("kind", ["single", "per_class", "compound"])
 @pytest.mark.parametrize("filter_size", [3, 5, 7])
-@given(seed=st.integers(0, 2**31 - 1))
-def test_mapper_update_equals_brute_force_sum(kind, filter_size, seed):
+@pytest.mark.parametrize("evidence", ["labels", "probabilities"])
+@given(seed=st.integers(0, 2**31 - 1), update_path=st.sampled_from(["fast", "dense"]))
+def test_mapper_equals_brute_force_sum_over_a_drive(kind, filter_size, evidence, seed, update_path):
+    """Rotated poses, a window that moves away and back, labels or probabilities, either update
+    path: after every scan the map is exactly the brute-force sum of ``reference.BruteForceMap``."""
     rng = np.random.default_rng(seed)
     kernel = make_kernel(kind, filter_size, rng)
-    mapper = ConvBKIMapper(kernel, local_bounds=BOUNDS, prior=1e-3, device="cpu")
-    points, labels = random_scan(rng, 60)
-    result = mapper.integrate(points, labels, np.eye(4))
-    origin, dims = mapper.geometry.origin_for(np.zeros(3)), mapper.geometry.dims
-    expected = brute_force_alpha(points, labels, NUM_CLASSES, RESOLUTION, origin, dims, filter_size, 1e-3, kind,
-                                 **kernel_lengths(kernel))
-    assert_map_equals(mapper, expected)
-    assert result.stats.non_finite == int(np.isnan(points).any(axis=1).sum())
-    assert result.stats.unknown_label == int(((labels == NUM_CLASSES) & np.isfinite(points).all(axis=1)).sum())
-
-    # A second scan adds to what is there (alpha_t = alpha_{t-1} + update).
-    points2, labels2 = random_scan(rng, 40)
-    mapper.integrate(points2, labels2, np.eye(4))
-    both = brute_force_alpha(np.concatenate([points, points2]), np.concatenate([labels, labels2]), NUM_CLASSES,
-                             RESOLUTION, origin, dims, filter_size, 1e-3, kind, **kernel_lengths(kernel))
-    assert_map_equals(mapper, both)
+    mapper = ConvBKIMapper(kernel, local_bounds=BOUNDS, prior=PRIOR, device="cpu", update_path=update_path)
+    oracle = BruteForceMap(kind, NUM_CLASSES, RESOLUTION, filter_size, BOUNDS, PRIOR, **kernel_lengths(kernel))
+    np.testing.assert_array_equal(mapper.geometry.dims, oracle.dims)
+    first_map_points, drive_counts = None, []
+    for scan, position in enumerate(trajectory(rng)):
+        pose = pose_matrix(*random_rotation(rng), position)
+        points = rng.uniform(-1.3, 1.3, (150, 3))  # sensor frame; the corners fall outside the window
+        points[rng.choice(np.arange(1, len(points), 2), 6, replace=False)] = np.nan  # odd rows: scan 3 resets even
+        if scan == 0:
+            first_map_points = points @ pose[:3, :3].T + pose[:3, 3]
+        if scan == 3:  # the return: half the points re-observe the first scan's places from the new pose
+            points[::2] = (first_map_points[::2] - pose[:3, 3]) @ pose[:3, :3]
+        values = random_values(rng, len(points), evidence)
+        before = set(oracle.alpha)
+        counts = oracle.integrate(points, values, pose)
+        result = mapper.integrate(points, values, pose)
+        for name, expected in counts.items():
+            assert getattr(result.stats, name) == expected, name
+        drive_counts.append(counts)
+        assert result.new_voxels == len(oracle.touched[-1] - before)
+        assert_map_is(mapper, oracle)
+    # The drive did what it is meant to: the third window shares no voxel with the first;
+    # voxels given evidence by the first scan were given more after coming back from the store;
+    # every scan had points to use, points outside its window and points to drop.
+    (first, dims), (far, _) = oracle.windows[0], oracle.windows[2]
+    assert ((far >= first + dims) | (first >= far + dims)).any()
+    assert oracle.touched[0] & oracle.touched[3]
+    assert all(c["used"] > 0 and c["outside_window"] > 0 and c["non_finite"] > 0 for c in drive_counts)
+    dropped = ("bad_probabilities",) if evidence == "probabilities" else ("unknown_label", "ignored_class")
+    assert all(sum(c[name] for c in drive_counts) > 0 for name in dropped)
 
 
 @pytest.mark.parametrize("kind", ["single", "per_class", "compound"])
 @pytest.mark.parametrize("filter_size", [3, 5, 7])
 def test_dense_layer_equals_direct_convolution_sum(kind, filter_size):
-    """The layer on a random dense F equals the explicit Eq. 4 sum, zero padding included."""
-    rng = np.random.default_rng(filter_size)
+    """The layer on a random dense F equals the explicit Eq. 4 sum, zero padding included, with
+    filters re-computed from Eq. 5 by the test (``reference.filter_table``), not the code's."""
+    rng = np.random.default_rng([filter_size, len(kind)])
     kernel = make_kernel(kind, filter_size, rng)
     features = torch.from_numpy(rng.random((NUM_CLASSES, 6, 5, 4)) * (rng.random((NUM_CLASSES, 6, 5, 4)) < 0.3))
     prior = torch.full_like(features, 0.5)
     alpha = ConvBKILayer(kernel).double()(prior, features).detach().numpy()
-    filters = kernel.double().filters().detach().numpy()[:, 0]
+    filters = filter_table(kind, NUM_CLASSES, RESOLUTION, filter_size, **kernel_lengths(kernel))
+    assert (filters > 0).sum() > NUM_CLASSES, "some filter spreads evidence beyond its centre tap"
     half = filter_size // 2
     padded = np.pad(features.numpy(), ((0, 0), (half, half), (half, half), (half, half)))
     expected = np.full(features.shape, 0.5)
@@ -94,7 +144,7 @@ def test_dense_layer_equals_direct_convolution_sum(kind, filter_size):
                 for z in range(4):
                     expected[c, x, y, z] += (filters[c] * padded[c, x:x + filter_size, y:y + filter_size,
                                                                  z:z + filter_size]).sum()
-    np.testing.assert_allclose(alpha, expected, rtol=1e-10)
+    np.testing.assert_allclose(alpha, expected, rtol=1e-10, atol=1e-12)
 
 
 def test_probabilities_equal_one_hot_labels():
@@ -148,4 +198,6 @@ def test_sparse_plan_equals_dense_layer_and_is_differentiable(kind, filter_size)
     got = plan.increment(filters)
     np.testing.assert_allclose(got.detach().numpy(), expected[:, queries].T.detach().numpy(), rtol=1e-10, atol=1e-12)
     got.sum().backward()
-    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in kernel.parameters())
+    for name in kernel_lengths(kernel):  # the class lengths the filters are built from
+        gradient = getattr(kernel, name).grad
+        assert gradient is not None and torch.isfinite(gradient).all() and (gradient != 0).any(), name
