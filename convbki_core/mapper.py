@@ -8,7 +8,7 @@ One scan goes through the paper's global-mapping steps (section "Global Mapping"
    (the paper's query and write-back; new voxels hold the prior);
 3. voxelise the scan into the input volume F (Eq. 3);
 4. apply the ConvBKI update alpha += conv3d(F, K) (Eq. 4) in place: on the CPU as a
-   compiled sparse scatter (``fast_update``), on CUDA (or when asked) with the dense
+   compiled sparse scatter (``update``), on CUDA (or when asked) with the dense
    depthwise convolution of ``layer.ConvBKILayer``, the paper's formulation and the
    reference the fast path is tested against.
 

@@ -5,7 +5,8 @@
 Maps the sequence twice with the same kernel (free space off, then on) under the paper's
 protocol, prints a table (mIoU, trail voxels, shown voxels, update time) and writes
 OUT/free_space.png: the same stretch of street from above, without and with free space,
-around the place where the most moving points were seen. OUT/free_space.json holds the figures.
+around the place where the most moving points were seen (movable classes in colour).
+OUT/free_space.json holds the figures.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.paths import kernel_path
 from convbki_core.tools.evaluate import evaluate_kernel
-from convbki_core.tools.plots import _pyplot, birds_eye_rasters
+from convbki_core.tools.plots import _pyplot
 from convbki_core.volume import transform_points
 
 
@@ -34,18 +35,20 @@ def busiest_place(dataset: SemanticKittiSequence, positions: range, half_width: 
     return (keys[counts.argmax()] + 0.5) * 2 * half_width
 
 
-def crop(voxels, centre: np.ndarray, half_width: float):
-    """The voxels whose centre lies in the square around ``centre``."""
-    inside = (np.abs(voxels.centres[:, :2] - centre) <= half_width).all(axis=1)
-
-    class Cropped:
-        pass
-
-    part = Cropped()
-    for name in ("indices", "centres", "alpha", "label", "variance"):
-        setattr(part, name, getattr(voxels, name)[inside])
-    part.__len__ = lambda: int(inside.sum())
-    return part
+def street_raster(voxels, centre: np.ndarray, half_width: float, movable: tuple[int, ...], colours: np.ndarray):
+    """Top-down picture of the square around ``centre``: every shown voxel's column in light
+    grey, and on top of it the columns holding a voxel of a movable class, in its colour (so a
+    trail shows even where the road under it holds more evidence)."""
+    size = round(2 * half_width / 0.2)
+    rgb = np.ones((size, size, 3))
+    shown = voxels.label != 0
+    cells = np.floor((voxels.centres[:, :2] - (centre - half_width)) / 0.2).astype(np.int64)
+    inside = shown & (cells >= 0).all(axis=1) & (cells < size).all(axis=1)
+    rgb[cells[inside, 1], cells[inside, 0]] = 0.85
+    mover = inside & np.isin(voxels.label, movable)
+    rgb[cells[mover, 1], cells[mover, 0]] = colours[voxels.label[mover]] / 255.0
+    extent = [centre[0] - half_width, centre[0] + half_width, centre[1] - half_width, centre[1] + half_width]
+    return rgb, extent
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,14 +88,15 @@ def main(argv: list[str] | None = None) -> int:
     label_map = dataset.label_map
     for axis, free_space in zip(axes, (False, True)):
         run, voxels = runs[free_space]
-        rgb, _, extent = birds_eye_rasters(crop(voxels, centre, args.half_width), label_map.colors, 0.2)
+        rgb, extent = street_raster(voxels, centre, args.half_width, label_map.movable_classes, label_map.colors)
         axis.imshow(rgb, origin="lower", extent=extent, interpolation="nearest")
         row = figures["on" if free_space else "off"]
         axis.set_title(f"free space {'on' if free_space else 'off'}: {row['trail_voxels']:,} trail voxels, "
                        f"mIoU {row['miou']:.3f}")
         axis.set_xlabel("x [m]")
         axis.set_ylabel("y [m]")
-    figure.suptitle(f"{args.dataset} sequence {args.sequence}: the street where the most moving points were seen")
+    figure.suptitle(f"{args.dataset} sequence {args.sequence}, where the most moving points were seen: voxels of "
+                    "movable classes in colour, everything else grey")
     figure.tight_layout()
     figure.savefig(out / "free_space.png", dpi=110)
     atomic_write_bytes(out / "free_space.json", (json.dumps(figures, indent=2) + "\n").encode())

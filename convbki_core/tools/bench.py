@@ -1,4 +1,4 @@
-"""``bench``: the ConvBKI benchmark.
+"""bench: the ConvBKI benchmark (the figures are described in docs/benchmark.md).
 
 Inputs are scans of the project's own LiDAR simulation (``synth``: a 64-beam sensor on a
 drive through a synthetic street), in the paper's SemanticKITTI set-up: bounds
@@ -6,7 +6,8 @@ drive through a synthetic street), in the paper's SemanticKITTI set-up: bounds
 labels as input (and once 20-class probabilities).
 
 Figures (medians over the drive; a shared machine is noisy, so compare ratios from one run):
-  voxelize_ms, update_ms (voxelise + ConvBKI update), update_probs_ms, dense_reference_ms
+  voxelize_ms, update_ms (voxelise + ConvBKI update), update_probs_ms, update_free_ms (labels
+  with free space on), dense_reference_ms
   (the paper's dense conv3d(groups=C) in torch's default layout, same input, same run),
   speedup_vs_dense, query_ms (move the local window over the global store: the slabs that
   leave are written back, those that enter are fetched; the paper's "query"),
