@@ -38,6 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from convbki_core.native import HAVE_NUMBA
+from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
 
 if HAVE_NUMBA:
@@ -57,6 +58,21 @@ def free_taps(free_filter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # conv3d's tap [i, j, k] carries F[v + (i, j, k) - half] to v; written as v - offset.
     offsets = (half - nonzero).astype(np.int64)
     return np.ascontiguousarray(offsets), np.ascontiguousarray(free_filter[free_filter > 0], np.float32)
+
+
+def scan_rays(points: np.ndarray, pose: np.ndarray, volume: SparseVolume,
+              resolution: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A scan's rays as (end voxels (M, 3), weights (M,), through (M,) bool): one per voxel
+    holding returns (weighted by their evidence), and one per window voxel where the rays to
+    returns beyond the window leave it (``through``: that voxel is crossed too)."""
+    ends = unravel_linear(volume.linear, volume.dims) + volume.origin
+    weights = ray_weights(volume.features)
+    dropped = points[volume.point_linear < 0]
+    beyond = (dropped @ pose[:3, :3].T + pose[:3, 3]) / resolution
+    beyond = beyond[np.isfinite(beyond).all(axis=1)]
+    exits, rays = window_exits(pose[:3, 3] / resolution, beyond, volume.origin, volume.dims)
+    through = np.concatenate([np.zeros(len(ends), np.bool_), np.ones(len(exits), np.bool_)])
+    return np.concatenate([ends, exits]), np.concatenate([weights, rays]), through
 
 
 def ray_weights(features: np.ndarray) -> np.ndarray:
@@ -116,6 +132,28 @@ def _exit_linear_numpy(points, sensor, origin, dims) -> np.ndarray:
     exits = np.floor(sensor + direction * (leave[:, None] * (1 - 1e-9)))
     local = np.clip(exits, origin, origin + dims - 1).astype(np.int64) - origin
     return (local[:, 0] * dims[1] + local[:, 1]) * dims[2] + local[:, 2]
+
+
+def count_rays(sensor: np.ndarray, ends: np.ndarray, weights: np.ndarray, through: np.ndarray, dims: np.ndarray,
+               counts: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Only the counting half of ``free_space_update``: the rays' counts G (X, Y, Z), torus
+    order, in ``counts`` (whose caller zeroes it again); for a window kept elsewhere (on a GPU)."""
+    volume, shared_plane = counts
+    sensor = np.ascontiguousarray(sensor, np.float64)
+    dims = np.ascontiguousarray(dims, np.int64)
+    if HAVE_NUMBA:
+        _count_rays(sensor, np.ascontiguousarray(ends, np.int64), np.ascontiguousarray(weights, np.float32),
+                    np.ascontiguousarray(through, np.bool_), dims, volume, shared_plane)
+        volume[int(np.floor(sensor[0])) % int(dims[0])] += shared_plane
+        shared_plane[:] = 0.0
+        return volume
+    for m in range(len(ends)):
+        _walk_ray(sensor, ends[m], lambda voxel, w=float(weights[m]): _add(volume, voxel, dims, w), bool(through[m]))
+    return volume
+
+
+def _add(volume: np.ndarray, voxel, dims: np.ndarray, weight: float) -> None:
+    volume[tuple(np.mod(voxel, dims))] += weight
 
 
 def scratch_counts(dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -18,6 +18,7 @@ Public surface: ``integrate``, ``labels_at``, ``voxels``, ``local_voxels``, ``sa
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,11 +29,11 @@ import torch
 from convbki_core.devices import resolve_device
 from convbki_core.free_space import (
     FREE_CLASS,
+    count_rays,
     free_space_update,
     free_taps,
-    ray_weights,
+    scan_rays,
     scratch_counts,
-    window_exits,
 )
 from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
 from convbki_core.io.map_file import MAP_FORMAT, MAP_VERSION, MapFileError, MapSnapshot, read_map
@@ -40,9 +41,10 @@ from convbki_core.io.ply import write_voxels_ply
 from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
 from convbki_core.native import HAVE_NUMBA
-from convbki_core.records import RECORD, window_records
+from convbki_core.records import RECORD, records_from_alpha, window_records
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
+from convbki_core.torch_window import TorchFilters, TorchWindow, torch_free_space, torch_update
 from convbki_core.update import FilterPlan, dense_volume, scatter_volume, warm_up
 from convbki_core.volume import (
     SparseVolume,
@@ -51,13 +53,16 @@ from convbki_core.volume import (
     check_pose,
     check_scan,
     transform_points,
-    unravel_linear,
     voxel_centres,
     voxel_indices,
     voxelize,
     voxelize_scan,
 )
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
+
+# How the update runs: auto (fast on the CPU, torch on CUDA), fast (the compiled scatter into
+# a host window), dense (the paper's conv3d, the reference), torch (a device-resident window).
+UPDATE_PATHS = ("auto", "fast", "dense", "torch")
 
 
 @dataclass
@@ -122,8 +127,8 @@ class ConvBKIMapper:
                  update_path: str = "auto", track_changes: bool = False, free_space: bool = False):
         if isinstance(kernel, (str, Path)):
             kernel = load_kernel_file(kernel)
-        if isinstance(kernel, KernelConfig):
-            kernel = ConvBKIKernel.from_config(kernel)
+        # The mapper's own kernel: a caller's kernel object keeps its device and grid.
+        kernel = ConvBKIKernel.from_config(kernel) if isinstance(kernel, KernelConfig) else copy.deepcopy(kernel)
         if resolution is not None:
             kernel.resolution = float(resolution)
         if filter_size is not None:
@@ -144,12 +149,15 @@ class ConvBKIMapper:
         self.free_space = bool(free_space)
         self.store = VoxelStore(kernel.num_classes, prior=self.prior)
         self.window = RollingWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store, track_changes)
-        if update_path not in ("auto", "fast", "dense"):
-            raise ValueError(f"update_path must be auto, fast or dense, got {update_path!r}")
+        if update_path not in UPDATE_PATHS:
+            raise ValueError(f"update_path must be one of {', '.join(UPDATE_PATHS)}, got {update_path!r}")
         if update_path == "auto":
-            update_path = "fast" if self.device.type == "cpu" else "dense"
+            update_path = "fast" if self.device.type == "cpu" else "torch"
         self.update_path = update_path
-        if update_path == "fast":
+        if update_path == "torch":
+            self.window = TorchWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store, track_changes,
+                                      self.device)
+        if HAVE_NUMBA:
             warm_up()  # compiled code loads now, not during the first scan
         self.scans_integrated = 0
         self._removed: list[np.ndarray] = []  # voxels that left the map since the changes were taken
@@ -202,34 +210,27 @@ class ConvBKIMapper:
         result = IntegrationResult(volume.stats, origin, occupied_voxels=volume.num_voxels)
         marks = EVIDENCE | CHANGED | (TOUCHED if self.free_space else 0)
         if volume.num_voxels:
-            result.new_voxels = (self._update_fast(volume, marks) if self.update_path == "fast"
-                                 else self._update_dense(volume, marks))
+            update = {"fast": self._update_fast, "dense": self._update_dense, "torch": self._update_torch}
+            result.new_voxels = update[self.update_path](volume, marks)
         updated = time.perf_counter()
         if self.free_space and volume.num_voxels:
             offsets, tap_weights = self._free_space_taps()
-            ends, weights, through = self._free_space_rays(points, pose, volume)
-            result.freed_voxels = free_space_update(pose[:3, 3] / self.resolution, ends, weights, offsets,
-                                                    tap_weights, origin, self.geometry.dims, self.window.alpha,
-                                                    self.window.mask, self._free_counts, through)
+            ends, weights, through = scan_rays(points, pose, volume, self.resolution)
+            sensor = pose[:3, 3] / self.resolution
+            if self.update_path == "torch":  # the rays are counted here, applied on the device
+                counts = count_rays(sensor, ends, weights, through, self.geometry.dims, self._free_counts)
+                result.freed_voxels = torch_free_space(counts, self._free_filter, self.window)
+                counts.fill(0.0)
+            else:
+                result.freed_voxels = free_space_update(sensor, ends, weights, offsets, tap_weights, origin,
+                                                        self.geometry.dims, self.window.alpha, self.window.mask,
+                                                        self._free_counts, through)
         self.scans_integrated += 1
         finished = time.perf_counter()
         result.timing_ms = {"voxelize": 1e3 * (voxelized - started), "query": 1e3 * (moved - voxelized),
                             "update": 1e3 * (updated - moved), "free": 1e3 * (finished - updated),
                             "total": 1e3 * (finished - started)}
         return result
-
-    def _free_space_rays(self, points: np.ndarray, pose: np.ndarray,
-                         volume: SparseVolume) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The scan's rays: one per voxel holding returns (weighted by their evidence), and one
-        per window voxel where rays to returns beyond the window leave it."""
-        ends = unravel_linear(volume.linear, volume.dims) + volume.origin
-        weights = ray_weights(volume.features)
-        dropped = points[volume.point_linear < 0]
-        beyond = (dropped @ pose[:3, :3].T + pose[:3, 3]) / self.resolution
-        beyond = beyond[np.isfinite(beyond).all(axis=1)]
-        exits, rays = window_exits(pose[:3, 3] / self.resolution, beyond, volume.origin, volume.dims)
-        through = np.concatenate([np.zeros(len(ends), np.bool_), np.ones(len(exits), np.bool_)])
-        return np.concatenate([ends, exits]), np.concatenate([weights, rays]), through
 
     def _refresh_filters(self) -> None:
         """The kernel's filters prepared for the scatter and the free-space pass, rebuilt only
@@ -239,7 +240,10 @@ class ConvBKIMapper:
                    *(parameter.detach().cpu().numpy().tobytes() for parameter in self.kernel.parameters()))
             if self._plan_key != key:
                 self._plan = FilterPlan.from_filters(self.kernel.filters().detach().cpu().numpy()[:, 0])
-                self._free_taps = free_taps(self.kernel.free_filter().detach().cpu().numpy())
+                self._free_filter = self.kernel.free_filter().detach().cpu().numpy()
+                self._free_taps = free_taps(self._free_filter)
+                if self.update_path == "torch":
+                    self._torch_filters = TorchFilters(self._plan, self.device)
                 self._plan_key = key
 
     def _filter_plan(self) -> FilterPlan:
@@ -252,6 +256,10 @@ class ConvBKIMapper:
 
     def _update_fast(self, volume: SparseVolume, marks: int) -> int:
         return scatter_volume(volume, self._filter_plan(), self.window.alpha, self.window.mask, marks)
+
+    def _update_torch(self, volume: SparseVolume, marks: int) -> int:
+        self._refresh_filters()
+        return torch_update(volume, self._torch_filters, self.window, marks)
 
     def _update_dense(self, volume: SparseVolume, marks: int) -> int:
         return dense_volume(volume, self.layer, self.window.alpha, self.window.mask, marks)
@@ -308,6 +316,9 @@ class ConvBKIMapper:
         window = self.window
         if window.origin is None:
             return np.empty(0, RECORD) if out is None else out
+        if isinstance(window, TorchWindow):
+            indices, alpha = window.items()
+            return records_from_alpha(indices, alpha, self.resolution, palette, out)
         count = window.count() if out is None else len(out)
         return window_records(window.alpha, window.mask, window.origin, window.dims, count, self.resolution,
                               palette, out)

@@ -33,11 +33,26 @@ DRIVE_AZIMUTH_STEPS = 2083
 DRIVE_NOISE_STRENGTH = 0.35
 
 
+_device = "cpu"
+
+
+@contextlib.contextmanager
+def mapping_device(device: str) -> Iterator[None]:
+    """Within the block, ``paper_mapper`` maps on ``device`` (e.g. ``cuda``) instead of the CPU."""
+    global _device
+    previous, _device = _device, device
+    try:
+        yield
+    finally:
+        _device = previous
+
+
 def paper_mapper(kernel: str | Path | KernelConfig | None = None, **options) -> ConvBKIMapper:
-    """A ``ConvBKIMapper`` on the CPU with the paper's window and, unless ``kernel`` names
-    another, its kernel; ``options`` (any ``ConvBKIMapper`` keyword: local_bounds, resolution,
-    filter_size, update_path, ...) override the rest."""
-    settings = {"local_bounds": PAPER_BOUNDS, "device": "cpu", **options}
+    """A ``ConvBKIMapper`` with the paper's window and, unless ``kernel`` names another, its
+    kernel, on the CPU (or the device of ``mapping_device``); ``options`` (any
+    ``ConvBKIMapper`` keyword: local_bounds, resolution, filter_size, update_path, ...)
+    override the rest."""
+    settings = {"local_bounds": PAPER_BOUNDS, "device": _device, **options}
     return ConvBKIMapper(kernel_path(PAPER_KERNEL) if kernel is None else kernel, **settings)
 
 

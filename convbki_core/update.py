@@ -215,11 +215,20 @@ def scatter_volume(volume: SparseVolume, plan: FilterPlan, alpha: np.ndarray, ma
 
 def dense_volume(volume: SparseVolume, layer: ConvBKILayer, alpha: np.ndarray, mask: np.ndarray,
                  marks: int = EVIDENCE | CHANGED) -> int:
-    """The paper's dense depthwise convolution over the whole window, on the layer's device."""
+    """The paper's dense depthwise convolution over the whole window, on the layer's device.
+
+    Voxels are marked as the scatter marks them: where a class present in F has a non-zero
+    tap (the presence of each class convolved with its filter's support), so the dense and
+    the sparse paths keep the same voxels whatever the rounding of the convolution.
+    """
     device = next(layer.kernel.parameters()).device
     with torch.no_grad():
-        increment = layer.increment(volume.to_dense(device))
-        touched = (increment.amax(dim=0) > _evidence_threshold(device)).cpu().numpy()
+        features = volume.to_dense(device)
+        increment = layer.increment(features)
+        support = (layer.kernel.filters() > 0).to(features.dtype)
+        reach = torch.nn.functional.conv3d((features > 0).to(features.dtype)[None], support,
+                                           padding=layer.kernel.filter_size // 2, groups=features.shape[0])[0]
+        touched = (reach.amax(dim=0) > 0.5).cpu().numpy()
         increment = increment.clamp_min_(0.0).cpu().numpy()
     # Window-local index i lives at (origin + i) mod dims on the torus.
     shift = tuple(int(v) for v in volume.origin % volume.dims)
@@ -228,13 +237,6 @@ def dense_volume(volume: SparseVolume, layer: ConvBKILayer, alpha: np.ndarray, m
     alpha += np.roll(increment, shift, axis=(1, 2, 3))
     mask |= touched.astype(np.uint8) * np.uint8(marks)
     return new
-
-
-def _evidence_threshold(device: torch.device) -> float:
-    # On the CPU the convolution of zeros is exactly zero, so "received evidence" is > 0.
-    # GPU convolution algorithms (FFT, Winograd) can leave rounding noise of order 1e-7
-    # where the exact result is zero; evidence below 1e-5 of one point is treated as none.
-    return 0.0 if device.type == "cpu" else 1e-5
 
 
 _warmed_up = False

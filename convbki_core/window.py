@@ -64,8 +64,7 @@ class RollingWindow:
         self.num_classes = int(num_classes)
         self.prior = np.float32(prior)
         self.store = store
-        self.alpha = np.full((self.num_classes, *self.dims.tolist()), self.prior, np.float32)
-        self.mask = np.zeros(self.dims.tolist(), np.uint8)
+        self._allocate()
         # Scratch table for the compiled voxeliser (voxel -> row of F), -1 between scans.
         self.slot = np.full(int(np.prod(self.dims)), -1, np.int32)
         self.origin: np.ndarray | None = None
@@ -73,6 +72,11 @@ class RollingWindow:
         # kept only for a map whose changes are taken (``track_changes``), or they would pile up.
         self.track_changes = bool(track_changes)
         self._evicted_changes: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def _allocate(self) -> None:
+        """The window's arrays: concentrations at the prior, no evidence."""
+        self.alpha = np.full((self.num_classes, *self.dims.tolist()), self.prior, np.float32)
+        self.mask = np.zeros(self.dims.tolist(), np.uint8)
 
     @property
     def nbytes(self) -> int:

@@ -86,8 +86,9 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("free_space", True, "the rays between the sensor and its returns add evidence that the voxels they "
          "cross are empty, so moving objects leave no trail; false: the paper's ConvBKI; bool"),
     Spec("device", "auto", "torch device: auto (CUDA when present, else CPU), cpu, cuda[:N]"),
-    Spec("update_path", "auto", "how the update runs: auto, fast (compiled sparse scatter, CPU) or dense "
-         "(depthwise conv3d, the paper's formulation)", choices=("auto", "fast", "dense")),
+    Spec("update_path", "auto", "how the update runs: auto (fast on the CPU, torch on CUDA), fast (compiled "
+         "sparse scatter, CPU), torch (the window resident on the torch device, any device) or dense "
+         "(depthwise conv3d, the paper's formulation, the reference)", choices=("auto", "fast", "torch", "dense")),
     Spec("input_qos", "reliable",
          "QoS of cloud_in and odom: reliable (bag replay) or sensor_data (live, best effort)",
          choices=("reliable", "sensor_data")),

@@ -455,16 +455,18 @@ def test_evaluate_refuses_a_device_it_cannot_use_before_any_work(clean_root, tmp
     assert tree(tmp_path) == before
 
 
+@pytest.mark.parametrize("device, needles", _missing_devices())
 @pytest.mark.parametrize("module, argv", [
     (train, ["--dataset", "d", "--sequences", "0", "--out", "k.yaml"]),
     (bench, []),
 ])
-def test_train_and_bench_have_no_device_flag(module, argv, capsys, tmp_path, monkeypatch):
-    """Both run on the CPU only: --device is an unknown argument, refused in one line."""
+def test_train_and_bench_refuse_a_device_they_cannot_use_before_any_work(module, argv, device, needles, capsys,
+                                                                          tmp_path, monkeypatch):
+    """Both run on CUDA when asked (``--device cuda``); a device this machine lacks is one line, exit 2."""
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as exit_info:
-        module.main([*argv, "--device", "cuda"])
-    one_line_error(capsys, exit_info.value.code, module.PROG, "unrecognized arguments: --device cuda")
+        module.main([*argv, "--device", device])
+    one_line_error(capsys, exit_info.value.code, module.PROG, "argument --device:", *needles)
     assert sorted(tmp_path.iterdir()) == []
 
 

@@ -46,7 +46,7 @@ from types import ModuleType
 import torch
 
 from convbki_core.io.atomic import atomic_write_bytes
-from convbki_core.pipeline import ensure_drive
+from convbki_core.pipeline import ensure_drive, mapping_device
 from convbki_core.tools.bench_figures import (
     ablation,
     dense_reference_figure,
@@ -58,7 +58,7 @@ from convbki_core.tools.bench_figures import (
     probabilities_figure,
     publish_figures,
 )
-from convbki_core.tools.cli import UserError, positive, run
+from convbki_core.tools.cli import UserError, device_arg, positive, run
 
 PROG = "bench"
 TARGETS = {"update_ms": ("<=", 12), "update_probs_ms": ("<=", 50), "update_free_ms": ("<=", 30),
@@ -114,7 +114,7 @@ def save_plot(points_rows: list[dict], ablation_rows: list[dict], path: Path) ->
 
 def format_report(figures: dict, ablation_rows: list[dict]) -> str:
     """The printed report: each figure against its target, then the ablation table."""
-    lines = [f"ConvBKI benchmark: {figures['machine']}", "",
+    lines = [f"ConvBKI benchmark: {figures['machine']}, mapping on {figures.get('device', 'cpu')}", "",
              f"{'figure':<26}{'value':>12}  target"]
     for key in REPORTED:
         value = figures[key]
@@ -154,10 +154,18 @@ def build_parser() -> argparse.ArgumentParser:
                    "else out/bench/bench.png)")
     p.add_argument("--skip-ablation", action="store_true", help="leave out the ablation table and the plot")
     p.add_argument("--seed", type=int, default=5, help="seed of the synthetic drive (default: %(default)s)")
+    p.add_argument("--device", default="cpu", type=device_arg,
+                   help="torch device to map on: cpu (the compiled CPU path) or cuda[:N] (the torch path, the "
+                   "window resident on the GPU); the same figures either way (default: %(default)s)")
     return p
 
 
 def _bench(args: argparse.Namespace) -> int:
+    with mapping_device(args.device):
+        return _bench_on_device(args)
+
+
+def _bench_on_device(args: argparse.Namespace) -> int:
     torch.set_num_threads(os.cpu_count() or 1)
     dataset = ensure_drive(Path(args.drive_dir), args.scans, args.seed, on_simulate=lambda: print(
         f"{PROG}: simulating a {args.scans}-scan drive into {args.drive_dir} (cached for later runs)",
@@ -166,6 +174,8 @@ def _bench(args: argparse.Namespace) -> int:
         raise UserError(f"{args.drive_dir} holds {len(dataset)} scans, fewer than --scans {args.scans}")
     figures, mapper, frames = drive_figures(dataset, args.scans, args.repeat)
     figures["machine"] = f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
+    figures["device"] = str(mapper.device) + (f" ({torch.cuda.get_device_name(mapper.device)})"
+                                              if mapper.device.type == "cuda" else "")
     figures["cores"] = os.cpu_count()
     store_bytes, window_bytes = map_memory_bytes(mapper)
     figures["stored_voxels"] = len(mapper)

@@ -197,9 +197,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "-40 -40 -2.6 40 40 2.6)")
     p.add_argument("--device", default="auto", type=device_arg,
                    help="torch device: auto (CUDA when present), cpu, cuda or cuda:N (default: %(default)s)")
-    p.add_argument("--update-path", default="auto", choices=("auto", "fast", "dense"),
-                   help="how the update is computed: fast (compiled sparse scatter, the CPU default), dense (the "
-                   "paper's depthwise conv3d, the CUDA default and the reference) (default: %(default)s)")
+    p.add_argument("--update-path", default="auto", choices=("auto", "fast", "torch", "dense"),
+                   help="how the update is computed: fast (compiled sparse scatter, the CPU default), torch (the "
+                   "window resident on the torch device, the CUDA default), dense (the paper's depthwise conv3d, "
+                   "the reference) (default: %(default)s)")
     p.add_argument("--no-free-space", dest="free_space", action="store_false",
                    help="map without free space: the rays between the sensor and its returns add no evidence "
                    "that the voxels they cross are empty (the paper's ConvBKI; movers then leave trails)")

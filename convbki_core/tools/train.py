@@ -13,10 +13,12 @@ import numpy as np
 
 from convbki_core.datasets import parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.devices import resolve_device
 from convbki_core.io.kernel_file import save_kernel_file
 from convbki_core.tools.cli import (
     NewOutputs,
     UserError,
+    device_arg,
     frames_arg,
     output_folder,
     positive,
@@ -71,6 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--filter-size", default=5, type=int, metavar="F",
                    help="odd filter size in voxels (default: %(default)s)")
     p.add_argument("--seed", default=0, type=int, help="shuffling seed (default: %(default)s)")
+    p.add_argument("--device", default="cpu", type=device_arg,
+                   help="torch device to train on: cpu, auto (CUDA when present) or cuda[:N] (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -107,7 +111,8 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     started = time.perf_counter()
     kernel, losses = train_kernel(datasets, positions, args.kernel, args.frames_per_sample, args.epochs, args.lr,
                                   args.resolution, args.filter_size, seed=args.seed,
-                                  progress=None if args.quiet else _progress, log=_log(args.quiet))
+                                  progress=None if args.quiet else _progress, log=_log(args.quiet),
+                                  device=resolve_device(args.device))
     if not losses:
         raise UserError("no training sample had scored points (check labels and predictions)")
     save_kernel_file(kernel.to_config(), outputs.file(out))

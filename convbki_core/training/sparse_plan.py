@@ -98,7 +98,7 @@ class SparsePlan:
     def increment(self, filters: torch.Tensor) -> torch.Tensor:
         """conv3d(F, K) at the query voxels, (Q, C); ``filters`` is K[C, 1, f, f, f]."""
         flat_filters = filters.reshape(-1)
-        contributions = self.value.to(filters.dtype) * flat_filters[self.tap]
+        contributions = self.value.to(filters.device, filters.dtype) * flat_filters[self.tap.to(filters.device)]
         result = torch.zeros(self.num_queries * self.num_classes, dtype=filters.dtype, device=filters.device)
         result = result.index_add(0, self.target.to(filters.device), contributions)
         return result.view(self.num_queries, self.num_classes)

@@ -111,13 +111,16 @@ def weighted_nll(plan: SparsePlan, filters: torch.Tensor, point_query: torch.Ten
 def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]], kind: str,
                  frames_per_sample: int, epochs: int, lr: float, resolution: float = 0.2, filter_size: int = 5,
                  prior: float = DEFAULT_PRIOR, seed: int = 0, progress: Progress | None = None,
-                 log: Callable[[str], None] | None = None, log_every: int = 25) -> tuple[ConvBKIKernel, list[float]]:
-    """Learn the kernel lengths; returns the kernel and the loss of every step."""
+                 log: Callable[[str], None] | None = None, log_every: int = 25,
+                 device: str | torch.device = "cpu") -> tuple[ConvBKIKernel, list[float]]:
+    """Learn the kernel lengths on ``device``; returns the kernel (on the CPU) and the loss of every step."""
     label_map = datasets[0].label_map
     num_classes = label_map.num_classes
     torch.manual_seed(seed)
-    kernel = ConvBKIKernel(kind, num_classes, filter_size, resolution, ell=INITIAL_ELL)
+    device = torch.device(device)
+    kernel = ConvBKIKernel(kind, num_classes, filter_size, resolution, ell=INITIAL_ELL).to(device)
     weights = torch.from_numpy(class_weights(datasets, positions, num_classes, label_map.ignore_classes)).float()
+    weights = weights.to(device)
     optimiser = torch.optim.Adam(kernel.parameters(), lr=lr)
     builder = SampleBuilder(WindowGeometry(resolution), num_classes, frames_per_sample, filter_size,
                             label_map.ignore_classes)
@@ -135,8 +138,8 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
             if built is None:
                 continue
             plan, point_query, truth = built
-            loss = weighted_nll(plan, kernel.filters(), torch.from_numpy(point_query), torch.from_numpy(truth),
-                                weights, prior)
+            loss = weighted_nll(plan, kernel.filters(), torch.from_numpy(point_query).to(device),
+                                torch.from_numpy(truth).to(device), weights, prior)
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
@@ -145,4 +148,4 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
             if log and log_every and len(losses) % log_every == 0:
                 recent = np.mean(losses[-log_every:])
                 log(f"step {len(losses)}: loss {recent:.4f} (mean of the last {log_every})")
-    return kernel, losses
+    return kernel.cpu(), losses

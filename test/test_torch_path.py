@@ -1,0 +1,123 @@
+"""The torch update path (the window resident on a torch device) against the compiled CPU path.
+
+Run here on the CPU device, so ``make test`` covers the code a GPU runs: the same voxels,
+labels identical and concentrations within 1e-5 relative, over moving windows, every kernel
+variant, labels and probabilities, f = 3 .. 9, with and without free space.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from convbki_core import ConvBKIKernel, ConvBKIMapper
+from convbki_core.statistics import dirichlet_statistics
+from convbki_core.torch_window import TorchWindow
+
+BOUNDS = ((-3.0, -3.0, -1.5), (3.0, 3.0, 1.5))
+
+
+def kernel(kind: str, filter_size: int) -> ConvBKIKernel:
+    rng = np.random.default_rng(filter_size)
+    if kind == "compound":
+        return ConvBKIKernel("compound", 6, filter_size, 0.25, ell_h=rng.uniform(0.2, 0.9, 6).tolist(),
+                             ell_z=rng.uniform(0.2, 0.9, 6).tolist())
+    if kind == "per_class":
+        return ConvBKIKernel("per_class", 6, filter_size, 0.25, ell=rng.uniform(0.2, 0.9, 6).tolist())
+    return ConvBKIKernel("single", 6, filter_size, 0.25, ell=0.6)
+
+
+def pose(rng: np.random.Generator, position: np.ndarray) -> np.ndarray:
+    yaw, pitch = rng.uniform(-math.pi, math.pi), rng.uniform(-0.2, 0.2)
+    rotation = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]]) @ \
+        np.array([[math.cos(pitch), 0, math.sin(pitch)], [0, 1, 0], [-math.sin(pitch), 0, math.cos(pitch)]])
+    result = np.eye(4)
+    result[:3, :3], result[:3, 3] = rotation, position
+    return result
+
+
+def drive(mapper: ConvBKIMapper, seed: int, probabilities: bool, scans: int = 5) -> None:
+    """Scans along a path that leaves and comes back, so slabs go to the store and return."""
+    rng = np.random.default_rng(seed)
+    for position in ([0, 0, 0], [2.0, 0.5, 0.2], [8.0, 1.0, 0], [1.0, -0.5, 0.1], [1.5, 0.2, -0.2])[:scans]:
+        points = rng.uniform(-2.8, 2.8, (500, 3)) * [1, 1, 0.45]
+        labels = rng.integers(0, 6, 500)
+        values = rng.dirichlet(np.full(6, 0.3), 500).astype(np.float32) if probabilities else labels
+        mapper.integrate(points, values, pose(rng, np.array(position, float)))
+
+
+def sorted_items(mapper: ConvBKIMapper) -> tuple[np.ndarray, np.ndarray]:
+    indices, alpha = mapper.items()
+    order = np.lexsort(indices.T)
+    return indices[order], alpha[order]
+
+
+@pytest.mark.parametrize("kind", ["single", "per_class", "compound"])
+@pytest.mark.parametrize("filter_size", [3, 5, 7, 9])
+@pytest.mark.parametrize("probabilities", [False, True])
+def test_the_torch_path_equals_the_fast_path(kind, filter_size, probabilities):
+    maps = {}
+    for path in ("fast", "torch"):
+        mapper = ConvBKIMapper(kernel(kind, filter_size), local_bounds=BOUNDS, device="cpu", update_path=path,
+                               track_changes=True)
+        drive(mapper, filter_size, probabilities)
+        maps[path] = sorted_items(mapper)
+        if path == "torch":
+            assert isinstance(mapper.window, TorchWindow) and isinstance(mapper.window.alpha, torch.Tensor)
+    (fast_indices, fast_alpha), (torch_indices, torch_alpha) = maps["fast"], maps["torch"]
+    assert np.array_equal(fast_indices, torch_indices)  # the same voxels: the same marking rule
+    np.testing.assert_allclose(torch_alpha, fast_alpha, rtol=1e-5)
+    assert np.array_equal(dirichlet_statistics(torch_alpha).label, dirichlet_statistics(fast_alpha).label)
+
+
+@pytest.mark.parametrize("free_ell", [None, 0.4])
+def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell):
+    maps, changes = {}, {}
+    for path in ("fast", "torch"):
+        chosen = ConvBKIKernel("compound", 6, 5, 0.25, ell_h=0.6, ell_z=0.5, free_ell=free_ell)
+        mapper = ConvBKIMapper(chosen, local_bounds=BOUNDS, device="cpu", update_path=path, free_space=True,
+                               ignore_classes=(0,), track_changes=True)
+        drive(mapper, 3, False)
+        maps[path] = sorted_items(mapper)
+        taken = mapper.take_changes()
+        changes[path] = {tuple(v) for v in taken.indices}
+    assert np.array_equal(maps["fast"][0], maps["torch"][0])
+    np.testing.assert_allclose(maps["torch"][1], maps["fast"][1], rtol=1e-5)
+    assert (maps["fast"][1][:, 0] > 1e-3).sum() > 20  # free space did something
+    assert changes["fast"] == changes["torch"]
+
+
+def test_slabs_leaving_and_entering_the_device_window_round_trip_exactly():
+    mapper = ConvBKIMapper(kernel("compound", 5), local_bounds=BOUNDS, device="cpu", update_path="torch")
+    drive(mapper, 9, True, scans=2)
+    before = sorted_items(mapper)
+    window_before = mapper.window.count()
+    rng = np.random.default_rng(0)
+    far = pose(rng, np.array([40.0, 40.0, 0.0]))
+    mapper.integrate(np.zeros((0, 3)), np.zeros(0, np.int64), far)  # every voxel leaves for the store
+    assert mapper.window.count() == 0 and len(mapper.store) == len(before[0])
+    mapper.integrate(np.zeros((0, 3)), np.zeros(0, np.int64), pose(rng, np.array([1.5, 0.2, 0.0])))  # and back
+    assert mapper.window.count() > 0.5 * window_before
+    after = sorted_items(mapper)
+    assert np.array_equal(before[0], after[0]) and before[1].tobytes() == after[1].tobytes()
+
+
+def test_building_a_mapper_leaves_the_callers_kernel_unchanged():
+    given = kernel("compound", 5)
+    state = {name: value.clone() for name, value in given.state_dict().items()}
+    mapper = ConvBKIMapper(given, local_bounds=BOUNDS, device="cpu", update_path="torch", resolution=0.5,
+                           filter_size=3)
+    assert mapper.kernel is not given and mapper.resolution == 0.5 and mapper.kernel.filter_size == 3
+    assert given.resolution == 0.25 and given.filter_size == 5
+    assert all(torch.equal(state[name], value) for name, value in given.state_dict().items())
+    assert all(p.device.type == "cpu" for p in given.parameters())
+
+
+def test_cuda_asked_for_without_cuda_is_one_clear_error():
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    with pytest.raises(ValueError, match="no CUDA device"):
+        ConvBKIMapper(kernel("single", 3), local_bounds=BOUNDS, device="cuda", update_path="torch")
