@@ -83,6 +83,11 @@ def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys
     # Fusing five noisy views beats the single-view input by a wide margin on this scene.
     assert report["map"]["miou"] > report["input"]["miou"] + 0.1
     assert (tmp_path / "report_map.png").stat().st_size > 10_000
+    # Measured uncertainty (test_calibration.py): the map's, and none for an input of labels only.
+    assert all(np.isfinite(report["map"][key]) for key in ("ece", "nll", "brier"))
+    assert len(report["map"]["variance_curve"]) == 14
+    assert report["input"]["ece"] is None and report["input"]["nll"] is None and report["input"]["brier"] is None
+    assert (tmp_path / "report_reliability.png").stat().st_size > 10_000
     printed = capsys.readouterr().out
     assert "road" in printed and "mIoU" in printed
 
@@ -97,6 +102,9 @@ def test_evaluate_compares_several_kernels(tmp_path):
     assert [run["kernel"] for run in report["runs"]] == ["single", "compound"]
     assert report["map"] == report["runs"][0]["map"]
     assert (tmp_path / "r_semantic_kitti_compound_map.png").exists()
+    assert all((tmp_path / f"r_{name}_reliability.png").exists()
+               for name in ("semantic_kitti_sbki", "semantic_kitti_compound"))
+    assert report["runs"][1]["map"]["ece"] >= 0 and "variance_curve" in report["runs"][1]["map"]
 
 
 @pytest.mark.parametrize("arguments, message", [

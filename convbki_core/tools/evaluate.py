@@ -5,6 +5,9 @@ frame, then label every point of that frame by the arg-max class of its voxel (p
 outside the window or in voxels with no evidence beyond the prior keep the input label);
 one confusion matrix over all frames, ground-truth class 0 ignored; IoU per class, mIoU over
 the classes present in the ground truth; the input segmentation is scored the same way.
+On the same points the map's uncertainty is measured (``calibration``): ECE, NLL and Brier
+score of its class distributions (and of the input's, given probabilities), the paper's
+variance-filter curve, and a reliability diagram.
 Several ``--kernel`` files are evaluated one after another on the same frames (ablations).
 """
 
@@ -21,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from convbki_core.calibration import CalibrationStats, MapCalibration, input_distribution
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
@@ -58,6 +62,7 @@ class KernelRun:
     query_ms: list[float] = field(default_factory=list)
     mapper: ConvBKIMapper | None = None
     trail_voxels: int | None = None  # None: the ground truth marks no moving objects
+    calibration: MapCalibration | None = None  # the map's uncertainty on the scored points
 
 
 def map_frame_labels(mapper: ConvBKIMapper, points: np.ndarray, pose: np.ndarray,
@@ -80,10 +85,12 @@ def write_label_file(path: Path, learning_labels: np.ndarray, label_map) -> None
 def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], kernel_file: str | Path, device: str,
                     prior: float, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
                     show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto",
-                    free_space: bool = True) -> KernelRun:
+                    free_space: bool = True, input_calibration: CalibrationStats | None = None) -> KernelRun:
     """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
 
-    ``input_scores`` (when given) also receives the input segmentation's confusion counts;
+    ``input_scores`` (when given) also receives the input segmentation's confusion counts, and
+    ``input_calibration`` (when given) the input's class probabilities (frames without any are skipped);
+    the run's ``calibration`` measures the map's class distributions on the scored points;
     ``labels_folder`` (when given, an existing folder) receives one NNNNNN.label per frame.
     Where the ground truth marks moving objects, the run also counts the map's trail voxels.
     """
@@ -95,6 +102,7 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
                            ignore_classes=label_map.ignore_classes, update_path=update_path, free_space=free_space)
     run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
                                                                              label_map.ignore_classes), mapper=mapper)
+    run_result.calibration = MapCalibration(label_map.num_classes, label_map.ignore_classes, free_space=free_space)
     out_folder = labels_folder
     swept = SweptSpace(mapper.resolution)
     frames = (dataset[position] for position in positions)
@@ -112,8 +120,11 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
         run_result.update_ms.append(timing["voxelize"] + timing["update"] + timing["free"])
         run_result.query_ms.append(timing["query"] + labelling_ms)
         run_result.map_scores.add(frame.ground_truth, predicted)
+        run_result.calibration.add(mapper, transform_points(frame.points, frame.pose), frame.ground_truth)
         if input_scores is not None:
             input_scores.add(frame.ground_truth, input_labels)
+        if input_calibration is not None and frame.probabilities is not None:
+            input_calibration.add(frame.ground_truth, input_distribution(frame.probabilities))
         if out_folder is not None:
             write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
         if frame.moving is not None and label_map.movable_classes:
@@ -139,11 +150,17 @@ def format_table(class_names: Sequence[str], input_scores: ConfusionMatrix, runs
 
 
 def build_report(sequence: str, frame_count: int, class_names: Sequence[str], input_scores: ConfusionMatrix,
-                 runs: Sequence[KernelRun]) -> dict:
-    """report.json (docs/evaluation.md): the first kernel at the top level, every kernel under "runs"."""
+                 runs: Sequence[KernelRun], input_calibration: CalibrationStats | None = None) -> dict:
+    """report.json (docs/evaluation.md): the first kernel at the top level, every kernel under "runs".
+
+    ``input_calibration``: the input's probabilities measured (None: labels only, so the input's
+    ECE, NLL and Brier score are null).
+    """
 
     def run_entry(run_result: KernelRun) -> dict:
         scores = run_result.map_scores.summary(class_names)
+        if run_result.calibration is not None:
+            scores.update(run_result.calibration.summary())
         if run_result.trail_voxels is not None:
             scores["trail_voxels"] = run_result.trail_voxels
         return {"kernel": run_result.kernel, "kernel_file": run_result.kernel_file,
@@ -152,8 +169,14 @@ def build_report(sequence: str, frame_count: int, class_names: Sequence[str], in
                               "query_median": float(np.median(run_result.query_ms))}}
 
     entries = [run_entry(r) for r in runs]
+    input_entry = input_scores.summary(class_names)
+    if input_calibration is not None and input_calibration.points:
+        input_entry.update(input_calibration.summary(with_curve=False))
+        input_entry["calibration_points"] = input_calibration.points
+    else:
+        input_entry.update({"ece": None, "nll": None, "brier": None})
     report = {"sequence": sequence, "frames": frame_count, "kernel": entries[0]["kernel"],
-              "kernel_file": entries[0]["kernel_file"], "input": input_scores.summary(class_names),
+              "kernel_file": entries[0]["kernel_file"], "input": input_entry,
               "map": entries[0]["map"], "timing_ms": entries[0]["timing_ms"]}
     if len(entries) > 1:
         report["runs"] = entries
@@ -165,7 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG,
         description="Map a SemanticKITTI-format sequence offline with ConvBKI and score the map's labels and the "
         "input segmentation against the ground truth (IoU per class, mIoU over classes present in the ground "
-        "truth, accuracy). Prints a per-class table, writes report.json and a bird's-eye PNG of each map.")
+        "truth, accuracy) and the uncertainty of the map's class distributions on the same points (ECE, NLL, "
+        "Brier score, the variance-filter curve). Prints a per-class table, writes report.json, a bird's-eye PNG "
+        "of each map and a reliability diagram beside it.")
     p.add_argument("--dataset", required=True, metavar="ROOT",
                    help="dataset root holding sequences/SS/{velodyne,labels,...}, poses.txt and calib.txt")
     p.add_argument("--sequence", required=True, metavar="SS", type=sequence_arg, help="sequence id, e.g. 08")
@@ -182,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="only frames A (inclusive) to B (exclusive); default: all")
     p.add_argument("--report", required=True, metavar="JSON",
                    help="write the report (sequence, frames, kernel, input and map mIoU, IoU per class, accuracy, "
-                   "median update and query times in ms) to this file; with several kernels, all are under 'runs'")
+                   "ECE, NLL, Brier score, the map's variance-filter curve, median update and query times in ms) to "
+                   "this file, and REPORT_reliability.png beside it; with several kernels, all are under 'runs'")
     p.add_argument("--write-labels", default=None, metavar="OUTROOT",
                    help="also write the map's labels as OUTROOT/sequences/SS/predictions/NNNNNN.label (uint32 raw "
                    "ids, one per input point), the format the semantic-kitti-api evaluator reads (first kernel)")
@@ -264,16 +290,21 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         labels_folder = outputs.staging(Path(args.write_labels) / "sequences" / dataset.sequence / "predictions")
     label_map = dataset.label_map
     input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
+    # The input has a class distribution only when it is given as probabilities.
+    input_calibration = (CalibrationStats(label_map.num_classes, label_map.ignore_classes, thresholds=None)
+                         if dataset.probabilities_folder is not None else None)
     runs = []
     for number, kernel_file in enumerate(kernels):
         runs.append(evaluate_kernel(dataset, positions, kernel_file, args.device, args.prior,
                                     input_scores if number == 0 else None,
                                     labels_folder if number == 0 else None,
                                     show_progress=not args.quiet, local_bounds=bounds,
-                                    update_path=args.update_path, free_space=args.free_space))
-    report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs)
+                                    update_path=args.update_path, free_space=args.free_space,
+                                    input_calibration=input_calibration if number == 0 else None))
+    report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,
+                          input_calibration)
 
-    from convbki_core.tools.plots import save_map_picture
+    from convbki_core.tools.plots import save_map_picture, save_reliability_diagram
 
     pictures = []
     for run_result in runs:
@@ -287,6 +318,16 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                  f"map mIoU {run_result.map_scores.miou():.3f} (input {input_scores.miou():.3f})")
         save_map_picture(voxels, label_map, run_result.mapper.resolution, outputs.file(picture), title)
         pictures.append(picture)
+        suffix = "" if len(runs) == 1 else "_" + Path(run_result.kernel_file).stem
+        reliability_path = report_path.with_name(f"{report_path.stem}{suffix}_reliability.png")
+        stats = run_result.calibration.stats
+        diagrams = {"map": (stats.reliability(), stats.ece())}
+        if input_calibration is not None and input_calibration.points:
+            diagrams["input"] = (input_calibration.reliability(), input_calibration.ece())
+        save_reliability_diagram(diagrams, outputs.file(reliability_path), stats.variance_curve(),
+                                 title=f"sequence {dataset.sequence}, {len(positions)} frames, "
+                                 f"{Path(run_result.kernel_file).stem}")
+        pictures.append(reliability_path)
     if args.save_map:
         runs[0].mapper.save(outputs.file(args.save_map))  # atomic; removed again if the report fails
     # The report and the labels last: they are what scripts look for to tell that a run finished.
@@ -301,12 +342,24 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
               f"update {np.median(run_result.update_ms):.1f} ms, query {np.median(run_result.query_ms):.1f} ms "
               f"(median), {len(run_result.mapper)} voxels"
               + ("" if run_result.trail_voxels is None else f", {run_result.trail_voxels} trail voxels"))
+        calibration = run_result.calibration.summary()
+        line = (f"  uncertainty on {calibration['calibration_points']} scored points with map evidence "
+                f"({calibration['points_without_evidence']} without): map ECE {_number(calibration['ece'])}, "
+                f"NLL {_number(calibration['nll'])}, Brier {_number(calibration['brier'])}")
+        if run_result is runs[0]:
+            line += (f"; input ECE {_number(report['input']['ece'])}, NLL {_number(report['input']['nll'])}, "
+                     f"Brier {_number(report['input']['brier'])}")
+        print(line)
     print(f"report: {report_path}; pictures: {', '.join(map(str, pictures))}")
     if args.write_labels:
         print(f"labels: {Path(args.write_labels) / 'sequences' / dataset.sequence / 'predictions'}")
     if args.save_map:
         print(f"map: {args.save_map} ({len(runs[0].mapper)} voxels)")
     return 0
+
+
+def _number(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.4f}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -95,6 +95,72 @@ def save_map_picture(voxels: VoxelSet, label_map: LabelMap, resolution: float, p
     _save(figure, path)
 
 
+def save_reliability_diagram(diagrams: dict, path: str | Path, variance_curve: Sequence[dict] | None = None,
+                             title: str = "") -> None:
+    """Reliability diagram (accuracy against confidence per bin) and, when given, the variance-filter curve.
+
+    ``diagrams``: {name: (``calibration.Reliability``, ECE)}, e.g. the map and the input;
+    ``variance_curve``: [{"threshold", "miou", "kept"}] (threshold None: no filter).
+    """
+    plt = _pyplot()
+    panels = 2 if variance_curve else 1
+    figure, axes = plt.subplots(2, panels, figsize=(6.5 * panels, 7.5), squeeze=False,
+                                gridspec_kw={"height_ratios": [3, 1]})
+    top, bottom = axes[0, 0], axes[1, 0]
+    top.plot([0, 1], [0, 1], color="grey", linestyle="--", linewidth=1, label="perfectly calibrated")
+    colours = ["tab:blue", "tab:orange", "tab:green", "tab:red"]
+    shown = max(len(diagrams), 1)
+    for number, (name, (reliability, ece)) in enumerate(diagrams.items()):
+        edges = np.asarray(reliability.edges)
+        width = np.diff(edges) / shown
+        left = edges[:-1] + number * width
+        filled = np.asarray(reliability.count) > 0
+        colour = colours[number % len(colours)]
+        ece_text = "n/a" if ece is None or not np.isfinite(ece) else f"{ece:.3f}"
+        top.bar(left[filled], np.asarray(reliability.accuracy)[filled], width=width[filled], align="edge",
+                color=colour, alpha=0.6, edgecolor=colour, label=f"{name} (ECE {ece_text})")
+        top.plot(np.asarray(reliability.confidence)[filled], np.asarray(reliability.accuracy)[filled], "o",
+                 color=colour, markersize=3)
+        counts = np.asarray(reliability.count, np.float64)
+        bottom.bar(left, counts / max(counts.sum(), 1.0), width=width, align="edge", color=colour, alpha=0.6)
+    top.set_xlim(0, 1)
+    top.set_ylim(0, 1)
+    top.set_ylabel("accuracy of the chosen class")
+    top.set_title("reliability (bars: accuracy per confidence bin; dots at mean confidence)")
+    top.legend(loc="upper left", fontsize=9)
+    bottom.set_xlim(0, 1)
+    bottom.set_xlabel("confidence: expected probability of the chosen class")
+    bottom.set_ylabel("share of points")
+    if variance_curve:
+        curve, share = axes[0, 1], axes[1, 1]
+        filtered = [entry for entry in variance_curve if entry["threshold"] is not None]
+        thresholds = [entry["threshold"] for entry in filtered]
+        miou = [np.nan if entry["miou"] is None else entry["miou"] for entry in filtered]
+        kept = [np.nan if entry["kept"] is None else entry["kept"] for entry in filtered]
+        curve.semilogx(thresholds, miou, "o-", color="tab:blue", label="mIoU of kept points")
+        accuracy = [np.nan if entry.get("accuracy") is None else entry["accuracy"] for entry in filtered]
+        if not np.isnan(accuracy).all():
+            curve.semilogx(thresholds, accuracy, "s-", color="tab:purple", label="accuracy of kept points")
+        unfiltered = [entry for entry in variance_curve if entry["threshold"] is None]
+        if unfiltered and unfiltered[0]["miou"] is not None:
+            curve.axhline(unfiltered[0]["miou"], color="tab:blue", linestyle=":", label="mIoU, no filter")
+        curve.axvline(0.01, color="grey", linestyle="--", linewidth=1, label="paper's filter (V > 0.01 dropped)")
+        curve.set_ylabel("score of the kept points")
+        curve.set_title("variance filter: points whose chosen class has V > threshold dropped")
+        curve.legend(loc="best", fontsize=9)
+        share.semilogx(thresholds, kept, "o-", color="tab:green")
+        share.axvline(0.01, color="grey", linestyle="--", linewidth=1)
+        share.set_ylim(0, 1.02)
+        share.set_xlabel("variance threshold")
+        share.set_ylabel("share kept")
+        for axis in (curve, share):
+            axis.grid(True, which="both", alpha=0.3)
+    if title:
+        figure.suptitle(title)
+    figure.tight_layout()
+    _save(figure, path)
+
+
 def save_loss_curve(losses: Sequence[float], path: str | Path, title: str = "training loss") -> None:
     """Loss per step and its running mean."""
     plt = _pyplot()
