@@ -1,5 +1,14 @@
 """``train``: the command line of the trainer (``training.trainer``): learn kernel lengths on
-SemanticKITTI-format sequences and write a kernel file with pictures of the loss and kernels."""
+SemanticKITTI-format sequences and write a kernel file with pictures of the loss and kernels.
+
+Defaults (the trainer's module docstring has the details): samples shuffled; validation
+frames held out of the training sequences (every 4th block of 10 frames, at most 20 frames,
+2 frames of gap to the training frames) or ``--val-sequences``; the start kernel is
+``--init FILE`` or every length 0.5 m; epochs sized to about 300 optimiser steps; cosine
+learning-rate decay from ``--lr`` to 5 % of it; the kernel with the best validation mIoU
+(the paper's protocol) is written, the start kernel when no trained kernel beats it
+(``--strict``: refuse instead, exit 2). The free-space length is not learned: the start
+kernel's ``free_ell`` is written."""
 
 from __future__ import annotations
 
@@ -14,7 +23,8 @@ import numpy as np
 from convbki_core.datasets import parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.devices import resolve_device
-from convbki_core.io.kernel_file import save_kernel_file
+from convbki_core.io.kernel_file import load_kernel_file, save_kernel_file
+from convbki_core.kernels import ConvBKIKernel
 from convbki_core.tools.cli import (
     NewOutputs,
     UserError,
@@ -26,7 +36,16 @@ from convbki_core.tools.cli import (
     run,
     sequence_arg,
 )
-from convbki_core.training.trainer import train_kernel
+from convbki_core.training.trainer import (
+    TARGET_UPDATES,
+    VALIDATION_BLOCK,
+    VALIDATION_EVERY,
+    VALIDATION_FRAMES,
+    VALIDATION_GAP,
+    Validator,
+    split_validation,
+    train_kernel,
+)
 
 PROG = "train"
 
@@ -58,10 +77,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames-per-sample", default=10, type=positive(int, "frames-per-sample"), metavar="T",
                    help="scans per training sample: the current scan and T-1 past scans moved into its frame "
                    "(default: %(default)s)")
-    p.add_argument("--epochs", default=1, type=positive(int, "epochs"), metavar="N",
-                   help="passes over the training samples (default: %(default)s)")
+    p.add_argument("--epochs", default=None, type=positive(int, "epochs"), metavar="N",
+                   help=f"passes over the training samples (default: enough for about {TARGET_UPDATES} steps)")
     p.add_argument("--lr", default=0.007, type=positive(float, "lr"), metavar="LR",
-                   help="Adam learning rate (default: %(default)s)")
+                   help="initial Adam learning rate; it decays along a cosine to 5%% of it at the last step "
+                   "(default: %(default)s)")
+    p.add_argument("--init", default=None, metavar="FILE",
+                   help="start from this kernel file (same kind, resolution and filter size); default: every "
+                   "length 0.5 m, no free-space spreading")
+    p.add_argument("--val-sequences", nargs="+", default=None, metavar="SS", type=sequence_arg,
+                   help="validate on these sequences (at most --val-frames of their frames, in blocks) instead of "
+                   f"holding out every {VALIDATION_EVERY}th block of {VALIDATION_BLOCK} frames of the training "
+                   f"sequences (with {VALIDATION_GAP} frames of gap to the training frames)")
+    p.add_argument("--val-frames", default=VALIDATION_FRAMES, type=positive(int, "val-frames"), metavar="N",
+                   help="at most this many validation frames (default: %(default)s)")
+    p.add_argument("--validate-every", default=None, type=positive(int, "validate-every"), metavar="M",
+                   help="score the kernel on the validation frames every M steps (default: about 10 times a run, "
+                   "plus the start and the last step)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse (exit 2, nothing written) when no trained kernel beats the start on validation; "
+                   "by default the start kernel is written then")
     p.add_argument("--frames", default=None, metavar="A:B", type=frames_arg,
                    help="use only scans A (inclusive) to B (exclusive) of each sequence; default: all")
     p.add_argument("--predictions-dir", default="predictions", metavar="DIR",
@@ -75,6 +110,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", default=0, type=int, help="shuffling seed (default: %(default)s)")
     p.add_argument("--device", default="cpu", type=device_arg,
                    help="torch device to train on: cpu, auto (CUDA when present) or cuda[:N] (default: %(default)s)")
+    p.add_argument("--local-bounds", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX",
+                   "YMAX", "ZMAX"), help="validation map window around the sensor in metres (default: the paper's "
+                   "-40 -40 -2.6 40 40 2.6)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -95,27 +133,60 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     output_folder(out, "output")
     if out.is_dir():
         raise UserError(f"{out}: is a folder; --out names the kernel file to write")
-    datasets = [SemanticKittiSequence(args.dataset, sequence, args.predictions_dir, args.probabilities_dir)
-                for sequence in args.sequences]
-    for dataset in datasets:
-        if not dataset.has_ground_truth:
-            raise UserError(f"{dataset.folder}: no labels/ folder: training needs ground truth")
-        if dataset.predictions_folder is None and dataset.probabilities_folder is None:
-            raise UserError(f"{dataset.folder}: no input segmentation (give --predictions-dir or --probabilities-dir)")
+    start = _start_kernel(args)
+    datasets = [_dataset(args, sequence) for sequence in args.sequences]
     try:
         positions = [parse_frames(args.frames, len(dataset)) for dataset in datasets]
     except ValueError as error:
         raise UserError(str(error)) from None
     for dataset, chosen in zip(datasets, positions):
         dataset.check_files(chosen)  # before hours of training, not at the scan that is broken
+    if args.val_sequences:
+        overlap = sorted(set(args.val_sequences) & set(args.sequences))
+        if overlap:
+            raise UserError(f"--val-sequences {' '.join(overlap)} also in --sequences: validation must be held out")
+        val_datasets = [_dataset(args, sequence) for sequence in args.val_sequences]
+        _, val_positions = split_validation([range(len(d)) for d in val_datasets], every=1, gap=0,
+                                            max_frames=args.val_frames)
+        train_positions = positions
+    else:
+        val_datasets = datasets
+        train_positions, val_positions = split_validation(positions, max_frames=args.val_frames)
+        if not any(val_positions):
+            raise UserError("too few frames to hold out validation frames: give more frames or --val-sequences")
+    if not any(train_positions):
+        raise UserError("no training frames left after holding out validation: give more frames or --val-sequences")
+    if args.val_sequences:
+        for dataset, chosen in zip(val_datasets, val_positions):
+            dataset.check_files(chosen)
+    bounds = None
+    if args.local_bounds:
+        bounds = (tuple(args.local_bounds[:3]), tuple(args.local_bounds[3:]))
+        if any(not low < high for low, high in zip(*bounds)):
+            raise UserError(f"--local-bounds must have each minimum below its maximum, got {args.local_bounds}")
+    device = resolve_device(args.device)
+    validator = Validator(val_datasets, val_positions, device=device, local_bounds=bounds)
+    held = ", ".join(f"{d.sequence}: {_ranges(c)}" for d, c in zip(val_datasets, val_positions) if c)
+    print(f"validation: {validator.frame_count} frames ({held}); training: "
+          f"{sum(len(c) for c in train_positions)} samples")
     started = time.perf_counter()
-    kernel, losses = train_kernel(datasets, positions, args.kernel, args.frames_per_sample, args.epochs, args.lr,
-                                  args.resolution, args.filter_size, seed=args.seed,
-                                  progress=None if args.quiet else _progress, log=_log(args.quiet),
-                                  device=resolve_device(args.device))
+    result = train_kernel(datasets, train_positions, args.kernel, args.frames_per_sample, args.epochs, args.lr,
+                          args.resolution, args.filter_size, seed=args.seed,
+                          progress=None if args.quiet else _progress, log=_log(args.quiet), device=device,
+                          start=start, validator=validator, validate_every=args.validate_every)
+    losses = result.losses
     if not losses:
         raise UserError("no training sample had scored points (check labels and predictions)")
-    save_kernel_file(kernel.to_config(), outputs.file(out))
+    print(f"validation mIoU: start {result.start_miou:.4f}, best {result.best_miou:.4f} "
+          f"(step {result.best_step} of {result.total_steps}, {result.epochs} epochs)")
+    if not result.improved:
+        if args.strict:
+            raise UserError(f"no trained kernel beat the start kernel on validation (mIoU {result.start_miou:.4f}); "
+                            "nothing written (--strict)")
+        print(f"no trained kernel beat the start kernel on validation (mIoU {result.start_miou:.4f}): "
+              "writing the start kernel")
+    kernel = ConvBKIKernel.from_config(result.config)
+    save_kernel_file(result.config, outputs.file(out))
 
     from convbki_core.tools.plots import save_kernel_picture, save_loss_curve
 
@@ -130,7 +201,7 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
           f"{np.mean(losses[:tenth]):.4f} (first tenth) -> {np.mean(losses[-tenth:]):.4f} (last tenth)")
     curve = [f"{np.mean(chunk):.3f}" for chunk in np.array_split(np.asarray(losses), min(10, len(losses)))]
     print("loss curve (10 segments): " + " ".join(curve))
-    config = kernel.to_config()
+    config = result.config
     if config.kernel == "compound":
         for name in ("road", "pole", "car", "building", "vegetation"):
             c = names.index(name)
@@ -141,6 +212,40 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         print(f"  ell {config.ell[0]:.3f} m")
     print(f"kernel: {out}; pictures: {loss_png}, {kernels_png}")
     return 0
+
+
+def _dataset(args: argparse.Namespace, sequence: str) -> SemanticKittiSequence:
+    dataset = SemanticKittiSequence(args.dataset, sequence, args.predictions_dir, args.probabilities_dir)
+    if not dataset.has_ground_truth:
+        raise UserError(f"{dataset.folder}: no labels/ folder: training needs ground truth")
+    if dataset.predictions_folder is None and dataset.probabilities_folder is None:
+        raise UserError(f"{dataset.folder}: no input segmentation (give --predictions-dir or --probabilities-dir)")
+    return dataset
+
+
+def _start_kernel(args: argparse.Namespace):
+    """The --init kernel file, checked against the other options; None: the trainer's default start."""
+    if args.init is None:
+        return None
+    config = load_kernel_file(args.init)
+    for name, wanted in (("kernel", args.kernel), ("resolution", args.resolution),
+                         ("filter_size", args.filter_size)):
+        if getattr(config, name) != wanted:
+            flag = "--" + name.replace("_", "-")
+            raise UserError(f"{args.init}: {name} {getattr(config, name)}, but {flag} is {wanted}")
+    return config
+
+
+def _ranges(positions) -> str:
+    """Frames 30 31 32 40 41 -> '30-32 40-41'."""
+    parts, first = [], None
+    for index, position in enumerate(positions):
+        if first is None:
+            first = position
+        if index + 1 == len(positions) or positions[index + 1] != position + 1:
+            parts.append(f"{first}-{position}" if position != first else f"{first}")
+            first = None
+    return " ".join(parts)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

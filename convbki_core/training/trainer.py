@@ -1,11 +1,36 @@
 """The trainer: learn ConvBKI kernel lengths on SemanticKITTI-format sequences.
 
-The paper's recipe (section "Training"): for every scan t, the T scans t-T+1 .. t are moved
-into scan t's frame and voxelised together (the update is a sum, so one convolution over
-all of them equals T sequential updates); the posterior at the voxels holding scan t's
+The paper's recipe (section "Training"): for every scan t, the T = 10 scans t-T+1 .. t are
+moved into scan t's frame and voxelised together (the update is a sum, so one convolution
+over all of them equals T sequential updates); the posterior at the voxels holding scan t's
 points is alpha = prior + conv3d(F, K); the loss is the class-weighted negative log
 likelihood of scan t's ground truth under the expected probabilities alpha / sum(alpha);
-Adam (lr 0.007), one epoch, lengths initialised at 0.5 m and kept positive.
+Adam, lengths kept positive.
+
+Around that recipe (``train_kernel``):
+
+* Held-out validation (``split_validation``): each training sequence is cut into blocks of
+  ``block`` consecutive frames (10); every ``every``-th block (4th: blocks 3, 7, ...; the last
+  block when a sequence has fewer) is a validation block, at most ``max_frames`` validation
+  frames in all (blocks picked evenly, the others train). Training samples exclude the
+  validation frames and ``gap`` frames (2) on either side of each validation block, so no
+  training scan is a direct neighbour of a validation scan (drives under two blocks: blocks of
+  len / every frames and a gap of at most half a block). Or whole validation
+  sequences are given (``--val-sequences``).
+* Validation score (``Validator``): the paper's protocol (``tools.evaluate``): a fresh map per
+  sequence, updated frame by frame over the validation frames with the candidate kernel (free
+  space on, as ``evaluate``), every point labelled from its voxel (input label where the map
+  has no evidence), mIoU over the classes present. Scored for the start kernel, then every
+  ``validate_every`` steps and after the last step.
+* The kernel written is the one with the best validation mIoU; the start kernel unless a
+  trained one beats it (strictly).
+* Samples are shuffled (one permutation per epoch); the learning rate follows a cosine decay
+  from ``lr`` at the first step to ``MIN_LR_FRACTION`` * ``lr`` at the last (``learning_rate``).
+* Epochs are sized to the data: ``ceil(TARGET_UPDATES / training samples)`` unless given.
+* The free-space length ``free_ell`` is not learned: it is kept out of the optimiser and the
+  start kernel's value is written. Neither the point loss nor the protocol's mIoU can see it:
+  scan t's points lie in voxels reached by scan t's own class evidence, which take no free
+  evidence from scan t, and the map labels a point by the most likely class other than free.
 
 The convolution is evaluated only at the voxels the loss reads (``SparsePlan``), which
 equals the dense layer there (tested) and keeps a training step cheap enough for a CPU.
@@ -16,14 +41,18 @@ dominate); ignored classes (0) weigh nothing.
 
 from __future__ import annotations
 
+import copy
+import math
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from convbki_core.datasets import DatasetError, Frame
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
-from convbki_core.kernels import ConvBKIKernel
+from convbki_core.kernels import ConvBKIKernel, KernelConfig
+from convbki_core.metrics import ConfusionMatrix
 from convbki_core.training.sparse_plan import SparsePlan
 from convbki_core.volume import WindowGeometry, transform_points, unravel_linear, voxel_indices, voxelize
 
@@ -32,6 +61,14 @@ Progress = Callable[[Iterable, int, str], Iterable]
 
 INITIAL_ELL = 0.5
 DEFAULT_PRIOR = 1e-3
+TARGET_UPDATES = 300  # default epochs: enough passes for about this many optimiser steps
+MIN_LR_FRACTION = 0.05  # the cosine schedule ends at this fraction of the initial rate
+VALIDATION_BLOCK = 10
+VALIDATION_EVERY = 4
+VALIDATION_GAP = 2
+VALIDATION_FRAMES = 20
+VALIDATIONS = 10  # default: validate about this many times over a run (plus the start)
+PLAN_CACHE_BYTES = 2 << 30  # built samples kept in memory for later epochs
 
 
 def class_weights(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]],
@@ -63,6 +100,21 @@ class SampleBuilder:
         self.filter_size = filter_size
         self.ignore = tuple(ignore)
         self._cache: dict[tuple[int, int], Frame] = {}
+        self._plans: dict[tuple[int, int], tuple | None] = {}
+        self._plan_bytes = 0
+
+    def cached_build(self, dataset_number: int, dataset: SemanticKittiSequence, position: int):
+        """``build``, kept in memory (up to ``PLAN_CACHE_BYTES``) for the next epochs: the plan does not
+        depend on the kernel."""
+        key = (dataset_number, position)
+        if key in self._plans:
+            return self._plans[key]
+        built = self.build(dataset_number, dataset, position)
+        size = 0 if built is None else 20 * built[0].value.numel() + 16 * len(built[1])
+        if self._plan_bytes + size <= PLAN_CACHE_BYTES:
+            self._plans[key] = built
+            self._plan_bytes += size
+        return built
 
     def _frame(self, dataset_number: int, dataset: SemanticKittiSequence, position: int) -> Frame:
         key = (dataset_number, position)
@@ -108,35 +160,200 @@ def weighted_nll(plan: SparsePlan, filters: torch.Tensor, point_query: torch.Ten
     return -(point_weights * log_probability[point_query, truth]).sum() / point_weights.sum()
 
 
+
+
+def learning_rate(step: int, total: int, lr: float, min_fraction: float = MIN_LR_FRACTION) -> float:
+    """The rate of step ``step`` (0-based) of ``total``: a cosine decay from ``lr`` at the first step to
+    ``min_fraction * lr`` at the last, never increasing."""
+    if total <= 1:
+        return lr
+    done = min(max(step, 0), total - 1) / (total - 1)
+    return lr * (min_fraction + (1.0 - min_fraction) * 0.5 * (1.0 + math.cos(math.pi * done)))
+
+
+def default_epochs(training_samples: int, target_updates: int = TARGET_UPDATES) -> int:
+    """Passes over the training samples that make about ``target_updates`` optimiser steps."""
+    return max(1, math.ceil(target_updates / max(1, training_samples)))
+
+
+def split_validation(positions: Sequence[Sequence[int]], block: int = VALIDATION_BLOCK,
+                     every: int = VALIDATION_EVERY, gap: int = VALIDATION_GAP,
+                     max_frames: int = VALIDATION_FRAMES) -> tuple[list[list[int]], list[list[int]]]:
+    """(training positions, validation positions) per sequence, disjoint (module docstring).
+
+    Each sequence's frames are cut into blocks of ``block`` consecutive frames; blocks
+    every-1, 2 every-1, ... (or the last block, when there are fewer than ``every`` blocks
+    and more than one) hold out (a sequence shorter than two blocks is cut into blocks of
+    len / ``every`` frames, with a gap of at most half of one), at most ``max_frames`` frames over all sequences (picked
+    evenly; the blocks not picked train). Training drops the frames within ``gap`` of a
+    validation frame.
+    """
+    per_sequence = max(1, max_frames // max(1, len(positions)))
+    training, validation = [], []
+    for chosen in positions:
+        chosen = sorted(int(p) for p in chosen)
+        size, near_gap = block, gap
+        if len(chosen) < 2 * block:  # a short drive: shorter blocks, and a gap of at most half a block
+            size = max(1, len(chosen) // every)
+            near_gap = min(gap, size // 2)
+        blocks = [chosen[i:i + size] for i in range(0, len(chosen), size)]
+        candidates = [b for b in range(len(blocks)) if b % every == every - 1]
+        if not candidates and len(blocks) > 1:
+            candidates = [len(blocks) - 1]
+        wanted = max(1, per_sequence // size) if candidates else 0
+        if len(candidates) > wanted:
+            picks = np.unique(np.round(np.linspace(0, len(candidates) - 1, wanted)).astype(int))
+            candidates = [candidates[i] for i in picks]
+        held = sorted(p for b in candidates for p in blocks[b])[:per_sequence]
+        held_array = np.asarray(held, np.int64)
+        if held:
+            near = np.abs(np.asarray(chosen)[:, None] - held_array[None, :]).min(axis=1) <= near_gap
+            training.append([p for p, close in zip(chosen, near) if not close])
+        else:
+            training.append(chosen)
+        validation.append(held)
+    return training, validation
+
+
+class Validator:
+    """The paper's protocol (``tools.evaluate``) on the validation frames, for a candidate kernel."""
+
+    def __init__(self, datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]],
+                 prior: float = DEFAULT_PRIOR, device: str | torch.device = "cpu", local_bounds=None,
+                 free_space: bool = True):
+        self.datasets = list(datasets)
+        self.positions = [list(chosen) for chosen in positions]
+        self.prior = prior
+        self.device = str(device)
+        self.local_bounds = local_bounds
+        self.free_space = free_space
+        self._frames: dict[tuple[int, int], Frame] = {}
+        if not any(self.positions):
+            raise DatasetError("no validation frames")
+
+    @property
+    def frame_count(self) -> int:
+        return sum(len(chosen) for chosen in self.positions)
+
+    def _frame(self, number: int, position: int) -> Frame:
+        key = (number, position)
+        if key not in self._frames:
+            self._frames[key] = self.datasets[number][position]
+        return self._frames[key]
+
+    def score(self, config: KernelConfig) -> float:
+        """mIoU of the map's point labels over the validation frames (one fresh map per sequence)."""
+        from convbki_core.mapper import ConvBKIMapper
+        from convbki_core.pipeline import PAPER_BOUNDS
+        from convbki_core.tools.evaluate import map_frame_labels
+
+        label_map = self.datasets[0].label_map
+        scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
+        for number, chosen in enumerate(self.positions):
+            if not chosen:
+                continue
+            mapper = ConvBKIMapper(config, local_bounds=self.local_bounds or PAPER_BOUNDS, prior=self.prior,
+                                   device=self.device, ignore_classes=label_map.ignore_classes,
+                                   free_space=self.free_space)
+            for position in chosen:
+                frame = self._frame(number, position)
+                if frame.ground_truth is None:
+                    raise DatasetError(f"{self.datasets[number].folder}: no labels/ folder: validation needs them")
+                input_labels = (frame.input_labels if frame.input_labels is not None
+                                else frame.probabilities.argmax(axis=1))
+                mapper.integrate(frame.points, frame.input_values, frame.pose)
+                scores.add(frame.ground_truth, map_frame_labels(mapper, frame.points, frame.pose, input_labels))
+        return float(scores.miou())
+
+
+@dataclass
+class TrainResult:
+    """What ``train_kernel`` found: the kernel to write and how it got there."""
+
+    config: KernelConfig  # the kernel to write: the best on validation (the start unless beaten)
+    start: KernelConfig
+    losses: list[float] = field(default_factory=list)
+    validation: list[tuple[int, float]] = field(default_factory=list)  # (step, mIoU); step 0 is the start
+    best_step: int = 0  # 0: the start kernel
+    epochs: int = 0
+    total_steps: int = 0
+
+    @property
+    def start_miou(self) -> float | None:
+        return self.validation[0][1] if self.validation else None
+
+    @property
+    def best_miou(self) -> float | None:
+        return max(m for _, m in self.validation) if self.validation else None
+
+    @property
+    def improved(self) -> bool:
+        return self.best_step > 0
+
+
 def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]], kind: str,
-                 frames_per_sample: int, epochs: int, lr: float, resolution: float = 0.2, filter_size: int = 5,
-                 prior: float = DEFAULT_PRIOR, seed: int = 0, progress: Progress | None = None,
-                 log: Callable[[str], None] | None = None, log_every: int = 25,
-                 device: str | torch.device = "cpu") -> tuple[ConvBKIKernel, list[float]]:
-    """Learn the kernel lengths on ``device``; returns the kernel (on the CPU) and the loss of every step."""
+                 frames_per_sample: int = 10, epochs: int | None = None, lr: float = 0.007, resolution: float = 0.2,
+                 filter_size: int = 5, prior: float = DEFAULT_PRIOR, seed: int = 0,
+                 progress: Progress | None = None, log: Callable[[str], None] | None = None, log_every: int = 25,
+                 device: str | torch.device = "cpu", start: KernelConfig | None = None,
+                 validator: Validator | None = None, validate_every: int | None = None) -> TrainResult:
+    """Learn the kernel lengths on ``device`` from ``start`` (default: every length ``INITIAL_ELL``).
+
+    With a ``validator``, the start and every ``validate_every`` steps (default: about
+    ``VALIDATIONS`` times a run) and the last step are scored, and the best kernel is returned;
+    without one, the last. ``free_ell`` is never optimised: the start's value is kept.
+    """
     label_map = datasets[0].label_map
     num_classes = label_map.num_classes
     torch.manual_seed(seed)
     device = torch.device(device)
-    kernel = ConvBKIKernel(kind, num_classes, filter_size, resolution, ell=INITIAL_ELL).to(device)
+    if start is None:
+        start = ConvBKIKernel(kind, num_classes, filter_size, resolution, ell=INITIAL_ELL).to_config()
+    start = copy.deepcopy(start)
+    kernel = ConvBKIKernel.from_config(start).to(device)
+    lengths = [parameter for name, parameter in kernel.named_parameters() if name != "free_ell"]
     weights = torch.from_numpy(class_weights(datasets, positions, num_classes, label_map.ignore_classes)).float()
     weights = weights.to(device)
-    optimiser = torch.optim.Adam(kernel.parameters(), lr=lr)
-    builder = SampleBuilder(WindowGeometry(resolution), num_classes, frames_per_sample, filter_size,
+    optimiser = torch.optim.Adam(lengths, lr=lr)
+    builder = SampleBuilder(WindowGeometry(start.resolution), num_classes, frames_per_sample, start.filter_size,
                             label_map.ignore_classes)
     samples = [(number, position) for number, chosen in enumerate(positions) for position in chosen]
+    epochs = epochs or default_epochs(len(samples))
     rng = np.random.default_rng(seed)
-    losses: list[float] = []
-    for epoch in range(epochs):
-        # Consecutive scans share T - 1 frames: shuffle blocks of neighbours, not single scans,
-        # so the frame cache stays useful while the order is still mixed.
-        blocks = [samples[i:i + frames_per_sample] for i in range(0, len(samples), frames_per_sample)]
-        order = [sample for block in rng.permutation(len(blocks)) for sample in blocks[block]]
-        steps = progress(order, len(order), f"epoch {epoch + 1}/{epochs}") if progress else order
-        for number, position in steps:
-            built = builder.build(number, datasets[number], position)
-            if built is None:
-                continue
+    order = [samples[i] for _ in range(epochs) for i in rng.permutation(len(samples))]
+    total = len(order)
+    validate_every = validate_every or max(1, math.ceil(total / VALIDATIONS))
+    result = TrainResult(config=start, start=start, epochs=epochs, total_steps=total)
+
+    def written(config: KernelConfig) -> KernelConfig:
+        config.free_ell = start.free_ell  # not learned (module docstring)
+        return config
+
+    bar = None
+
+    def validate(step: int) -> None:
+        miou = validator.score(written(kernel.to_config()) if step else start)
+        best = result.best_miou
+        result.validation.append((step, miou))
+        if step and miou > best:
+            result.config, result.best_step = written(kernel.to_config()), step
+        text = f"val mIoU {miou:.4f} (best {result.best_miou:.4f})"
+        if bar is not None and hasattr(bar, "set_postfix_str"):
+            bar.set_postfix_str(text)
+        if log:
+            log(f"step {step}/{total}: {text}")
+
+    if validator is not None:
+        validate(0)
+    steps = progress(order, total, "training") if progress else order
+    bar = steps if steps is not order else None
+    if bar is not None and validator is not None and hasattr(bar, "set_postfix_str"):
+        bar.set_postfix_str(f"val mIoU {result.start_miou:.4f} (start)")
+    for step, (number, position) in enumerate(steps, start=1):
+        built = builder.cached_build(number, datasets[number], position)
+        if built is not None:
+            for group in optimiser.param_groups:
+                group["lr"] = learning_rate(step - 1, total, lr)
             plan, point_query, truth = built
             loss = weighted_nll(plan, kernel.filters(), torch.from_numpy(point_query).to(device),
                                 torch.from_numpy(truth).to(device), weights, prior)
@@ -144,8 +361,13 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
             loss.backward()
             optimiser.step()
             kernel.clamp_lengths_()
-            losses.append(float(loss.detach()))
-            if log and log_every and len(losses) % log_every == 0:
-                recent = np.mean(losses[-log_every:])
-                log(f"step {len(losses)}: loss {recent:.4f} (mean of the last {log_every})")
-    return kernel.cpu(), losses
+            result.losses.append(float(loss.detach()))
+            if log and log_every and len(result.losses) % log_every == 0:
+                recent = np.mean(result.losses[-log_every:])
+                log(f"step {step}/{total}: loss {recent:.4f} (mean of the last {log_every}), "
+                    f"lr {learning_rate(step - 1, total, lr):.5f}")
+        if validator is not None and (step % validate_every == 0 or step == total):
+            validate(step)
+    if validator is None:
+        result.config, result.best_step = written(kernel.to_config()), total
+    return result

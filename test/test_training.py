@@ -1,0 +1,138 @@
+"""The trainer's held-out validation, best-kernel selection, --strict and learning-rate schedule,
+on tiny drives written by the test (kitti_fixture)."""
+
+import itertools
+
+import numpy as np
+import pytest
+import yaml
+from kitti_fixture import write_drive
+
+from convbki_core.kernels import ConvBKIKernel, load_kernel_file, save_kernel_file
+from convbki_core.tools import train
+from convbki_core.training import trainer
+
+SMALL_WINDOW = ["--local-bounds", "-20", "-12", "-3", "20", "12", "4"]
+
+
+def _train_args(tmp_path, out, *extra):
+    return ["--dataset", str(tmp_path / "data"), "--sequences", "01", "--kernel", "compound", "--out", str(out),
+            "--frames-per-sample", "3", "--quiet", *SMALL_WINDOW, *extra]
+
+
+def _start_file(tmp_path):
+    config = ConvBKIKernel("compound", 20, 5, 0.2, ell_h=np.linspace(0.25, 0.9, 20),
+                           ell_z=np.linspace(0.9, 0.3, 20), free_ell=0.3).to_config()
+    path = tmp_path / "start.yaml"
+    save_kernel_file(config, path)
+    return path, load_kernel_file(path)
+
+
+def _scores_start_best(start, value_else):
+    """A Validator.score that rates the start kernel 0.9 and every other kernel ``value_else``."""
+
+    def score(self, config):
+        return 0.9 if (config.ell_h == start.ell_h and config.ell_z == start.ell_z) else value_else
+
+    return score
+
+
+def test_a_start_kernel_that_is_already_best_is_written_back_unchanged(tmp_path, capsys, monkeypatch):
+    write_drive(tmp_path / "data", "01", frames=14, seed=3)
+    start_path, start = _start_file(tmp_path)
+    monkeypatch.setattr(trainer.Validator, "score", _scores_start_best(start, 0.5))
+    out = tmp_path / "k.yaml"
+    code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05"))
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "no trained kernel beat the start kernel" in printed
+    written = yaml.safe_load(out.read_text())
+    given = yaml.safe_load(start_path.read_text())
+    assert written["ell_h"] == given["ell_h"] and written["ell_z"] == given["ell_z"]
+    assert written["free_ell"] == given["free_ell"] == 0.3
+
+
+def test_the_best_validated_kernel_is_written_and_free_ell_is_kept(tmp_path, capsys):
+    write_drive(tmp_path / "data", "01", frames=14, seed=3)
+    start_path, _start = _start_file(tmp_path)
+    out = tmp_path / "k.yaml"
+    code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05",
+                                  "--validate-every", "3"))
+    assert code == 0
+    printed = capsys.readouterr().out
+    line = next(line for line in printed.splitlines() if line.startswith("validation mIoU: start"))
+    start_miou = float(line.split("start ")[1].split(",")[0])
+    best_miou = float(line.split("best ")[1].split(" ")[0])
+    assert best_miou >= start_miou
+    assert load_kernel_file(out).free_ell == pytest.approx(0.3)  # not learned: the start's value
+
+
+@pytest.mark.parametrize("frames", [14, 40, 100, 253])
+def test_validation_frames_are_disjoint_from_training_frames(frames):
+    training, validation = trainer.split_validation([range(frames)])
+    held, used = set(validation[0]), set(training[0])
+    assert held and used and not held & used
+    assert len(held) <= trainer.VALIDATION_FRAMES
+    # No training frame is a neighbour (within the gap) of a validation frame.
+    gap = trainer.VALIDATION_GAP if frames >= 2 * trainer.VALIDATION_BLOCK else 1  # short drives: shorter gap
+    assert min(abs(t - v) for t in used for v in held) > gap
+    # Validation frames come in blocks of consecutive frames.
+    assert len(held) % trainer.VALIDATION_BLOCK == 0 or frames % trainer.VALIDATION_BLOCK
+
+
+def test_the_command_trains_and_validates_on_disjoint_frames(tmp_path, capsys, monkeypatch):
+    write_drive(tmp_path / "data", "01", frames=14, seed=3)
+    trained, validated = set(), set()
+    build, frame = trainer.SampleBuilder.build, trainer.Validator._frame
+
+    def spy_build(self, number, dataset, position):
+        trained.add(position)
+        return build(self, number, dataset, position)
+
+    def spy_frame(self, number, position):
+        validated.add(position)
+        return frame(self, number, position)
+
+    monkeypatch.setattr(trainer.SampleBuilder, "build", spy_build)
+    monkeypatch.setattr(trainer.Validator, "_frame", spy_frame)
+    assert train.main(_train_args(tmp_path, tmp_path / "k.yaml", "--epochs", "1")) == 0
+    assert trained and validated and not trained & validated
+    # 14 frames, a short drive: blocks of 3 (the 4th validates), a gap of 1.
+    assert validated == {9, 10, 11} and trained == {*range(0, 8), 13}
+
+
+def test_strict_refuses_in_one_line_when_nothing_beats_the_start(tmp_path, capsys, monkeypatch):
+    write_drive(tmp_path / "data", "01", frames=14, seed=3)
+    start_path, start = _start_file(tmp_path)
+    monkeypatch.setattr(trainer.Validator, "score", _scores_start_best(start, 0.9))  # ties do not beat the start
+    out = tmp_path / "k.yaml"
+    code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "1", "--strict"))
+    error = capsys.readouterr().err
+    assert code == 2
+    assert "no trained kernel beat the start kernel" in error and "--strict" in error
+    assert len(error.strip().splitlines()) == 1 and "Traceback" not in error
+    assert not out.exists() and not (tmp_path / "k_loss.png").exists()
+
+
+def test_the_learning_rate_decays_along_a_cosine_to_five_percent():
+    total, lr = 200, 0.007
+    rates = [trainer.learning_rate(step, total, lr) for step in range(total)]
+    assert rates[0] == pytest.approx(lr)
+    assert rates[-1] == pytest.approx(trainer.MIN_LR_FRACTION * lr)
+    assert all(later <= earlier for earlier, later in itertools.pairwise(rates))
+    assert rates[total // 2] == pytest.approx(lr * (0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * 100 / 199))))
+
+
+def test_the_optimiser_follows_the_schedule(tmp_path, monkeypatch):
+    write_drive(tmp_path / "data", "01", frames=14, seed=3)
+    seen = []
+    step = trainer.torch.optim.Adam.step
+
+    def spy_step(self, *args, **kwargs):
+        seen.append(self.param_groups[0]["lr"])
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(trainer.torch.optim.Adam, "step", spy_step)
+    assert train.main(_train_args(tmp_path, tmp_path / "k.yaml", "--epochs", "3", "--lr", "0.01")) == 0
+    assert len(seen) == 27 and seen[0] == pytest.approx(0.01) and seen[-1] == pytest.approx(0.0005)
+    assert all(later <= earlier for earlier, later in itertools.pairwise(seen))
