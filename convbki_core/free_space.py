@@ -68,7 +68,8 @@ def scan_rays(points: np.ndarray, pose: np.ndarray, volume: SparseVolume,
     ends = unravel_linear(volume.linear, volume.dims) + volume.origin
     weights = ray_weights(volume.features)
     dropped = points[volume.point_linear < 0]
-    beyond = (dropped @ pose[:3, :3].T + pose[:3, 3]) / resolution
+    with np.errstate(invalid="ignore", over="ignore"):  # non-finite points are dropped next
+        beyond = (dropped @ pose[:3, :3].T + pose[:3, 3]) / resolution
     beyond = beyond[np.isfinite(beyond).all(axis=1)]
     exits, rays = window_exits(pose[:3, 3] / resolution, beyond, volume.origin, volume.dims)
     through = np.concatenate([np.zeros(len(ends), np.bool_), np.ones(len(exits), np.bool_)])
