@@ -119,7 +119,8 @@ def format_info(info: dict) -> str:
         lines.append(f"merged from: {', '.join(map(str, info['merged_from']))}")
     lines.append(f"memory:      {info['bytes_per_voxel']} bytes per voxel when loaded (alpha + indices), "
                  f"{_size(info['memory_bytes'])} in all")
-    lines.append(f"classes:     {info['num_classes']} (voxels per expected class)")
+    lines.append(f"classes:     {info['num_classes']} (voxels per expected class; class 0: seen empty by free "
+                 "space, not shown)")
     width = max([len(entry["name"] or "") for entry in info["class_voxels"]] + [8])
     for entry in info["class_voxels"]:
         lines.append(f"  {entry['class']:>3} {entry['name'] or '':<{width}} {entry['voxels']:>10}")
