@@ -189,7 +189,7 @@ def _bench_on_device(args: argparse.Namespace) -> int:
     del mapper
     gc.collect()
     figures["update_probs_ms"] = probabilities_figure(frames, min(args.repeat, 10))
-    figures["update_free_ms"] = free_space_figure(frames, min(args.repeat, 10))
+    figures["update_free_ms"] = free_space_figure(dataset, args.scans)
     figures["dense_reference_ms"] = dense_reference_figure(frames[0], args.repeat)
     figures["speedup_vs_dense"] = figures["dense_reference_ms"] / figures["update_ms"]
     large = large_map_ratio(frames, min(args.repeat, 15))
