@@ -31,7 +31,6 @@ import numpy as np
 
 from convbki_core.free_space import FREE_CLASS
 from convbki_core.metrics import ConfusionMatrix
-from convbki_core.volume import voxel_indices
 
 BINS = 15
 PROBABILITY_FLOOR = 1e-12  # NLL: probabilities below are raised to it (-ln 1e-12 ~ 27.6 at most per point)
@@ -41,30 +40,17 @@ VARIANCE_THRESHOLDS = np.logspace(-4.0, -1.0, 13)
 
 
 def evidence_rows(mapper, points_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The points whose voxel is in the current window and holds evidence, the way
-    ``ConvBKIMapper.labels_at`` finds them: (their positions (M,) int64, alpha (M, C) float32).
-    Only the mapper's public window (``inside``, ``lookup``) is read."""
-    points_map = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
-    usable = np.flatnonzero(np.isfinite(points_map).all(axis=1))
-    indices = voxel_indices(points_map[usable], mapper.resolution)
-    in_window = mapper.window.inside(indices)
-    positions = usable[in_window]
-    if not positions.size:
-        return positions, np.zeros((0, mapper.num_classes), np.float32)
-    alpha, has_evidence = mapper.window.lookup(indices[in_window])
-    return positions[has_evidence], np.asarray(alpha, np.float32)[has_evidence]
+    """The points whose voxel is in the current window and holds evidence, as
+    ``ConvBKIMapper.labels_at`` finds them: (their positions (M,) int64, alpha (M, C) float32)."""
+    alpha, has_evidence = mapper.concentrations_at(points_map)
+    positions = np.flatnonzero(has_evidence)
+    return positions, alpha[positions]
 
 
 def map_concentrations(mapper, points_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Concentrations of the voxels under map-frame points: (alpha (N, C) float32, has_evidence
-    (N,) bool); rows without evidence (outside the current window, a voxel that never received
-    evidence, non-finite coordinates) are zero."""
-    count = np.asarray(points_map).reshape(-1, 3).shape[0]
-    positions, rows = evidence_rows(mapper, points_map)
-    alpha = np.zeros((count, mapper.num_classes), np.float32)
-    has_evidence = np.zeros(count, bool)
-    alpha[positions], has_evidence[positions] = rows, True
-    return alpha, has_evidence
+    (N,) bool), as ``ConvBKIMapper.concentrations_at`` gives them within the window."""
+    return mapper.concentrations_at(points_map)
 
 
 def map_distribution(alpha: np.ndarray, free_space: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

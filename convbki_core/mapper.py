@@ -265,14 +265,11 @@ class ConvBKIMapper:
         return dense_volume(volume, self.layer, self.window.alpha, self.window.mask, marks)
 
     # -- reading the map -------------------------------------------------------------------
-    def labels_at(self, points_map: np.ndarray, within_window: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Expected class of the voxel under each map-frame point.
-
-        Returns (labels (N,) int64, has_evidence (N,) bool); labels are -1 where the voxel
-        holds no evidence, or (with ``within_window``) lies outside the current window. With
-        free space, the class is the most likely of the others: a query point is a return,
-        so the question is what the surface there is, not whether the voxel is empty.
-        """
+    def concentrations_at(self, points_map: np.ndarray,
+                          within_window: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Concentrations of the voxel under each map-frame point: (alpha (N, C) float32,
+        has_evidence (N,) bool); rows are zero where the voxel holds no evidence, or (with
+        ``within_window``) lies outside the current window, or the point is not finite."""
         points_map = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
         usable = np.isfinite(points_map).all(axis=1)
         indices = np.zeros((points_map.shape[0], 3), np.int64)
@@ -284,7 +281,19 @@ class ConvBKIMapper:
         if not within_window:
             elsewhere = usable & ~in_window
             alpha[elsewhere], has_evidence[elsewhere] = self.store.lookup(indices[elsewhere])
-        labels = np.full(points_map.shape[0], -1, np.int64)
+        alpha[~has_evidence] = 0.0
+        return alpha, has_evidence
+
+    def labels_at(self, points_map: np.ndarray, within_window: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Expected class of the voxel under each map-frame point.
+
+        Returns (labels (N,) int64, has_evidence (N,) bool); labels are -1 where the voxel
+        holds no evidence, or (with ``within_window``) lies outside the current window. With
+        free space, the class is the most likely of the others: a query point is a return,
+        so the question is what the surface there is, not whether the voxel is empty.
+        """
+        alpha, has_evidence = self.concentrations_at(points_map, within_window)
+        labels = np.full(alpha.shape[0], -1, np.int64)
         if self.free_space:
             alpha[:, FREE_CLASS] = 0.0
         labels[has_evidence] = dirichlet_statistics(alpha[has_evidence]).label

@@ -20,6 +20,7 @@ from convbki_core.mapper import ConvBKIMapper, IntegrationResult
 from convbki_core.paths import kernel_path
 from convbki_core.tools.synth import main as synth
 from convbki_core.tools.synth import read_synth_record
+from convbki_core.volume import transform_points
 
 # The paper's SemanticKITTI set-up: the local window around the sensor (m) and the kernel.
 PAPER_BOUNDS = ((-40.0, -40.0, -2.6), (40.0, 40.0, 2.6))
@@ -133,3 +134,11 @@ def update_ms(result: IntegrationResult) -> float:
 def query_ms(result: IntegrationResult) -> float:
     """The window move's time for one scan (write-back of the slabs that leave, fetch of those that enter)."""
     return result.timing_ms["query"]
+
+
+def map_frame_labels(mapper: ConvBKIMapper, points: np.ndarray, pose: np.ndarray,
+                     input_labels: np.ndarray) -> np.ndarray:
+    """The protocol's per-point labels after the frame was integrated: map label, else input
+    label (``evaluate`` scores these; ``train`` validates with them)."""
+    map_labels, has_evidence = mapper.labels_at(transform_points(points, pose))
+    return np.where(has_evidence, map_labels, input_labels)

@@ -19,12 +19,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from convbki_core.free_space import FREE_CLASS
 from convbki_core.store import VoxelStore
 from convbki_core.update import FilterPlan
 from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
-
-FREE_CLASS = 0
 
 
 class TorchWindow(RollingWindow):

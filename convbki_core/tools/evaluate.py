@@ -32,7 +32,7 @@ from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.paths import kernel_path
-from convbki_core.pipeline import PAPER_BOUNDS
+from convbki_core.pipeline import PAPER_BOUNDS, map_frame_labels
 from convbki_core.tools.cli import (
     NewOutputs,
     UserError,
@@ -63,14 +63,6 @@ class KernelRun:
     mapper: ConvBKIMapper | None = None
     trail_voxels: int | None = None  # None: the ground truth marks no moving objects
     calibration: MapCalibration | None = None  # the map's uncertainty on the scored points
-
-
-def map_frame_labels(mapper: ConvBKIMapper, points: np.ndarray, pose: np.ndarray,
-                     input_labels: np.ndarray) -> np.ndarray:
-    """The protocol's per-point labels after the frame was integrated: map label, else input label."""
-    points_map = transform_points(points, pose)
-    map_labels, has_evidence = mapper.labels_at(points_map)
-    return np.where(has_evidence, map_labels, input_labels)
 
 
 def write_label_file(path: Path, learning_labels: np.ndarray, label_map) -> None:
@@ -120,7 +112,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
         run_result.update_ms.append(timing["voxelize"] + timing["update"] + timing["free"])
         run_result.query_ms.append(timing["query"] + labelling_ms)
         run_result.map_scores.add(frame.ground_truth, predicted)
-        run_result.calibration.add(mapper, transform_points(frame.points, frame.pose), frame.ground_truth)
+        points_map = transform_points(frame.points, frame.pose)  # for the uncertainty and the trails
+        run_result.calibration.add(mapper, points_map, frame.ground_truth)
         if input_scores is not None:
             input_scores.add(frame.ground_truth, input_labels)
         if input_calibration is not None and frame.probabilities is not None:
@@ -128,7 +121,7 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
         if out_folder is not None:
             write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
         if frame.moving is not None and label_map.movable_classes:
-            swept.add(transform_points(frame.points, frame.pose), frame.moving)
+            swept.add(points_map, frame.moving)
     if swept.moving_points:
         voxels = mapper.voxels()
         run_result.trail_voxels = swept.trail_voxels(voxels.indices, voxels.label, label_map.movable_classes)

@@ -52,7 +52,9 @@ import torch
 from convbki_core.datasets import DatasetError, Frame
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
 from convbki_core.kernels import ConvBKIKernel, KernelConfig
+from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
+from convbki_core.pipeline import PAPER_BOUNDS, map_frame_labels
 from convbki_core.training.sparse_plan import SparsePlan
 from convbki_core.volume import WindowGeometry, transform_points, unravel_linear, voxel_indices, voxelize
 
@@ -243,10 +245,6 @@ class Validator:
 
     def score(self, config: KernelConfig) -> float:
         """mIoU of the map's point labels over the validation frames (one fresh map per sequence)."""
-        from convbki_core.mapper import ConvBKIMapper
-        from convbki_core.pipeline import PAPER_BOUNDS
-        from convbki_core.tools.evaluate import map_frame_labels
-
         label_map = self.datasets[0].label_map
         scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
         for number, chosen in enumerate(self.positions):
