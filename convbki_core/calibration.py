@@ -83,6 +83,20 @@ def input_distribution(probabilities: np.ndarray) -> np.ndarray:
     return np.divide(values, total, out=uniform, where=total > 0)
 
 
+def tempered_distribution(probabilities: np.ndarray, temperature: float | None) -> np.ndarray:
+    """An input's class distribution after temperature scaling, (N, C) float64: the rows of
+    ``input_distribution``, then softmax(log p / T) (the mapper's calibration of probability
+    inputs); T None or 1 leaves them as they are."""
+    values = input_distribution(probabilities)
+    if temperature is None or float(temperature) == 1.0 or values.shape[0] == 0:
+        return values
+    with np.errstate(divide="ignore"):  # log 0 = -inf: a class the network ruled out stays out
+        logits = np.log(values) / float(temperature)
+    logits -= logits.max(axis=1, keepdims=True)
+    powered = np.exp(logits)
+    return powered / powered.sum(axis=1, keepdims=True)
+
+
 def _finite(value: float) -> float | None:
     """JSON-safe: None for NaN (nothing accumulated)."""
     return float(value) if np.isfinite(value) else None

@@ -87,7 +87,7 @@ class ConvBKIKernel(torch.nn.Module):
     def __init__(self, kind: str = "compound", num_classes: int = 20, filter_size: int = 5,
                  resolution: float = 0.2, ell: float | Sequence[float] = 0.5,
                  ell_h: float | Sequence[float] | None = None, ell_z: float | Sequence[float] | None = None,
-                 free_ell: float | None = None):
+                 free_ell: float | None = None, temperature: float | None = None):
         super().__init__()
         if kind not in KERNEL_KINDS:
             raise ValueError(f"kernel kind must be one of {KERNEL_KINDS}, got {kind!r}")
@@ -116,15 +116,19 @@ class ConvBKIKernel(torch.nn.Module):
         # The free-space category's spherical length (0: one voxel, the evidence stays where the
         # rays passed). Kept as a Parameter so that training can learn it like the class lengths.
         self.free_ell = torch.nn.Parameter(torch.tensor(0.0 if free_ell is None else float(free_ell)))
+        # The temperature of probability inputs (kernel file ``temperature``; None: 1). Not a
+        # length and not a Parameter: the trainer fits it by a search on validation frames.
+        self.temperature = None if temperature is None else float(temperature)
 
     @classmethod
     def from_config(cls, config: KernelConfig) -> ConvBKIKernel:
         config.validate()
         if config.kernel == "compound":
             return cls("compound", config.num_classes, config.filter_size, config.resolution,
-                       ell_h=config.ell_h, ell_z=config.ell_z, free_ell=config.free_ell)
+                       ell_h=config.ell_h, ell_z=config.ell_z, free_ell=config.free_ell,
+                       temperature=config.temperature)
         return cls(config.kernel, config.num_classes, config.filter_size, config.resolution, ell=config.ell,
-                   free_ell=config.free_ell)
+                   free_ell=config.free_ell, temperature=config.temperature)
 
     @classmethod
     def from_file(cls, path: str | Path) -> ConvBKIKernel:
@@ -141,6 +145,7 @@ class ConvBKIKernel(torch.nn.Module):
             config.ell = values(self.ell)
         free_ell = float(self.free_ell.detach())
         config.free_ell = free_ell if free_ell > MIN_ELL else None
+        config.temperature = self.temperature
         return config
 
     @torch.no_grad()

@@ -173,6 +173,11 @@ class ConvBKIMapper:
         return self.layer.kernel
 
     @property
+    def temperature(self) -> float | None:
+        """The kernel's temperature of probability inputs (None: 1, the rows as given)."""
+        return self.kernel.temperature
+
+    @property
     def num_classes(self) -> int:
         return self.kernel.num_classes
 
@@ -190,20 +195,22 @@ class ConvBKIMapper:
         """Fuse one scan into the map.
 
         ``points`` (N, 3) in the sensor frame (m); ``values`` (N,) integer learning labels
-        or (N, C) class probabilities; ``pose`` (4, 4) map <- sensor. Invalid points are
-        dropped and counted in the result; an invalid pose raises ``ValueError`` and
-        leaves the map untouched.
+        or (N, C) class probabilities (calibrated by the kernel's ``temperature``); ``pose``
+        (4, 4) map <- sensor. Invalid points are dropped and counted in the result; an
+        invalid pose raises ``ValueError`` and leaves the map untouched.
         """
         started = time.perf_counter()
         pose = check_pose(pose)
         points, values = check_scan(points, values, self.num_classes)
         origin = self.geometry.origin_for(pose[:3, 3])
+        # Probability rows are calibrated by the kernel's temperature in the voxeliser, so every
+        # update path (fast, dense, torch) receives the same F; labels are never touched.
         if HAVE_NUMBA:
             volume = voxelize_scan(points, values, pose, origin, self.geometry.dims, self.resolution,
-                                   self.num_classes, self.ignore_classes, self.window.slot)
+                                   self.num_classes, self.ignore_classes, self.window.slot, self.temperature)
         else:
             volume = voxelize(transform_points(points, pose), values, origin, self.geometry.dims, self.resolution,
-                              self.num_classes, self.ignore_classes)
+                              self.num_classes, self.ignore_classes, self.temperature)
         voxelized = time.perf_counter()
         self.window.move_to(origin)
         moved = time.perf_counter()

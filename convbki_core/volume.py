@@ -8,7 +8,10 @@ window a voxel is addressed by its linear index ``(x * DY + y) * DZ + z``, the m
 order of a C-contiguous (X, Y, Z) volume.
 
 F[c, v] is the sum over the points inside voxel v of their class evidence y_c: a one-hot
-label, or a probability vector.
+label, or a probability vector. Probability vectors can first be calibrated by a temperature
+T (Guo et al., 2017: p' = softmax(log p / T), the kernel file's ``temperature``; a row keeps
+its sum): a network whose softmax is too soft (under-confident) gets T < 1, one too sharp
+T > 1. T = 1 (or None) leaves the rows exactly as given and costs nothing.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 from convbki_core.native import HAVE_NUMBA
 
 if HAVE_NUMBA:
-    from numba import njit
+    from numba import njit, prange
 if TYPE_CHECKING:
     import torch
 
@@ -197,18 +200,56 @@ def check_scan(points: np.ndarray, values: np.ndarray, num_classes: int) -> tupl
     return points, values
 
 
+def tempers(temperature: float | None) -> bool:
+    """Whether a temperature changes probability rows (None and 1 leave them as given)."""
+    return temperature is not None and float(temperature) != 1.0
+
+
+def check_temperature(temperature: float | None) -> float | None:
+    """``temperature`` as a float (None stays None); ``ValueError`` unless positive and finite."""
+    if temperature is None:
+        return None
+    value = float(temperature)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"temperature must be a positive finite number, got {temperature!r}")
+    return value
+
+
+def temper_probabilities(rows: np.ndarray, temperature: float) -> np.ndarray:
+    """s softmax(log p / T) of (N, C) finite, non-negative rows p with a positive sum s, float32.
+
+    The row keeps its total (a normalised row stays normalised, as a network's softmax is), so
+    the temperature only reshapes a row and T = 1 is exactly the identity. Computed in float32
+    as exp((log p - log max p) / T), normalised: the largest term is 1, so the sum never
+    underflows (a row of tiny values sharpened by a small T), and a zero stays exactly zero.
+    The compiled voxeliser computes the same formula.
+    """
+    values = np.asarray(rows, np.float32)
+    if values.shape[0] == 0:
+        return values.copy()
+    inverse = np.float32(1.0 / float(temperature))
+    top = np.log(values.max(axis=1, keepdims=True))
+    with np.errstate(divide="ignore"):  # log 0 = -inf, and exp(-inf) = 0 exactly
+        powered = np.exp((np.log(values) - top) * inverse)
+    total = values.sum(axis=1, keepdims=True, dtype=np.float64).astype(np.float32)
+    return (powered / powered.sum(axis=1, keepdims=True, dtype=np.float32) * total).astype(np.float32)
+
+
 def voxelize(points: np.ndarray, values: np.ndarray, origin: np.ndarray, dims: np.ndarray,
-             resolution: float, num_classes: int, ignore_classes: tuple[int, ...] = (0,)) -> SparseVolume:
+             resolution: float, num_classes: int, ignore_classes: tuple[int, ...] = (0,),
+             temperature: float | None = None) -> SparseVolume:
     """Build the input volume F of a window from map-frame points (paper Eq. 3).
 
     ``values`` is either (N,) integer learning labels or (N, C) class probabilities.
     Points with non-finite coordinates, points outside the window, labels in
     ``ignore_classes`` and labels outside 0..C-1 are dropped and counted. With
     probabilities, rows holding a NaN/inf (counted as ``non_finite``) and rows holding a
-    negative value or summing to zero (``bad_probabilities``) are dropped, and the columns
-    of ``ignore_classes`` are zeroed (they carry no evidence).
+    negative value or summing to zero (``bad_probabilities``) are dropped, the remaining rows
+    are calibrated by ``temperature`` (module docstring; over all C columns) and then the
+    columns of ``ignore_classes`` are zeroed (they carry no evidence).
     """
     points, values = check_scan(points, values, num_classes)
+    temperature = check_temperature(temperature)
     origin = np.asarray(origin, dtype=np.int64)
     dims = np.asarray(dims, dtype=np.int64)
     count = points.shape[0]
@@ -247,6 +288,8 @@ def voxelize(points: np.ndarray, values: np.ndarray, origin: np.ndarray, dims: n
     linear, inverse = np.unique(used_linear, return_inverse=True)
     if with_probabilities:
         evidence = values[inside].astype(np.float32, copy=True)
+        if tempers(temperature):
+            evidence = temper_probabilities(evidence, temperature)
         evidence[:, list(ignore_classes)] = 0.0
         # Group the points of each voxel together and sum each group (much faster than np.add.at).
         order = np.argsort(inverse, kind="stable")
@@ -353,15 +396,56 @@ if HAVE_NUMBA:
         return occupied[:used], features, point_linear, stats
 
 
+if HAVE_NUMBA:
+
+    # Not "fastmath=True": the row check below relies on NaN and inf comparing as they should.
+    @njit(cache=True, nogil=True, parallel=True, fastmath={"afn", "arcp", "contract", "nsz"})
+    def _temper_numba(probabilities, inverse_temperature):  # pragma: no cover - compiled; tested against numpy
+        """``temper_probabilities`` of every row the voxeliser would keep (finite, no negative
+        value, a positive sum), on every core; other rows are copied unchanged, so the
+        voxeliser judges and counts them as it would without a temperature."""
+        count, num_classes = probabilities.shape
+        out = np.empty_like(probabilities)
+        inverse = np.float32(inverse_temperature)
+        for i in prange(count):
+            total = 0.0
+            lowest = np.float32(0.0)
+            top = np.float32(0.0)
+            for c in range(num_classes):
+                p = probabilities[i, c]
+                total += p
+                lowest = min(lowest, p)
+                top = max(top, p)
+            if not np.isfinite(total) or lowest < 0 or not total > 0:
+                for c in range(num_classes):
+                    out[i, c] = probabilities[i, c]
+                continue
+            log_top = np.float32(math.log(top))
+            powered_sum = np.float32(0.0)
+            for c in range(num_classes):
+                p = probabilities[i, c]
+                powered = np.float32(math.exp((np.float32(math.log(p)) - log_top) * inverse)) if p > 0 else \
+                    np.float32(0.0)
+                out[i, c] = powered
+                powered_sum += powered
+            scale = np.float32(total)
+            for c in range(num_classes):
+                out[i, c] = out[i, c] / powered_sum * scale
+        return out
+
+
 def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, origin: np.ndarray, dims: np.ndarray,
-                  resolution: float, num_classes: int, ignore_classes: tuple[int, ...], slot: np.ndarray):
+                  resolution: float, num_classes: int, ignore_classes: tuple[int, ...], slot: np.ndarray,
+                  temperature: float | None = None):
     """``voxelize(transform_points(points, pose), values, ...)`` in one compiled pass.
 
     ``slot`` is a scratch int32 table of the window's size, all -1 (left so on return): it
     finds each voxel's row without sorting the points. Probabilities are judged and summed
-    in float32, as ``voxelize`` does. Returns a ``voxelize.SparseVolume`` equal to the numpy
-    path's (same voxels, same sums, same counts).
+    in float32, as ``voxelize`` does; with a ``temperature`` other than 1 the kept rows are
+    calibrated first (a compiled pass on every core). Returns a ``voxelize.SparseVolume``
+    equal to the numpy path's (same voxels, same sums, same counts).
     """
+    temperature = check_temperature(temperature)
     with_probabilities = values.ndim == 2
     ignored = np.zeros(num_classes, np.bool_)
     ignored[[c for c in ignore_classes if 0 <= c < num_classes]] = True
@@ -369,6 +453,8 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
     with np.errstate(over="ignore"):  # beyond float32: inf, then dropped (as voxelize.check_scan does)
         probabilities = (np.ascontiguousarray(values, np.float32) if with_probabilities
                          else np.zeros((0, num_classes), np.float32))
+    if with_probabilities and tempers(temperature):
+        probabilities = _temper_numba(probabilities, 1.0 / temperature)
     points = np.ascontiguousarray(points)
     if points.dtype not in (np.float32, np.float64):
         points = points.astype(np.float64)

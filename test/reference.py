@@ -70,6 +70,17 @@ def pose_matrix(yaw, pitch, roll, translation):
     return pose
 
 
+def tempered(probabilities, temperature):
+    """Temperature scaling (Guo et al., 2017), the textbook way: softmax(log p / T), float64,
+    times the row's sum (rows keep their evidence; a probability of 0 stays 0)."""
+    probabilities = np.asarray(probabilities, np.float64)
+    with np.errstate(divide="ignore"):
+        logits = np.log(probabilities) / temperature
+    logits -= logits.max(axis=1, keepdims=True)
+    exponentials = np.exp(logits)
+    return exponentials / exponentials.sum(axis=1, keepdims=True) * probabilities.sum(axis=1, keepdims=True)
+
+
 class BruteForceMap:
     """The map a sequence of scans should produce, by the brute-force sum above.
 
@@ -82,8 +93,10 @@ class BruteForceMap:
     translation); only its points count and only its voxels change.
     """
 
-    def __init__(self, kind, num_classes, resolution, filter_size, bounds, prior, ignore=(0,), **lengths):
+    def __init__(self, kind, num_classes, resolution, filter_size, bounds, prior, ignore=(0,), temperature=None,
+                 **lengths):
         self.num_classes, self.resolution, self.prior, self.ignore = num_classes, resolution, prior, tuple(ignore)
+        self.temperature = temperature  # probability rows become softmax(log p / T); None: as given
         self.table = filter_table(kind, num_classes, resolution, filter_size, **lengths)
         self.half = filter_size // 2
         lo = np.floor(np.asarray(bounds[0], np.float64) / resolution).astype(np.int64)
@@ -123,6 +136,8 @@ class BruteForceMap:
             bad = keep & (((evidence < 0).any(axis=1)) | (evidence.sum(axis=1) <= 0))
             counts["bad_probabilities"] = int(bad.sum())
             keep &= ~bad
+            if self.temperature is not None:
+                evidence[keep] = tempered(evidence[keep], self.temperature)
             evidence[:, list(self.ignore)] = 0.0  # ignored classes carry no evidence
         origin = self.window_of(pose)
         voxels = np.zeros((count, 3), np.int64)

@@ -1,4 +1,5 @@
-"""Without numba (no compiler wheel for the platform) the mapper still works, says so once, and agrees."""
+"""Without numba (no compiler wheel for the platform) the mapper still works, says so once, and agrees
+(labels, and probabilities calibrated by a temperature)."""
 
 import json
 import subprocess
@@ -8,6 +9,7 @@ import numpy as np
 from ros_helpers import REPO
 
 from convbki_core import ConvBKIMapper
+from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.paths import kernel_path
 
 BOUNDS = ((-6.0, -6.0, -2.0), (6.0, 6.0, 2.0))
@@ -19,13 +21,17 @@ sys.modules["numba"] = None  # what a platform without numba looks like to `impo
 import numpy as np
 from convbki_core import ConvBKIMapper
 from convbki_core.native import HAVE_NUMBA
+from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.paths import kernel_path
 rng = np.random.default_rng(4)
-mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS_HERE, device="cpu")
-for step in range(3):
+config = load_kernel_file(kernel_path("semantic_kitti_compound"))
+config.temperature = 0.45
+mapper = ConvBKIMapper(config, local_bounds=BOUNDS_HERE, device="cpu")
+for step in range(4):
     pose = np.eye(4)
     pose[:3, 3] = [0.7 * step, 0.2 * step, 0.0]
-    mapper.integrate(rng.uniform(-5, 5, (800, 3)), rng.integers(0, 20, 800), pose)
+    values = rng.integers(0, 20, 800) if step < 3 else rng.dirichlet(np.full(20, 0.3), 800).astype(np.float32)
+    mapper.integrate(rng.uniform(-5, 5, (800, 3)), values, pose)
 indices, alpha = mapper.items()
 print(json.dumps({"have_numba": HAVE_NUMBA, "indices": indices.tolist(), "alpha": alpha.tolist()}))
 """.replace("BOUNDS_HERE", repr(BOUNDS))
@@ -41,11 +47,14 @@ def test_without_numba_the_numpy_path_maps_the_same_and_logs_one_line():
     assert "Traceback" not in result.stderr
 
     rng = np.random.default_rng(4)
-    compiled = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, device="cpu")
-    for step in range(3):
+    config = load_kernel_file(kernel_path("semantic_kitti_compound"))
+    config.temperature = 0.45  # the last scan's probabilities are calibrated by it on both paths
+    compiled = ConvBKIMapper(config, local_bounds=BOUNDS, device="cpu")
+    for step in range(4):
         pose = np.eye(4)
         pose[:3, 3] = [0.7 * step, 0.2 * step, 0.0]
-        compiled.integrate(rng.uniform(-5, 5, (800, 3)), rng.integers(0, 20, 800), pose)
+        values = rng.integers(0, 20, 800) if step < 3 else rng.dirichlet(np.full(20, 0.3), 800).astype(np.float32)
+        compiled.integrate(rng.uniform(-5, 5, (800, 3)), values, pose)
     indices, alpha = compiled.items()
     want = {tuple(i): a for i, a in zip(indices.tolist(), alpha)}
     got = {tuple(i): np.asarray(a, np.float32) for i, a in zip(fallback["indices"], fallback["alpha"])}

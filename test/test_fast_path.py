@@ -119,8 +119,8 @@ def test_evaluate_writes_identical_labels_on_both_paths(tmp_path):
     assert outputs["fast"] == outputs["dense"]
 
 
-@given(seed=st.integers(0, 2**31 - 1), probabilities=st.booleans())
-def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities):
+@given(seed=st.integers(0, 2**31 - 1), probabilities=st.booleans(), temperature=st.sampled_from([None, 0.4, 2.5]))
+def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities, temperature):
     from convbki_core.volume import transform_points, voxelize, voxelize_scan
 
     rng = np.random.default_rng(seed)
@@ -147,8 +147,8 @@ def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities):
     pose[:3, 3] = rng.uniform(-1, 1, 3)
     origin, dims = np.array([-9, -8, -7]), np.array([15, 14, 12])
     slot = np.full(int(np.prod(dims)), -1, np.int32)
-    fast = voxelize_scan(points, values, pose, origin, dims, 0.2, NUM_CLASSES, (0,), slot)
-    reference = voxelize(transform_points(points, pose), values, origin, dims, 0.2, NUM_CLASSES, (0,))
+    fast = voxelize_scan(points, values, pose, origin, dims, 0.2, NUM_CLASSES, (0,), slot, temperature)
+    reference = voxelize(transform_points(points, pose), values, origin, dims, 0.2, NUM_CLASSES, (0,), temperature)
     assert (slot == -1).all(), "the scratch table must be left clean"
     np.testing.assert_array_equal(fast.linear, reference.linear)
     np.testing.assert_array_equal(fast.point_linear, reference.point_linear)

@@ -85,14 +85,18 @@ def assert_map_is(mapper, oracle):
 @pytest.mark.parametrize("kind", ["single", "per_class", "compound"])
 @pytest.mark.parametrize("filter_size", [3, 5, 7])
 @pytest.mark.parametrize("evidence", ["labels", "probabilities"])
-@given(seed=st.integers(0, 2**31 - 1), update_path=st.sampled_from(["fast", "dense"]))
-def test_mapper_equals_brute_force_sum_over_a_drive(kind, filter_size, evidence, seed, update_path):
+@given(seed=st.integers(0, 2**31 - 1), update_path=st.sampled_from(["fast", "dense"]),
+       temperature=st.sampled_from([None, 1.0, 0.6, 1.7]))
+def test_mapper_equals_brute_force_sum_over_a_drive(kind, filter_size, evidence, seed, update_path, temperature):
     """Rotated poses, a window that moves away and back, labels or probabilities, either update
-    path: after every scan the map is exactly the brute-force sum of ``reference.BruteForceMap``."""
+    path, with or without a temperature (it calibrates probabilities and leaves labels alone):
+    after every scan the map is exactly the brute-force sum of ``reference.BruteForceMap``."""
     rng = np.random.default_rng(seed)
     kernel = make_kernel(kind, filter_size, rng)
+    kernel.temperature = temperature
     mapper = ConvBKIMapper(kernel, local_bounds=BOUNDS, prior=PRIOR, device="cpu", update_path=update_path)
-    oracle = BruteForceMap(kind, NUM_CLASSES, RESOLUTION, filter_size, BOUNDS, PRIOR, **kernel_lengths(kernel))
+    oracle = BruteForceMap(kind, NUM_CLASSES, RESOLUTION, filter_size, BOUNDS, PRIOR,
+                           temperature=temperature if evidence == "probabilities" else None, **kernel_lengths(kernel))
     np.testing.assert_array_equal(mapper.geometry.dims, oracle.dims)
     first_map_points, drive_counts = None, []
     for scan, position in enumerate(trajectory(rng)):

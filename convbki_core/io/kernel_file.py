@@ -1,5 +1,6 @@
 """The kernel file: a small YAML mapping holding a trained kernel (its kind, resolution,
-filter size, class count and lengths), and ``KernelConfig``, its contents in memory.
+filter size, class count and lengths, optionally the free-space length and the temperature
+of probability inputs), and ``KernelConfig``, its contents in memory.
 
 Reading checks everything a mapper relies on and raises ``KernelFileError`` naming the file
 and the problem; writing is atomic. The format is described in docs/file_formats.md.
@@ -20,6 +21,10 @@ KERNEL_KINDS = ("single", "per_class", "compound")
 # label ids are 16-bit. Far beyond any useful value, small enough to refuse absurd files.
 MAX_FILTER_SIZE = 63
 MAX_CLASSES = 1024
+# A temperature far outside this range turns every probability row into one-hot or uniform
+# evidence (and 1 / T overflows a power of float32 values); refuse it as a broken file.
+MIN_TEMPERATURE = 0.01
+MAX_TEMPERATURE = 100.0
 
 
 @dataclass
@@ -34,6 +39,9 @@ class KernelConfig:
     ell_h: list[float] = field(default_factory=list)  # compound only
     ell_z: list[float] = field(default_factory=list)  # compound only
     free_ell: float | None = None  # the free-space category's length; None: one voxel (no spreading)
+    # Temperature T of class-probability inputs: each row p becomes softmax(log p / T) before it
+    # is voxelised (T < 1 sharpens, T > 1 softens); None: 1, the probabilities as given.
+    temperature: float | None = None
 
     def validate(self) -> KernelConfig:
         """Raise ``KernelFileError`` with a readable reason when the config is inconsistent."""
@@ -55,6 +63,10 @@ class KernelConfig:
                 raise KernelFileError(f"a {self.kernel} kernel has no {name} (it uses {' and '.join(expected)})")
         if self.free_ell is not None and not (_is_finite_number(self.free_ell) and self.free_ell > 0):
             raise KernelFileError(f"free_ell must be a positive finite length in metres, got {_shown(self.free_ell)}")
+        if self.temperature is not None and not (_is_finite_number(self.temperature)
+                                                 and MIN_TEMPERATURE <= self.temperature <= MAX_TEMPERATURE):
+            raise KernelFileError(f"temperature must be a number from {MIN_TEMPERATURE:g} to {MAX_TEMPERATURE:g}, "
+                                  f"got {_shown(self.temperature)}")
         for name, count in expected.items():
             values = getattr(self, name)
             if len(values) != count:
@@ -131,7 +143,7 @@ def kernel_config_from_dict(data: dict) -> KernelConfig:
     """Build a validated ``KernelConfig`` from a kernel-file mapping."""
     if not isinstance(data, dict):
         raise KernelFileError(f"a kernel file is a mapping, found {type(data).__name__}")
-    known = {"kernel", "resolution", "filter_size", "num_classes", "ell", "ell_h", "ell_z", "free_ell"}
+    known = {"kernel", "resolution", "filter_size", "num_classes", "ell", "ell_h", "ell_z", "free_ell", "temperature"}
     unknown = sorted(_shown(key, 30) for key in data if key not in known)  # quoted: a key may hold a newline
     if unknown:
         raise KernelFileError(f"unknown key(s) {', '.join(unknown[:5])}{' ...' if len(unknown) > 5 else ''}")
@@ -148,10 +160,12 @@ def kernel_config_from_dict(data: dict) -> KernelConfig:
     config = KernelConfig(kernel=data["kernel"], resolution=data["resolution"],
                           filter_size=data["filter_size"], num_classes=data["num_classes"],
                           ell=as_list("ell"), ell_h=as_list("ell_h"), ell_z=as_list("ell_z"),
-                          free_ell=data.get("free_ell"))
+                          free_ell=data.get("free_ell"), temperature=data.get("temperature"))
     config.validate()
     if config.free_ell is not None:
         config.free_ell = float(config.free_ell)
+    if config.temperature is not None:
+        config.temperature = float(config.temperature)
     config.resolution = float(config.resolution)
     # Lengths as floats: a file may write 1 for 1.0, and the kernel module expects floats.
     config.ell, config.ell_h, config.ell_z = ([float(v) for v in values]
@@ -172,6 +186,8 @@ def kernel_config_to_dict(config: KernelConfig) -> dict:
         data["ell_z"] = [round(float(v), 6) for v in config.ell_z]
     if config.free_ell is not None:
         data["free_ell"] = round(float(config.free_ell), 6)
+    if config.temperature is not None:
+        data["temperature"] = round(float(config.temperature), 6)
     return data
 
 

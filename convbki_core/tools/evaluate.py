@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.calibration import CalibrationStats, MapCalibration, input_distribution
+from convbki_core.calibration import CalibrationStats, MapCalibration, input_distribution, tempered_distribution
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
@@ -44,7 +44,7 @@ from convbki_core.tools.cli import (
     sequence_arg,
 )
 from convbki_core.trails import SweptSpace
-from convbki_core.volume import transform_points
+from convbki_core.volume import tempers, transform_points
 
 PROG = "evaluate"
 DEFAULT_KERNEL = "semantic_kitti_compound"
@@ -77,11 +77,13 @@ def write_label_file(path: Path, learning_labels: np.ndarray, label_map) -> None
 def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], kernel_file: str | Path, device: str,
                     prior: float, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
                     show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto",
-                    free_space: bool = True, input_calibration: CalibrationStats | None = None) -> KernelRun:
+                    free_space: bool = True, input_calibration: CalibrationStats | None = None,
+                    tempered_calibration: CalibrationStats | None = None) -> KernelRun:
     """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
 
     ``input_scores`` (when given) also receives the input segmentation's confusion counts, and
-    ``input_calibration`` (when given) the input's class probabilities (frames without any are skipped);
+    ``input_calibration`` (when given) the input's class probabilities (frames without any are skipped),
+    and ``tempered_calibration`` (when given) the same calibrated by the kernel's temperature;
     the run's ``calibration`` measures the map's class distributions on the scored points;
     ``labels_folder`` (when given, an existing folder) receives one NNNNNN.label per frame.
     Where the ground truth marks moving objects, the run also counts the map's trail voxels.
@@ -118,6 +120,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
             input_scores.add(frame.ground_truth, input_labels)
         if input_calibration is not None and frame.probabilities is not None:
             input_calibration.add(frame.ground_truth, input_distribution(frame.probabilities))
+        if tempered_calibration is not None and frame.probabilities is not None:
+            tempered_calibration.add(frame.ground_truth, tempered_distribution(frame.probabilities, config.temperature))
         if out_folder is not None:
             write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
         if frame.moving is not None and label_map.movable_classes:
@@ -143,11 +147,13 @@ def format_table(class_names: Sequence[str], input_scores: ConfusionMatrix, runs
 
 
 def build_report(sequence: str, frame_count: int, class_names: Sequence[str], input_scores: ConfusionMatrix,
-                 runs: Sequence[KernelRun], input_calibration: CalibrationStats | None = None) -> dict:
+                 runs: Sequence[KernelRun], input_calibration: CalibrationStats | None = None,
+                 tempered: tuple[float, CalibrationStats] | None = None) -> dict:
     """report.json (docs/evaluation.md): the first kernel at the top level, every kernel under "runs".
 
     ``input_calibration``: the input's probabilities measured (None: labels only, so the input's
-    ECE, NLL and Brier score are null).
+    ECE, NLL and Brier score are null); ``tempered``: (the first kernel's temperature, the input's
+    probabilities measured after calibration by it), when that temperature is not 1.
     """
 
     def run_entry(run_result: KernelRun) -> dict:
@@ -168,6 +174,8 @@ def build_report(sequence: str, frame_count: int, class_names: Sequence[str], in
         input_entry["calibration_points"] = input_calibration.points
     else:
         input_entry.update({"ece": None, "nll": None, "brier": None})
+    if tempered is not None and tempered[1].points:
+        input_entry["tempered"] = {"temperature": tempered[0], **tempered[1].summary(with_curve=False)}
     report = {"sequence": sequence, "frames": frame_count, "kernel": entries[0]["kernel"],
               "kernel_file": entries[0]["kernel_file"], "input": input_entry,
               "map": entries[0]["map"], "timing_ms": entries[0]["timing_ms"]}
@@ -286,6 +294,12 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     # The input has a class distribution only when it is given as probabilities.
     input_calibration = (CalibrationStats(label_map.num_classes, label_map.ignore_classes, thresholds=None)
                          if dataset.probabilities_folder is not None else None)
+    # The first kernel's temperature calibrates probability inputs: the input is measured as
+    # given and as the map receives it.
+    temperature = load_kernel_file(kernels[0]).temperature
+    tempered = None
+    if input_calibration is not None and tempers(temperature):
+        tempered = (temperature, CalibrationStats(label_map.num_classes, label_map.ignore_classes, thresholds=None))
     runs = []
     for number, kernel_file in enumerate(kernels):
         runs.append(evaluate_kernel(dataset, positions, kernel_file, args.device, args.prior,
@@ -293,9 +307,10 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                                     labels_folder if number == 0 else None,
                                     show_progress=not args.quiet, local_bounds=bounds,
                                     update_path=args.update_path, free_space=args.free_space,
-                                    input_calibration=input_calibration if number == 0 else None))
+                                    input_calibration=input_calibration if number == 0 else None,
+                                    tempered_calibration=tempered[1] if number == 0 and tempered else None))
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,
-                          input_calibration)
+                          input_calibration, tempered)
 
     from convbki_core.tools.plots import save_map_picture, save_reliability_diagram
 
@@ -317,6 +332,8 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         diagrams = {"map": (stats.reliability(), stats.ece())}
         if input_calibration is not None and input_calibration.points:
             diagrams["input"] = (input_calibration.reliability(), input_calibration.ece())
+        if tempered is not None and tempered[1].points and run_result is runs[0]:
+            diagrams[f"input, T = {tempered[0]:.3g}"] = (tempered[1].reliability(), tempered[1].ece())
         save_reliability_diagram(diagrams, outputs.file(reliability_path), stats.variance_curve(),
                                  title=f"sequence {dataset.sequence}, {len(positions)} frames, "
                                  f"{Path(run_result.kernel_file).stem}")
@@ -342,6 +359,10 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         if run_result is runs[0]:
             line += (f"; input ECE {_number(report['input']['ece'])}, NLL {_number(report['input']['nll'])}, "
                      f"Brier {_number(report['input']['brier'])}")
+            if "tempered" in report["input"]:
+                scaled = report["input"]["tempered"]
+                line += (f"; input at temperature {scaled['temperature']:g}: ECE {_number(scaled['ece'])}, "
+                         f"NLL {_number(scaled['nll'])}, Brier {_number(scaled['brier'])}")
         print(line)
     print(f"report: {report_path}; pictures: {', '.join(map(str, pictures))}")
     if args.write_labels:

@@ -8,7 +8,9 @@ frames held out of the training sequences (every 4th block of 10 frames, at most
 learning-rate decay from ``--lr`` to 5 % of it; the kernel with the best validation mIoU
 (the paper's protocol) is written, the start kernel when no trained kernel beats it
 (``--strict``: refuse instead, exit 2). The free-space length is not learned: the start
-kernel's ``free_ell`` is written."""
+kernel's ``free_ell`` is written. With probability inputs, the temperature that calibrates
+them is fitted on the validation frames for the written lengths (the lowest map NLL) and
+written as the kernel's ``temperature`` (``--keep-temperature``: the start's)."""
 
 from __future__ import annotations
 
@@ -43,6 +45,7 @@ from convbki_core.training.trainer import (
     VALIDATION_FRAMES,
     VALIDATION_GAP,
     Validator,
+    fit_temperature,
     split_validation,
     train_kernel,
 )
@@ -102,7 +105,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--predictions-dir", default="predictions", metavar="DIR",
                    help="input segmentation folder under sequences/SS (default: %(default)s)")
     p.add_argument("--probabilities-dir", default=None, metavar="DIR",
-                   help="train on per-point class probabilities (.npy) from this folder instead of labels")
+                   help="train on per-point class probabilities (.npy) from this folder instead of labels; the "
+                   "temperature that calibrates them is then fitted on the validation frames and written")
+    p.add_argument("--keep-temperature", action="store_true",
+                   help="with --probabilities-dir: do not fit the temperature; write the start kernel's (none: the "
+                   "probabilities as given)")
     p.add_argument("--resolution", default=0.2, type=positive(float, "resolution"), metavar="M",
                    help="voxel edge in metres (default: %(default)s)")
     p.add_argument("--filter-size", default=5, type=int, metavar="F",
@@ -185,6 +192,14 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                             "nothing written (--strict)")
         print(f"no trained kernel beat the start kernel on validation (mIoU {result.start_miou:.4f}): "
               "writing the start kernel")
+    if args.probabilities_dir and not args.keep_temperature:
+        fit = fit_temperature(validator, result.config, log=_log(args.quiet))
+        result.config.temperature = None if fit.temperature == 1.0 else fit.temperature
+        print(f"temperature {fit.temperature:.4f} (start {fit.start_temperature:g}), the lowest map NLL on the "
+              f"validation frames: map NLL {fit.map_nll_before:.4f} -> {fit.map_nll_after:.4f}, ECE "
+              f"{fit.map_ece_before:.4f} -> {fit.map_ece_after:.4f}, mIoU {fit.miou_before:.4f} -> "
+              f"{fit.miou_after:.4f}; input NLL {fit.input_nll_before:.4f} -> {fit.input_nll_after:.4f} (the input's "
+              f"own NLL would pick {fit.input_temperature:.4f}: {fit.input_nll_best:.4f})")
     kernel = ConvBKIKernel.from_config(result.config)
     save_kernel_file(result.config, outputs.file(out))
 

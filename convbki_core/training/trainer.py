@@ -31,6 +31,10 @@ Around that recipe (``train_kernel``):
   start kernel's value is written. Neither the point loss nor the protocol's mIoU can see it:
   scan t's points lie in voxels reached by scan t's own class evidence, which take no free
   evidence from scan t, and the map labels a point by the most likely class other than free.
+* Probability inputs are tempered by the start kernel's ``temperature`` (none: as given) in
+  the samples and the validation maps alike. With the lengths chosen, ``fit_temperature``
+  fits the temperature on the validation frames (``training.temperature``): the one whose
+  map has the lowest NLL of the ground truth under the protocol.
 
 The convolution is evaluated only at the voxels the loss reads (``SparsePlan``), which
 equals the dense layer there (tested) and keeps a training step cheap enough for a CPU.
@@ -49,6 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from convbki_core.calibration import MapCalibration
 from convbki_core.datasets import DatasetError, Frame
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
 from convbki_core.kernels import ConvBKIKernel, KernelConfig
@@ -56,6 +61,7 @@ from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.pipeline import PAPER_BOUNDS, map_frame_labels
 from convbki_core.training.sparse_plan import SparsePlan
+from convbki_core.training.temperature import TemperatureSearch, fit_input_temperature, input_nll, minimise_temperature
 from convbki_core.volume import WindowGeometry, transform_points, unravel_linear, voxel_indices, voxelize
 
 # progress(items, total, description) -> the same items, shown as they are consumed.
@@ -95,8 +101,9 @@ class SampleBuilder:
     """Turns (sequence, scan t) into the sparse training problem of the paper's recipe."""
 
     def __init__(self, geometry: WindowGeometry, num_classes: int, frames_per_sample: int, filter_size: int,
-                 ignore: Sequence[int]):
+                 ignore: Sequence[int], temperature: float | None = None):
         self.geometry = geometry
+        self.temperature = temperature  # of probability inputs, as the mapper applies it
         self.num_classes = num_classes
         self.frames_per_sample = frames_per_sample
         self.filter_size = filter_size
@@ -139,7 +146,7 @@ class SampleBuilder:
         origin = self.geometry.origin_for(np.zeros(3))
         dims = self.geometry.dims
         volume = voxelize(np.concatenate(points), np.concatenate(values), origin, dims, self.geometry.resolution,
-                          self.num_classes, self.ignore)
+                          self.num_classes, self.ignore, self.temperature)
         truth = current.ground_truth
         scored = volume.point_linear[-len(truth):] >= 0  # the current scan's points are the last block
         scored &= ~np.isin(truth, self.ignore)
@@ -245,8 +252,15 @@ class Validator:
 
     def score(self, config: KernelConfig) -> float:
         """mIoU of the map's point labels over the validation frames (one fresh map per sequence)."""
+        return self.measure(config, calibration=False)[0]
+
+    def measure(self, config: KernelConfig, calibration: bool = True) -> tuple[float, MapCalibration | None]:
+        """The protocol on the validation frames: (mIoU, and with ``calibration`` the map's
+        uncertainty at the scored points, as ``evaluate`` measures it)."""
         label_map = self.datasets[0].label_map
         scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
+        measured = (MapCalibration(label_map.num_classes, label_map.ignore_classes, self.free_space)
+                    if calibration else None)
         for number, chosen in enumerate(self.positions):
             if not chosen:
                 continue
@@ -261,7 +275,30 @@ class Validator:
                                 else frame.probabilities.argmax(axis=1))
                 mapper.integrate(frame.points, frame.input_values, frame.pose)
                 scores.add(frame.ground_truth, map_frame_labels(mapper, frame.points, frame.pose, input_labels))
-        return float(scores.miou())
+                if measured is not None:
+                    measured.add(mapper, transform_points(frame.points, frame.pose), frame.ground_truth)
+        return float(scores.miou()), measured
+
+    def input_points(self, max_points: int = 200_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """The validation frames' scored points with input probabilities: (probabilities (n, C)
+        float32, ground truth (n,)), an even random sample of at most ``max_points``."""
+        ignore = np.asarray(self.datasets[0].label_map.ignore_classes, np.int64)
+        rows, truths = [], []
+        for number, chosen in enumerate(self.positions):
+            for position in chosen:
+                frame = self._frame(number, position)
+                if frame.probabilities is None or frame.ground_truth is None:
+                    continue
+                scored = ~np.isin(frame.ground_truth, ignore)
+                rows.append(frame.probabilities[scored])
+                truths.append(frame.ground_truth[scored])
+        if not rows:
+            return np.zeros((0, 0), np.float32), np.zeros(0, np.int64)
+        probabilities, truth = np.concatenate(rows), np.concatenate(truths)
+        if len(truth) > max_points:
+            keep = np.sort(np.random.default_rng(seed).choice(len(truth), max_points, replace=False))
+            probabilities, truth = probabilities[keep], truth[keep]
+        return probabilities, truth
 
 
 @dataclass
@@ -289,6 +326,62 @@ class TrainResult:
         return self.best_step > 0
 
 
+@dataclass
+class TemperatureFit:
+    """What ``fit_temperature`` found on the validation frames (NLLs are means over points)."""
+
+    temperature: float  # the fitted temperature: the lowest map NLL
+    start_temperature: float  # the kernel's before the fit (1: probabilities as given)
+    map_nll_before: float
+    map_nll_after: float
+    map_ece_before: float
+    map_ece_after: float
+    miou_before: float
+    miou_after: float
+    input_nll_before: float  # the tempered input's own NLL, at the start and the fitted temperature
+    input_nll_after: float
+    input_temperature: float  # the temperature the input's NLL alone would pick
+    input_nll_best: float
+    search: TemperatureSearch
+
+
+def fit_temperature(validator: Validator, config: KernelConfig, log: Callable[[str], None] | None = None,
+                    **search) -> TemperatureFit:
+    """Fit the temperature of probability inputs for ``config`` (its lengths fixed) on the
+    validation frames: the one whose map has the lowest NLL under the protocol
+    (``training.temperature``); ``search``: options of ``minimise_temperature``."""
+    measured: dict[float, tuple[float, MapCalibration]] = {}
+
+    def run(temperature: float) -> tuple[float, MapCalibration]:
+        if temperature not in measured:
+            candidate = copy.deepcopy(config)
+            candidate.temperature = None if temperature == 1.0 else float(temperature)
+            miou, calibration = validator.measure(candidate)
+            measured[temperature] = (miou, calibration)
+            if log:
+                log(f"fitting the temperature: T {temperature:.4f}: validation map NLL {calibration.stats.nll():.4f}, "
+                    f"ECE {calibration.stats.ece():.4f}, mIoU {miou:.4f}")
+        return measured[temperature]
+
+    start = 1.0 if config.temperature is None else float(config.temperature)
+    before_miou, before = run(start)
+    result = minimise_temperature(lambda t: run(t)[1].stats.nll(), **search)
+    if result.value >= before.stats.nll():  # never worse than where it started
+        result.temperature, result.value = start, before.stats.nll()
+    after_miou, after = run(result.temperature)
+    probabilities, truth = validator.input_points()
+    by_input = fit_input_temperature(probabilities, truth) if len(truth) else None
+    return TemperatureFit(
+        temperature=result.temperature, start_temperature=start,
+        map_nll_before=before.stats.nll(), map_nll_after=after.stats.nll(),
+        map_ece_before=before.stats.ece(), map_ece_after=after.stats.ece(),
+        miou_before=before_miou, miou_after=after_miou,
+        input_nll_before=input_nll(probabilities, truth, start),
+        input_nll_after=input_nll(probabilities, truth, result.temperature),
+        input_temperature=by_input.temperature if by_input else float("nan"),
+        input_nll_best=by_input.value if by_input else float("nan"), search=result)
+
+
 def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]], kind: str,
                  frames_per_sample: int = 10, epochs: int | None = None, lr: float = 0.007, resolution: float = 0.2,
                  filter_size: int = 5, prior: float = DEFAULT_PRIOR, seed: int = 0,
@@ -314,7 +407,7 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
     weights = weights.to(device)
     optimiser = torch.optim.Adam(lengths, lr=lr)
     builder = SampleBuilder(WindowGeometry(start.resolution), num_classes, frames_per_sample, start.filter_size,
-                            label_map.ignore_classes)
+                            label_map.ignore_classes, start.temperature)
     samples = [(number, position) for number, chosen in enumerate(positions) for position in chosen]
     epochs = epochs or default_epochs(len(samples))
     rng = np.random.default_rng(seed)
