@@ -7,8 +7,11 @@ frames held out of the training sequences (every 4th block of 10 frames, at most
 ``--init FILE`` or every length 0.5 m; epochs sized to about 300 optimiser steps; cosine
 learning-rate decay from ``--lr`` to 5 % of it; the kernel with the best validation mIoU
 (the paper's protocol) is written, the start kernel when no trained kernel beats it
-(``--strict``: refuse instead, exit 2). The free-space length is not learned: the start
-kernel's ``free_ell`` is written. With probability inputs, the temperature that calibrates
+(``--strict``: refuse instead, exit 2). The free-space length ``free_ell`` is learned too:
+besides the paper's point loss, each sample asks whether points on the scan's rays in front of
+its returns are free in the past scans' map, and whether its returns' voxels are not
+(``training.free_samples``); the value after the last step is written (``--keep-free-ell``:
+the start kernel's). With probability inputs, the temperature that calibrates
 them is fitted on the validation frames for the written lengths (the lowest map NLL) and
 written as the kernel's ``temperature`` (``--keep-temperature``: the start's)."""
 
@@ -87,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: %(default)s)")
     p.add_argument("--init", default=None, metavar="FILE",
                    help="start from this kernel file (same kind, resolution and filter size); default: every "
-                   "length 0.5 m, no free-space spreading")
+                   "length 0.5 m (free_ell, when learned, starts at no less than 1.25 voxels)")
     p.add_argument("--val-sequences", nargs="+", default=None, metavar="SS", type=sequence_arg,
                    help="validate on these sequences (at most --val-frames of their frames, in blocks) instead of "
                    f"holding out every {VALIDATION_EVERY}th block of {VALIDATION_BLOCK} frames of the training "
@@ -107,6 +110,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--probabilities-dir", default=None, metavar="DIR",
                    help="train on per-point class probabilities (.npy) from this folder instead of labels; the "
                    "temperature that calibrates them is then fitted on the validation frames and written")
+    p.add_argument("--keep-free-ell", action="store_true",
+                   help="do not learn the free-space length: no free-space questions in the samples, and the start "
+                   "kernel's free_ell (none: one voxel) is written")
     p.add_argument("--keep-temperature", action="store_true",
                    help="with --probabilities-dir: do not fit the temperature; write the start kernel's (none: the "
                    "probabilities as given)")
@@ -180,18 +186,22 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     result = train_kernel(datasets, train_positions, args.kernel, args.frames_per_sample, args.epochs, args.lr,
                           args.resolution, args.filter_size, seed=args.seed,
                           progress=None if args.quiet else _progress, log=_log(args.quiet), device=device,
-                          start=start, validator=validator, validate_every=args.validate_every)
+                          start=start, validator=validator, validate_every=args.validate_every,
+                          learn_free_ell=not args.keep_free_ell)
     losses = result.losses
     if not losses:
         raise UserError("no training sample had scored points (check labels and predictions)")
     print(f"validation mIoU: start {result.start_miou:.4f}, best {result.best_miou:.4f} "
           f"(step {result.best_step} of {result.total_steps}, {result.epochs} epochs)")
+    if result.free_ells:
+        print(f"free_ell: learned {result.free_ells[-1]:.4f} m (from {result.free_ells[0]:.4f} m after the first "
+              f"step; start kernel: {_length(result.start.free_ell)})")
     if not result.improved:
         if args.strict:
             raise UserError(f"no trained kernel beat the start kernel on validation (mIoU {result.start_miou:.4f}); "
                             "nothing written (--strict)")
         print(f"no trained kernel beat the start kernel on validation (mIoU {result.start_miou:.4f}): "
-              "writing the start kernel")
+              "writing the start kernel" + (" with the learned free_ell" if result.free_ells else ""))
     if args.probabilities_dir and not args.keep_temperature:
         fit = fit_temperature(validator, result.config, log=_log(args.quiet))
         result.config.temperature = None if fit.temperature == 1.0 else fit.temperature
@@ -249,6 +259,10 @@ def _start_kernel(args: argparse.Namespace):
             flag = "--" + name.replace("_", "-")
             raise UserError(f"{args.init}: {name} {getattr(config, name)}, but {flag} is {wanted}")
     return config
+
+
+def _length(value: float | None) -> str:
+    return "one voxel" if value is None else f"{value:.4f} m"
 
 
 def _ranges(positions) -> str:

@@ -56,10 +56,21 @@ import torch
 from convbki_core.calibration import MapCalibration
 from convbki_core.datasets import DatasetError, Frame
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
+from convbki_core.free_space import FREE_CLASS
 from convbki_core.kernels import ConvBKIKernel, KernelConfig
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.pipeline import PAPER_BOUNDS, map_frame_labels
+from convbki_core.training.free_samples import (
+    FreeEvidence,
+    free_evidence,
+    free_nll,
+    free_points,
+    past_rays,
+    reached,
+    rows_of,
+    support_offsets,
+)
 from convbki_core.training.sparse_plan import SparsePlan
 from convbki_core.training.temperature import TemperatureSearch, fit_input_temperature, input_nll, minimise_temperature
 from convbki_core.volume import WindowGeometry, transform_points, unravel_linear, voxel_indices, voxelize
@@ -77,6 +88,7 @@ VALIDATION_GAP = 2
 VALIDATION_FRAMES = 20
 VALIDATIONS = 10  # default: validate about this many times over a run (plus the start)
 PLAN_CACHE_BYTES = 2 << 30  # built samples kept in memory for later epochs
+FREE_ELL_START_VOXELS = 1.25  # learning free_ell starts at least this many voxels long
 
 
 def class_weights(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]],
@@ -101,9 +113,14 @@ class SampleBuilder:
     """Turns (sequence, scan t) into the sparse training problem of the paper's recipe."""
 
     def __init__(self, geometry: WindowGeometry, num_classes: int, frames_per_sample: int, filter_size: int,
-                 ignore: Sequence[int], temperature: float | None = None):
+                 ignore: Sequence[int], temperature: float | None = None, free_support: np.ndarray | None = None,
+                 seed: int = 0):
         self.geometry = geometry
         self.temperature = temperature  # of probability inputs, as the mapper applies it
+        # With the class filters (C, f, f, f) whose supports decide the TOUCHED rule, samples also
+        # carry the free-space questions (``free_samples``); None: the paper's samples only.
+        self.free_support = None if free_support is None else support_offsets(free_support)
+        self.seed = seed
         self.num_classes = num_classes
         self.frames_per_sample = frames_per_sample
         self.filter_size = filter_size
@@ -120,6 +137,8 @@ class SampleBuilder:
             return self._plans[key]
         built = self.build(dataset_number, dataset, position)
         size = 0 if built is None else 20 * built[0].value.numel() + 16 * len(built[1])
+        if built is not None and len(built) > 3 and built[3] is not None:
+            size += built[3].nbytes
         if self._plan_bytes + size <= PLAN_CACHE_BYTES:
             self._plans[key] = built
             self._plan_bytes += size
@@ -134,15 +153,18 @@ class SampleBuilder:
         return self._cache[key]
 
     def build(self, dataset_number: int, dataset: SemanticKittiSequence, position: int):
-        """(plan, query index per scored point, ground truth per scored point) or None if nothing to score."""
+        """(plan, query index per scored point, ground truth per scored point) or None if nothing to
+        score; with ``free_support``, a fourth entry: the sample's ``FreeQuestions`` (None when
+        it has none)."""
         current = self._frame(dataset_number, dataset, position)
         to_current = np.linalg.inv(current.pose)
-        points, values = [], []
+        points, values, scans = [], [], []
         for past in range(max(0, position - self.frames_per_sample + 1), position + 1):
             frame = self._frame(dataset_number, dataset, past)
             relative = to_current @ frame.pose
             points.append(transform_points(frame.points, relative))
             values.append(frame.input_values)
+            scans.append((frame.points, relative))
         origin = self.geometry.origin_for(np.zeros(3))
         dims = self.geometry.dims
         volume = voxelize(np.concatenate(points), np.concatenate(values), origin, dims, self.geometry.resolution,
@@ -157,16 +179,86 @@ class SampleBuilder:
         query, point_query = np.unique(point_voxels, axis=0, return_inverse=True)
         source = unravel_linear(volume.linear, dims) + origin
         plan = SparsePlan.build(query, source, volume.features, self.filter_size, window=(origin, dims))
-        return plan, point_query.reshape(-1), truth[scored]
+        if self.free_support is None:
+            return plan, point_query.reshape(-1), truth[scored]
+        rng = np.random.default_rng([self.seed, dataset_number, position])
+        free = self._free_questions(query, points, values, scans, origin, dims, rng)
+        return plan, point_query.reshape(-1), truth[scored], free
+
+    def _free_questions(self, query: np.ndarray, points: list, values: list, scans: list, origin: np.ndarray,
+                        dims: np.ndarray, rng: np.random.Generator) -> FreeQuestions | None:
+        """The free-space part of a sample (``free_samples`` module docstring); None without past scans."""
+        if len(points) < 2:
+            return None
+        resolution = self.geometry.resolution
+
+        def alone(index: int):
+            return voxelize(points[index], values[index], origin, dims, resolution, self.num_classes, self.ignore,
+                            self.temperature)
+
+        past_volumes = [alone(index) for index in range(len(points) - 1)]
+        reach = [reached(volume, *self.free_support) for volume in past_volumes]
+        rays = [past_rays(*scans[index], past_volumes[index], resolution) for index in range(len(past_volumes))]
+        current = alone(len(points) - 1)
+        returns = np.zeros(tuple(int(d) for d in dims), bool)
+        local = unravel_linear(current.linear, dims)
+        returns[local[:, 0], local[:, 1], local[:, 2]] = True
+        free = free_points(points[-1], returns, origin, dims, resolution, rng)
+        evidence, held = free_evidence(np.concatenate([query, free]), rays, reach, origin, dims, self.filter_size)
+        at_points = np.arange(len(query) + len(free)) < len(query)
+        kept = held & ~at_points  # free points in voxels without class evidence carry no gradient
+        past = voxelize(np.concatenate(points[:-1]), np.concatenate(values[:-1]), origin, dims, resolution,
+                        self.num_classes, self.ignore, self.temperature)
+        free_plan = SparsePlan.build(np.concatenate([query, free])[kept], unravel_linear(past.linear, dims) + origin,
+                                     past.features, self.filter_size, window=(origin, dims))
+        return FreeQuestions(rows_of(evidence, at_points), free_plan, rows_of(evidence, kept))
+
+
+@dataclass
+class FreeQuestions:
+    """A sample's free-space part: the past scans' free evidence at its labelled voxels, and its
+    free points (the past scans' class evidence there, and their free evidence)."""
+
+    at_points: FreeEvidence
+    free_plan: SparsePlan
+    at_free: FreeEvidence
+
+    @property
+    def nbytes(self) -> int:
+        return self.at_points.nbytes + self.at_free.nbytes + 20 * int(self.free_plan.value.numel())
 
 
 def weighted_nll(plan: SparsePlan, filters: torch.Tensor, point_query: torch.Tensor, truth: torch.Tensor,
-                 weights: torch.Tensor, prior: float) -> torch.Tensor:
-    """Class-weighted NLL of the ground truth under E[theta] = alpha / sum(alpha) at each point's voxel."""
+                 weights: torch.Tensor, prior: float, free: torch.Tensor | None = None) -> torch.Tensor:
+    """Class-weighted NLL of the ground truth under E[theta] = alpha / sum(alpha) at each point's voxel;
+    ``free`` (Q,): free evidence added to class 0 of the query voxels."""
     alpha = prior + plan.increment(filters)
+    if free is not None:
+        alpha = torch.cat([alpha[:, :FREE_CLASS + 1] + free[:, None], alpha[:, FREE_CLASS + 1:]], dim=1)
     log_probability = torch.log(alpha) - torch.log(alpha.sum(dim=1, keepdim=True))
     point_weights = weights[truth]
     return -(point_weights * log_probability[point_query, truth]).sum() / point_weights.sum()
+
+
+def sample_loss(built: tuple, kernel: ConvBKIKernel, weights: torch.Tensor, prior: float,
+                device: torch.device) -> torch.Tensor:
+    """The loss of one built sample: the paper's weighted point NLL; with free-space questions,
+    class 0 there holds the past scans' free evidence, plus the mean NLL of "free" at the free
+    points (the two means weigh the same: what a surface is and whether space is empty)."""
+    plan, point_query, truth = built[:3]
+    free = built[3] if len(built) > 3 else None
+    filters = kernel.filters()
+    point_query = torch.from_numpy(point_query).to(device)
+    truth = torch.from_numpy(truth).to(device)
+    if free is None:
+        return weighted_nll(plan, filters, point_query, truth, weights, prior)
+    free_filter = kernel.free_filter()
+    loss = weighted_nll(plan, filters, point_query, truth, weights, prior, free.at_points.increment(free_filter))
+    if free.at_free.num_queries:
+        # Only free_ell learns from the free points: the class lengths keep the paper's objective.
+        alpha = prior + free.free_plan.increment(filters.detach())
+        loss = loss + free_nll(alpha, free.at_free.increment(free_filter), prior)
+    return loss
 
 
 
@@ -312,6 +404,7 @@ class TrainResult:
     best_step: int = 0  # 0: the start kernel
     epochs: int = 0
     total_steps: int = 0
+    free_ells: list[float] = field(default_factory=list)  # free_ell after each step, when learned
 
     @property
     def start_miou(self) -> float | None:
@@ -387,12 +480,17 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
                  filter_size: int = 5, prior: float = DEFAULT_PRIOR, seed: int = 0,
                  progress: Progress | None = None, log: Callable[[str], None] | None = None, log_every: int = 25,
                  device: str | torch.device = "cpu", start: KernelConfig | None = None,
-                 validator: Validator | None = None, validate_every: int | None = None) -> TrainResult:
+                 validator: Validator | None = None, validate_every: int | None = None,
+                 learn_free_ell: bool = False) -> TrainResult:
     """Learn the kernel lengths on ``device`` from ``start`` (default: every length ``INITIAL_ELL``).
 
     With a ``validator``, the start and every ``validate_every`` steps (default: about
     ``VALIDATIONS`` times a run) and the last step are scored, and the best kernel is returned;
-    without one, the last. ``free_ell`` is never optimised: the start's value is kept.
+    without one, the last. ``learn_free_ell``: samples also ask the free-space questions
+    (``free_samples``) and ``free_ell`` is learned from at least ``FREE_ELL_START_VOXELS``
+    voxels; the kernel written carries its value after the last step (the protocol's mIoU
+    cannot rank it: a return asks for a class other than free). Otherwise ``free_ell`` is not
+    optimised and the start's value is kept.
     """
     label_map = datasets[0].label_map
     num_classes = label_map.num_classes
@@ -403,11 +501,20 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
     start = copy.deepcopy(start)
     kernel = ConvBKIKernel.from_config(start).to(device)
     lengths = [parameter for name, parameter in kernel.named_parameters() if name != "free_ell"]
+    support = None
+    if learn_free_ell:
+        # A free filter of one voxel has no gradient (the taps beyond the centre are zero for
+        # every length below a voxel): learning starts where the next taps are non-zero.
+        with torch.no_grad():
+            kernel.free_ell.clamp_(min=FREE_ELL_START_VOXELS * start.resolution)
+        lengths.append(kernel.free_ell)
+        with torch.no_grad():
+            support = kernel.filters().cpu().numpy()[:, 0]
     weights = torch.from_numpy(class_weights(datasets, positions, num_classes, label_map.ignore_classes)).float()
     weights = weights.to(device)
     optimiser = torch.optim.Adam(lengths, lr=lr)
     builder = SampleBuilder(WindowGeometry(start.resolution), num_classes, frames_per_sample, start.filter_size,
-                            label_map.ignore_classes, start.temperature)
+                            label_map.ignore_classes, start.temperature, free_support=support, seed=seed)
     samples = [(number, position) for number, chosen in enumerate(positions) for position in chosen]
     epochs = epochs or default_epochs(len(samples))
     rng = np.random.default_rng(seed)
@@ -417,7 +524,8 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
     result = TrainResult(config=start, start=start, epochs=epochs, total_steps=total)
 
     def written(config: KernelConfig) -> KernelConfig:
-        config.free_ell = start.free_ell  # not learned (module docstring)
+        if not learn_free_ell:
+            config.free_ell = start.free_ell  # not learned (module docstring)
         return config
 
     bar = None
@@ -445,20 +553,24 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
         if built is not None:
             for group in optimiser.param_groups:
                 group["lr"] = learning_rate(step - 1, total, lr)
-            plan, point_query, truth = built
-            loss = weighted_nll(plan, kernel.filters(), torch.from_numpy(point_query).to(device),
-                                torch.from_numpy(truth).to(device), weights, prior)
+            loss = sample_loss(built, kernel, weights, prior, device)
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
             kernel.clamp_lengths_()
             result.losses.append(float(loss.detach()))
+            if learn_free_ell:
+                result.free_ells.append(float(kernel.free_ell.detach()))
             if log and log_every and len(result.losses) % log_every == 0:
                 recent = np.mean(result.losses[-log_every:])
                 log(f"step {step}/{total}: loss {recent:.4f} (mean of the last {log_every}), "
-                    f"lr {learning_rate(step - 1, total, lr):.5f}")
+                    f"lr {learning_rate(step - 1, total, lr):.5f}"
+                    + (f", free_ell {result.free_ells[-1]:.4f} m" if learn_free_ell else ""))
         if validator is not None and (step % validate_every == 0 or step == total):
             validate(step)
     if validator is None:
         result.config, result.best_step = written(kernel.to_config()), total
+    if learn_free_ell:
+        result.config = copy.deepcopy(result.config)
+        result.config.free_ell = kernel.to_config().free_ell
     return result
