@@ -237,3 +237,36 @@ def test_train_fits_and_writes_the_temperature_of_probability_inputs(tmp_path, c
     before, after = (float(v) for v in re.search(r"map NLL ([\d.]+) -> ([\d.]+),", line).groups())
     assert fitted < 0.8 and after < before
     assert load_kernel_file(out).temperature == pytest.approx(fitted, abs=1e-4)
+
+
+class CurvesValidator:
+    """A validator whose map NLL falls towards T = 0.3 while its mIoU falls below T = 1, as
+    sharpening a soft network does: each point's vote loses what its second choice knew."""
+
+    def __init__(self):
+        self.tried = []
+
+    def measure(self, config):
+        temperature = 1.0 if config.temperature is None else config.temperature
+        self.tried.append(temperature)
+        nll = (math.log(temperature) - math.log(0.3)) ** 2
+        miou = 0.7 - 0.1 * max(0.0, -math.log(temperature))
+        stats = type("Stats", (), {"nll": lambda self: nll, "ece": lambda self: nll / 10})()
+        return miou, type("Calibration", (), {"stats": stats})()
+
+    def input_points(self):
+        return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+
+
+@pytest.mark.parametrize("loss", [0.01, 0.05, None])
+def test_the_fit_costs_at_most_the_allowed_mIoU(loss):
+    config = ConvBKIKernel("single", 3, 3, 0.2, ell=0.5).to_config()
+    fit = trainer.fit_temperature(CurvesValidator(), config, miou_loss=loss)
+    assert fit.search.temperature == pytest.approx(0.3, rel=0.03)  # the lowest NLL without the bound
+    if loss is None:
+        assert fit.temperature == pytest.approx(0.3, rel=0.03)
+    else:
+        boundary = math.exp(-loss / 0.1)  # where the mIoU has fallen by exactly ``loss``
+        assert boundary <= fit.temperature < boundary * 1.05
+        assert fit.miou_after >= fit.miou_before - loss - 1e-12
+    assert fit.map_nll_after < fit.map_nll_before

@@ -12,8 +12,9 @@ besides the paper's point loss, each sample asks whether points on the scan's ra
 its returns are free in the past scans' map, and whether its returns' voxels are not
 (``training.free_samples``); the value after the last step is written (``--keep-free-ell``:
 the start kernel's). With probability inputs, the temperature that calibrates
-them is fitted on the validation frames for the written lengths (the lowest map NLL) and
-written as the kernel's ``temperature`` (``--keep-temperature``: the start's)."""
+them is fitted on the validation frames for the written lengths (the lowest map NLL that
+costs at most ``--temperature-miou-loss`` of validation mIoU) and written as the kernel's
+``temperature`` (``--keep-temperature``: the start's)."""
 
 from __future__ import annotations
 
@@ -43,6 +44,7 @@ from convbki_core.tools.cli import (
 )
 from convbki_core.training.trainer import (
     TARGET_UPDATES,
+    TEMPERATURE_MIOU_LOSS,
     VALIDATION_BLOCK,
     VALIDATION_EVERY,
     VALIDATION_FRAMES,
@@ -113,6 +115,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-free-ell", action="store_true",
                    help="do not learn the free-space length: no free-space questions in the samples, and the start "
                    "kernel's free_ell (none: one voxel) is written")
+    p.add_argument("--temperature-miou-loss", default=TEMPERATURE_MIOU_LOSS, type=_non_negative, metavar="M",
+                   help="with --probabilities-dir: the validation mIoU the fitted temperature may cost (a fraction; "
+                   "sharpening soft probabilities calibrates the map but can change its labels); inf: no bound "
+                   "(default: %(default)s)")
     p.add_argument("--keep-temperature", action="store_true",
                    help="with --probabilities-dir: do not fit the temperature; write the start kernel's (none: the "
                    "probabilities as given)")
@@ -203,13 +209,17 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         print(f"no trained kernel beat the start kernel on validation (mIoU {result.start_miou:.4f}): "
               "writing the start kernel" + (" with the learned free_ell" if result.free_ells else ""))
     if args.probabilities_dir and not args.keep_temperature:
-        fit = fit_temperature(validator, result.config, log=_log(args.quiet))
+        bound = None if args.temperature_miou_loss == float("inf") else args.temperature_miou_loss
+        fit = fit_temperature(validator, result.config, log=_log(args.quiet), miou_loss=bound)
         result.config.temperature = None if fit.temperature == 1.0 else fit.temperature
+        within = "" if bound is None else f" within {bound:g} mIoU of the start's"
         print(f"temperature {fit.temperature:.4f} (start {fit.start_temperature:g}), the lowest map NLL on the "
-              f"validation frames: map NLL {fit.map_nll_before:.4f} -> {fit.map_nll_after:.4f}, ECE "
+              f"validation frames{within}: map NLL {fit.map_nll_before:.4f} -> {fit.map_nll_after:.4f}, ECE "
               f"{fit.map_ece_before:.4f} -> {fit.map_ece_after:.4f}, mIoU {fit.miou_before:.4f} -> "
-              f"{fit.miou_after:.4f}; input NLL {fit.input_nll_before:.4f} -> {fit.input_nll_after:.4f} (the input's "
-              f"own NLL would pick {fit.input_temperature:.4f}: {fit.input_nll_best:.4f})")
+              f"{fit.miou_after:.4f}; input NLL {fit.input_nll_before:.4f} -> {fit.input_nll_after:.4f}")
+        print(f"  without the mIoU bound: T {fit.search.temperature:.4f}, map NLL {fit.search.value:.4f}, ECE "
+              f"{fit.unbounded_ece:.4f}, mIoU {fit.unbounded_miou:.4f}; the input's own NLL would pick T "
+              f"{fit.input_temperature:.4f} (input NLL {fit.input_nll_best:.4f})")
     kernel = ConvBKIKernel.from_config(result.config)
     save_kernel_file(result.config, outputs.file(out))
 
@@ -259,6 +269,16 @@ def _start_kernel(args: argparse.Namespace):
             flag = "--" + name.replace("_", "-")
             raise UserError(f"{args.init}: {name} {getattr(config, name)}, but {flag} is {wanted}")
     return config
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return value
 
 
 def _length(value: float | None) -> str:
