@@ -31,6 +31,10 @@ they leave the window, which those rays cross too.
 
 The compiled pass counts the rays on two cores without sharing a voxel (rays ending on either
 side of the sensor's x plane), then each core adds the counts of its own x planes into the map.
+The counts are kept in window order along x and y and on the torus along z: every ray of a
+window around its sensor lies inside the window, so its walk moves one flat index by a fixed
+stride per step and wraps only along z, and each x plane of the window meets its counts in two
+long runs, which the pass adds branch-free.
 """
 
 from __future__ import annotations
@@ -44,6 +48,10 @@ from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
 if HAVE_NUMBA:
     import numba
     from numba import njit, prange
+
+    # Bytes, so that the mask's update stays in bytes and vectorises.
+    _CHANGED_BYTE = np.uint8(CHANGED)
+    _NO_BYTE = np.uint8(0)
 
 FREE_CLASS = 0
 _KEEP_UNTOUCHED = 0xFF & ~TOUCHED  # the mask bits left after a scan
@@ -65,15 +73,18 @@ def scan_rays(points: np.ndarray, pose: np.ndarray, volume: SparseVolume,
     """A scan's rays as (end voxels (M, 3), weights (M,), through (M,) bool): one per voxel
     holding returns (weighted by their evidence), and one per window voxel where the rays to
     returns beyond the window leave it (``through``: that voxel is crossed too)."""
-    ends = unravel_linear(volume.linear, volume.dims) + volume.origin
     weights = ray_weights(volume.features)
     dropped = points[volume.point_linear < 0]
-    with np.errstate(invalid="ignore", over="ignore"):  # non-finite points are dropped next
+    with np.errstate(invalid="ignore", over="ignore"):  # non-finite points are skipped by the exits
         beyond = (dropped @ pose[:3, :3].T + pose[:3, 3]) / resolution
-    beyond = beyond[np.isfinite(beyond).all(axis=1)]
-    exits, rays = window_exits(pose[:3, 3] / resolution, beyond, volume.origin, volume.dims)
-    through = np.concatenate([np.zeros(len(ends), np.bool_), np.ones(len(exits), np.bool_)])
-    return np.concatenate([ends, exits]), np.concatenate([weights, rays]), through
+    origin = np.ascontiguousarray(volume.origin, np.int64)
+    dims = np.ascontiguousarray(volume.dims, np.int64)
+    exit_linear, rays = _unique_exits(pose[:3, 3] / resolution, beyond, origin, dims)
+    linear = np.concatenate([volume.linear, exit_linear])
+    through = np.zeros(len(linear), np.bool_)
+    through[len(volume.linear):] = True
+    ends = _unravel_numba(linear, origin, dims) if HAVE_NUMBA else unravel_linear(linear, dims) + origin
+    return ends, np.concatenate([weights, rays]), through
 
 
 def ray_weights(features: np.ndarray) -> np.ndarray:
@@ -109,22 +120,29 @@ def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndar
 
 def window_exits(sensor: np.ndarray, points: np.ndarray, origin: np.ndarray,
                  dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For returns beyond the window (``points`` (N, 3) in voxel units, finite; those inside
-    are skipped): the window voxels where their rays leave it, unique, with the number of
-    rays each."""
-    sensor = np.ascontiguousarray(sensor, np.float64)
+    """For returns beyond the window (``points`` (N, 3) in voxel units; those inside and
+    those not finite are skipped): the window voxels where their rays leave it, unique, with
+    the number of rays each."""
     origin = np.ascontiguousarray(origin, np.int64)
     dims = np.ascontiguousarray(dims, np.int64)
+    linear, rays = _unique_exits(sensor, points, origin, dims)
+    local = np.stack(np.unravel_index(linear, tuple(int(d) for d in dims)), axis=1)
+    return local + origin, rays
+
+
+def _unique_exits(sensor, points, origin, dims) -> tuple[np.ndarray, np.ndarray]:
+    """``window_exits`` as window-linear indices (sorted) and rays (float32)."""
+    sensor = np.ascontiguousarray(sensor, np.float64)
     if HAVE_NUMBA:
         linear = _exit_linear_numba(np.ascontiguousarray(points, np.float64), sensor, origin, dims)
     else:
         linear = _exit_linear_numpy(np.asarray(points, np.float64), sensor, origin, dims)
     linear, rays = np.unique(linear, return_counts=True)
-    local = np.stack(np.unravel_index(linear, tuple(int(d) for d in dims)), axis=1)
-    return local + origin, rays.astype(np.float32)
+    return linear, rays.astype(np.float32)
 
 
 def _exit_linear_numpy(points, sensor, origin, dims) -> np.ndarray:
+    points = points[np.isfinite(points).all(axis=1)]
     outside = ((points < origin) | (points >= origin + dims)).any(axis=1)
     direction = points[outside] - sensor
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -144,7 +162,7 @@ def count_rays(sensor: np.ndarray, ends: np.ndarray, weights: np.ndarray, throug
     dims = np.ascontiguousarray(dims, np.int64)
     if HAVE_NUMBA:
         _count_rays(sensor, np.ascontiguousarray(ends, np.int64), np.ascontiguousarray(weights, np.float32),
-                    np.ascontiguousarray(through, np.bool_), dims, volume, shared_plane)
+                    np.ascontiguousarray(through, np.bool_), np.zeros(3, np.int64), dims, volume, shared_plane)
         volume[int(np.floor(sensor[0])) % int(dims[0])] += shared_plane
         shared_plane[:] = 0.0
         return volume
@@ -221,10 +239,9 @@ def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, 
 if HAVE_NUMBA:
 
     @njit(cache=True, nogil=True, inline="always")
-    def _count_ray(sensor, end_voxel, weight, through, dims, counts, shared_x, shared_plane):  # pragma: no cover
-        """Add ``weight`` to the count of every voxel the ray crosses before its end voxel (and
-        the end voxel too when ``through``); counts of the physical x plane ``shared_x`` go to
-        ``shared_plane`` (Y, Z) instead (-1: none)."""
+    def _ray_start(sensor, end_voxel, through):  # pragma: no cover - compiled
+        """The walk of ``_walk_ray`` at the sensor's voxel: (voxel x, y, z, steps, step x, y, z,
+        the times of the next boundary crossings x, y, z and their increments x, y, z)."""
         vx = np.int64(np.floor(sensor[0]))
         vy = np.int64(np.floor(sensor[1]))
         vz = np.int64(np.floor(sensor[2]))
@@ -232,20 +249,26 @@ if HAVE_NUMBA:
         dy = end_voxel[1] + 0.5 - sensor[1]
         dz = end_voxel[2] + 0.5 - sensor[2]
         steps = abs(end_voxel[0] - vx) + abs(end_voxel[1] - vy) + abs(end_voxel[2] - vz) + (1 if through else 0)
-        sx = 1 if dx > 0 else -1
-        sy = 1 if dy > 0 else -1
-        sz = 1 if dz > 0 else -1
         inf = np.inf
-        tdx = abs(1.0 / dx) if dx != 0 else inf
-        tdy = abs(1.0 / dy) if dy != 0 else inf
-        tdz = abs(1.0 / dz) if dz != 0 else inf
         tx = ((vx + 1.0 if dx > 0 else vx * 1.0) - sensor[0]) / dx if dx != 0 else inf
         ty = ((vy + 1.0 if dy > 0 else vy * 1.0) - sensor[1]) / dy if dy != 0 else inf
         tz = ((vz + 1.0 if dz > 0 else vz * 1.0) - sensor[2]) / dz if dz != 0 else inf
-        # Torus positions, advanced with the voxel: no modulo inside the loop.
-        px = vx % dims[0]
-        py = vy % dims[1]
-        pz = vz % dims[2]
+        return (vx, vy, vz, steps, 1 if dx > 0 else -1, 1 if dy > 0 else -1, 1 if dz > 0 else -1, tx, ty, tz,
+                abs(1.0 / dx) if dx != 0 else inf, abs(1.0 / dy) if dy != 0 else inf,
+                abs(1.0 / dz) if dz != 0 else inf)
+
+    @njit(cache=True, nogil=True, inline="always")
+    def _count_ray(sensor, end_voxel, weight, through, corner, dims, counts, shared_x,
+                   shared_plane):  # pragma: no cover - compiled
+        """Add ``weight`` to the count of every voxel the ray crosses before its end voxel (and
+        the end voxel too when ``through``); voxel v counts at ``counts[(v - corner) % dims]``,
+        except those of the x plane ``shared_x`` (in that layout), which go to ``shared_plane``
+        (Y, Z) (-1: none)."""
+        vx, vy, vz, steps, sx, sy, sz, tx, ty, tz, tdx, tdy, tdz = _ray_start(sensor, end_voxel, through)
+        # Positions in the counts, advanced with the voxel: no modulo inside the loop.
+        px = (vx - corner[0]) % dims[0]
+        py = (vy - corner[1]) % dims[1]
+        pz = (vz - corner[2]) % dims[2]
         for _ in range(steps):
             if px == shared_x:
                 shared_plane[py, pz] += weight
@@ -274,28 +297,142 @@ if HAVE_NUMBA:
                 elif pz < 0:
                     pz = dims[2] - 1
 
+    @njit(cache=True, nogil=True, inline="always")
+    def _count_ray_inside(sensor, end_voxel, weight, through, corner, dims, counts, shared_plane,
+                          shared):  # pragma: no cover - compiled
+        """``_count_ray`` for a ray whose voxels lie within ``corner`` + ``dims`` in x and y,
+        with ``corner[2]`` 0 (z on the torus), into ``counts`` and ``shared_plane`` flattened:
+        the index moves by a fixed stride per step, and only a step along z can wrap.
+        ``shared``: the ray ends below the sensor's x plane, so its visits of that plane, which
+        go to ``shared_plane``, are its first ones."""
+        vx, vy, vz, steps, sx, sy, sz, tx, ty, tz, tdx, tdy, tdz = _ray_start(sensor, end_voxel, through)
+        size_y, size_z = dims[1], dims[2]
+        plane = size_y * size_z
+        pz = vz % size_z
+        base = (vx - corner[0]) * plane
+        index = base + (vy - corner[1]) * size_z + pz
+        stride_x, stride_y = sx * plane, sy * size_z
+        if shared:
+            while steps > 0:
+                shared_plane[index - base] += weight
+                steps -= 1
+                if tx <= ty and tx <= tz:
+                    tx += tdx
+                    index += stride_x
+                    break  # x only decreases along this ray: it has left the plane
+                elif ty <= tz:
+                    ty += tdy
+                    index += stride_y
+                else:
+                    tz += tdz
+                    pz += sz
+                    index += sz
+                    if pz == size_z:
+                        pz = 0
+                        index -= size_z
+                    elif pz < 0:
+                        pz = size_z - 1
+                        index += size_z
+        for _ in range(steps):
+            counts[index] += weight
+            if tx <= ty and tx <= tz:
+                tx += tdx
+                index += stride_x
+            elif ty <= tz:
+                ty += tdy
+                index += stride_y
+            else:
+                tz += tdz
+                pz += sz
+                index += sz
+                if pz == size_z:
+                    pz = 0
+                    index -= size_z
+                elif pz < 0:
+                    pz = size_z - 1
+                    index += size_z
+
     @njit(cache=True, parallel=True, nogil=True)
-    def _count_rays(sensor, occupied, weights, through, dims, counts, shared_plane):  # pragma: no cover
+    def _count_rays(sensor, occupied, weights, through, corner, dims, counts, shared_plane):  # pragma: no cover
         """Two threads, no shared voxel: rays that end at or beyond the sensor's x plane only
         visit planes on that side, the others only planes below it; the sensor's own plane,
-        which both visit, is counted separately for the second group."""
+        which both visit, is counted separately for the second group. Voxel v counts at
+        ``counts[(v - corner) % dims]``; a ray whose voxels all lie within ``corner`` +
+        ``dims`` in x and y (those of a window around the sensor, with ``corner`` its origin)
+        walks with ``_count_ray_inside``, which the torus would slow down."""
         sensor_x = np.int64(np.floor(sensor[0]))
+        sensor_y = np.int64(np.floor(sensor[1]))
+        shared_x = (sensor_x - corner[0]) % dims[0]
+        # A ray's voxels lie between its first (the sensor's) and its last (the end voxel).
+        sensor_inside = (corner[0] <= sensor_x < corner[0] + dims[0] and corner[1] <= sensor_y < corner[1] + dims[1]
+                         and corner[2] == 0)
+        flat_counts = counts.reshape(counts.size)
+        flat_plane = shared_plane.reshape(shared_plane.size)
         for group in prange(2):
             for m in range(occupied.shape[0]):
                 if (occupied[m, 0] >= sensor_x) == (group == 0):
-                    _count_ray(sensor, occupied[m], weights[m], through[m], dims, counts,
-                               -1 if group == 0 else sensor_x % dims[0], shared_plane)
+                    if (sensor_inside and corner[0] <= occupied[m, 0] < corner[0] + dims[0]
+                            and corner[1] <= occupied[m, 1] < corner[1] + dims[1]):
+                        _count_ray_inside(sensor, occupied[m], weights[m], through[m], corner, dims, flat_counts,
+                                          flat_plane, group == 1)
+                    else:
+                        _count_ray(sensor, occupied[m], weights[m], through[m], corner, dims, counts,
+                                   -1 if group == 0 else shared_x, shared_plane)
+
+    @njit(cache=True, nogil=True, inline="always")
+    def _apply_run(free, marks, counted, weight):  # pragma: no cover - compiled
+        """``_apply_centre`` over a run of the window (``free``, ``marks``: flat runs of the
+        free concentrations and the mask) and its counts; branch-free over indices from 0,
+        so that it vectorises."""
+        found = 0
+        for j in range(marks.shape[0]):
+            m = marks[j]
+            evidence = counted[j] * weight
+            grows = (m & (EVIDENCE | TOUCHED)) == EVIDENCE and evidence > 0
+            if grows:
+                free[j] += evidence
+            marks[j] = (m & _KEEP_UNTOUCHED) | (_CHANGED_BYTE if grows else _NO_BYTE)
+            counted[j] = 0.0
+            found += grows
+        return found
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def _apply_centre(sensor_x, weight, origin, alpha, mask, counts, shared_plane, parts):  # pragma: no cover
+        """Add the counted rays as free evidence through a centre-only free kernel, each thread
+        over its own x planes; clear the counts and the ``TOUCHED`` bits. ``counts`` as
+        ``_count_rays`` left them with ``corner`` (origin x, origin y, 0), ``sensor_x`` the
+        sensor's plane there: a plane of the window is its counts' plane in two runs, split
+        where the torus wraps in y."""
+        size_x, size_y, size_z = mask.shape
+        counts[sensor_x] += shared_plane  # the sensor plane's second counts join the rest first
+        shared_plane[:] = 0.0
+        plane = size_y * size_z
+        seam = (origin[1] % size_y) * size_z  # the window's flat offset of the counts' first row
+        free = alpha[FREE_CLASS].reshape(plane * size_x)
+        marks = mask.reshape(plane * size_x)
+        counted = counts.reshape(plane * size_x)
+        grew = np.zeros(parts, np.int64)
+        for part in prange(parts):
+            found = 0
+            for x in range(size_x * part // parts, size_x * (part + 1) // parts):
+                window = x * plane
+                local = ((x - origin[0]) % size_x) * plane
+                found += _apply_run(free[window + seam:window + plane], marks[window + seam:window + plane],
+                                    counted[local:local + plane - seam], weight)
+                found += _apply_run(free[window:window + seam], marks[window:window + seam],
+                                    counted[local + plane - seam:local + plane], weight)
+            grew[part] = found
+        return grew.sum()
 
     @njit(cache=True, parallel=True, nogil=True)
     def _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, counts,
                       shared_plane, parts):  # pragma: no cover - compiled
-        """Add the counted rays as free evidence, each thread over its own x planes; clear the
-        counts and the ``TOUCHED`` bits on the way."""
+        """Add the counted rays as free evidence through a free kernel of any taps, each thread
+        over its own x planes; clear the counts and the ``TOUCHED`` bits. ``counts`` and
+        ``sensor_x`` as in ``_apply_centre``."""
         taps = offsets.shape[0]
-        centre_only = taps == 1 and offsets[0, 0] == 0 and offsets[0, 1] == 0 and offsets[0, 2] == 0
-        if not centre_only:  # the sensor plane's second counts join the rest first
-            counts[sensor_x] += shared_plane
-            shared_plane[:] = 0.0
+        counts[sensor_x] += shared_plane  # the sensor plane's second counts join the rest first
+        shared_plane[:] = 0.0
         grew = np.zeros(parts, np.int64)
         for part in prange(parts):
             x_begin = dims[0] * part // parts
@@ -307,45 +444,35 @@ if HAVE_NUMBA:
                     global_y = origin[1] + (y - origin[1]) % dims[1]
                     for z in range(dims[2]):
                         marks = mask[x, y, z]
-                        evidence = np.float32(0.0)
-                        if centre_only:
-                            evidence = counts[x, y, z]
-                            if x == sensor_x:
-                                evidence += shared_plane[y, z]
-                            if evidence == 0:
-                                if marks & TOUCHED != 0:
-                                    mask[x, y, z] = marks & _KEEP_UNTOUCHED
-                                continue
-                            counts[x, y, z] = 0.0
-                            evidence *= tap_weights[0]
-                        elif marks & EVIDENCE != 0 and marks & TOUCHED == 0:
+                        if marks & EVIDENCE != 0 and marks & TOUCHED == 0:
                             global_z = origin[2] + (z - origin[2]) % dims[2]
+                            evidence = np.float32(0.0)
                             for t in range(taps):
                                 sx = global_x - offsets[t, 0]
                                 sy = global_y - offsets[t, 1]
                                 sz = global_z - offsets[t, 2]
                                 if (origin[0] <= sx < origin[0] + dims[0] and origin[1] <= sy < origin[1] + dims[1]
                                         and origin[2] <= sz < origin[2] + dims[2]):
-                                    evidence += tap_weights[t] * counts[sx % dims[0], sy % dims[1], sz % dims[2]]
-                        if marks & EVIDENCE != 0 and marks & TOUCHED == 0 and evidence > 0:
-                            alpha[FREE_CLASS, x, y, z] += evidence
-                            mask[x, y, z] = marks | CHANGED
-                            found += 1
+                                    evidence += tap_weights[t] * counts[sx - origin[0], sy - origin[1], sz % dims[2]]
+                            if evidence > 0:
+                                alpha[FREE_CLASS, x, y, z] += evidence
+                                mask[x, y, z] = marks | CHANGED
+                                found += 1
                         elif marks & TOUCHED != 0:
                             mask[x, y, z] = marks & _KEEP_UNTOUCHED
             grew[part] = found
-        if centre_only:
-            shared_plane[:] = 0.0
-        else:  # a tap reads other threads' planes: clear only after every thread has read
-            counts[:] = 0.0
+        counts[:] = 0.0  # a tap reads other threads' planes: clear only after every thread has read
         return grew.sum()
 
     @njit(cache=True, nogil=True)
     def _exit_linear_numba(points, sensor, origin, dims):  # pragma: no cover - compiled; tested against numpy
-        """Window-local linear index of the voxel where each outside point's ray leaves the window."""
+        """Window-local linear index of the voxel where each finite outside point's ray leaves
+        the window."""
         out = np.empty(points.shape[0], np.int64)
         count = 0
         for i in range(points.shape[0]):
+            if not (np.isfinite(points[i, 0]) and np.isfinite(points[i, 1]) and np.isfinite(points[i, 2])):
+                continue
             outside = False
             for axis in range(3):
                 if points[i, axis] < origin[axis] or points[i, axis] >= origin[axis] + dims[axis]:
@@ -359,18 +486,36 @@ if HAVE_NUMBA:
                     leave = min(leave, (origin[axis] + dims[axis] - sensor[axis]) / direction)
                 elif direction < 0:
                     leave = min(leave, (origin[axis] - sensor[axis]) / direction)
-            local = np.empty(3, np.int64)
+            linear = 0
             for axis in range(3):
                 position = np.floor(sensor[axis] + (points[i, axis] - sensor[axis]) * (leave * (1 - 1e-9)))
-                local[axis] = min(max(np.int64(position), origin[axis]), origin[axis] + dims[axis] - 1) - origin[axis]
-            out[count] = (local[0] * dims[1] + local[1]) * dims[2] + local[2]
+                local = min(max(np.int64(position), origin[axis]), origin[axis] + dims[axis] - 1) - origin[axis]
+                linear = linear * dims[axis] + local
+            out[count] = linear
             count += 1
         return out[:count]
+
+    @njit(cache=True, nogil=True)
+    def _unravel_numba(linear, origin, dims):  # pragma: no cover - compiled; the twin of unravel_linear
+        """Global indices (N, 3) of window-linear indices."""
+        out = np.empty((linear.shape[0], 3), np.int64)
+        for i in range(linear.shape[0]):
+            rest = linear[i]
+            out[i, 2] = rest % dims[2] + origin[2]
+            rest //= dims[2]
+            out[i, 1] = rest % dims[1] + origin[1]
+            out[i, 0] = rest // dims[1] + origin[0]
+        return out
 
     def _free_space_numba(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
                           counts):
         volume, shared_plane = counts
-        _count_rays(sensor, occupied, weights, through, dims, volume, shared_plane)
-        sensor_x = int(np.floor(sensor[0])) % int(dims[0])
+        # Counted in window order along x and y, where a window around the sensor holds every
+        # ray whole, and on the torus along z, where the window's planes keep their runs long.
+        corner = np.array([origin[0], origin[1], 0], np.int64)
+        _count_rays(sensor, occupied, weights, through, corner, dims, volume, shared_plane)
+        sensor_x = (int(np.floor(sensor[0])) - int(origin[0])) % int(dims[0])
         parts = max(1, min(numba.get_num_threads(), int(dims[0])))
+        if len(offsets) == 1 and not offsets[0].any():
+            return _apply_centre(sensor_x, tap_weights[0], origin, alpha, mask, volume, shared_plane, parts)
         return _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, volume, shared_plane, parts)

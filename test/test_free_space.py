@@ -15,7 +15,15 @@ import pytest
 from reference import sparse_kernel_np
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
-from convbki_core.free_space import _free_space_numpy, crossed_voxels, free_space_update, free_taps, scratch_counts
+from convbki_core.free_space import (
+    _free_space_numpy,
+    count_rays,
+    crossed_voxels,
+    free_space_update,
+    free_taps,
+    scratch_counts,
+)
+from convbki_core.window import CHANGED, TOUCHED
 
 CAR, ROAD, BUILDING, POLE = 1, 9, 13, 18
 # A house front across the street: what the LiDAR sees through the space a car has left.
@@ -111,6 +119,75 @@ def test_the_compiled_pass_equals_the_numpy_pass():
         np.testing.assert_allclose(compiled_alpha, alpha, rtol=1e-6)
         assert (compiled_mask == mask).all() and not (mask & 4).any()
         assert not counts[0].any() and not counts[1].any()  # the scratch is left zeroed
+
+
+def awkward_scan(rng: np.random.Generator, origin: np.ndarray, dims: np.ndarray, sensor_kind: str):
+    """A sensor and rays that the walk finds hard: the sensor on voxel corners, at a voxel's
+    centre (rays along an axis, diagonals that meet voxel edges exactly) or outside the window
+    in x; rays ending on the sensor's x plane and on either side of it, some leaving the window."""
+    if sensor_kind == "corner":
+        sensor = rng.integers(origin + 1, origin + dims - 1).astype(np.float64)
+    elif sensor_kind == "centre":
+        sensor = rng.integers(origin + 1, origin + dims - 1) + 0.5
+    elif sensor_kind == "outside":  # below the window in x: every ray ends above it
+        sensor = rng.uniform(origin + 1, origin + dims - 1)
+        sensor[0] = origin[0] - rng.uniform(0.5, 3.0)
+    else:
+        sensor = rng.uniform(origin + 1, origin + dims - 1)
+    here = np.floor(sensor).astype(np.int64)
+    ends = [rng.integers(origin, origin + dims, size=(120, 3))]
+    for axis in range(3):  # along each axis, both ways
+        line = np.repeat(here[None], dims[axis], axis=0)
+        line[:, axis] = origin[axis] + np.arange(dims[axis])
+        ends.append(line)
+    span = int(dims.min())
+    for sign_y, sign_z in ((1, 1), (-1, 1), (1, -1)):  # diagonals
+        diagonal = here + np.arange(-span, span)[:, None] * np.array([1, sign_y, sign_z])
+        ends.append(diagonal)
+    plane = rng.integers(origin, origin + dims, size=(20, 3))
+    plane[:, 0] = here[0]  # on the sensor's x plane
+    ends.append(plane)
+    ends = np.concatenate(ends)
+    inside = ((ends >= origin) & (ends < origin + dims)).all(axis=1)
+    if sensor_kind == "outside":
+        inside &= ends[:, 0] > here[0]
+    ends = np.unique(ends[inside], axis=0)
+    return sensor, ends, rng.integers(1, 6, len(ends)).astype(np.float32), rng.random(len(ends)) < 0.3
+
+
+@pytest.mark.parametrize("sensor_kind", ["random", "corner", "centre", "outside"])
+def test_the_compiled_pass_is_exactly_the_numpy_pass_on_awkward_rays(sensor_kind):
+    """Bit for bit: the compiled walk, counting in its own layout on two threads, and the
+    numpy walk give the same counts, and the same free evidence through a centre-only and a
+    wider free kernel, on windows that wrap the torus anywhere."""
+    rng = np.random.default_rng(["random", "corner", "centre", "outside"].index(sensor_kind))
+    for trial in range(6):
+        dims = np.array([[12, 14, 6], [16, 10, 8], [9, 11, 7]][trial % 3])
+        origin = rng.integers(-40, 40, 3)
+        sensor, ends, weights, through = awkward_scan(rng, origin, dims, sensor_kind)
+        expected = np.zeros(tuple(dims), np.float32)
+        for end, weight, passes in zip(ends, weights, through):
+            for voxel in crossed_voxels(sensor, end, bool(passes)):
+                expected[tuple(np.mod(voxel, dims))] += weight
+        counts = scratch_counts(dims)
+        assert np.array_equal(count_rays(sensor, ends, weights, through, dims, counts), expected)
+        counts[0].fill(0.0)
+        free = np.zeros((3, 3, 3), np.float32)
+        free[1, 1, 1] = 1
+        if trial % 2:
+            free[2, 1, 1], free[1, 0, 1], free[1, 1, 2] = 0.25, 0.5, 0.125
+        offsets, tap_weights = free_taps(free)
+        alpha = rng.uniform(1e-3, 2, (2, *dims)).astype(np.float32)
+        mask = (rng.random(tuple(dims)) < 0.5).astype(np.uint8)
+        mask[(rng.random(tuple(dims)) < 0.3) & (mask == 1)] |= TOUCHED
+        mask[rng.random(tuple(dims)) < 0.1] |= CHANGED
+        compiled_alpha, compiled_mask = alpha.copy(), mask.copy()
+        grew = free_space_update(sensor, ends, weights, offsets, tap_weights, origin, dims, compiled_alpha,
+                                 compiled_mask, counts, through)
+        assert grew == _free_space_numpy(sensor, ends, weights, through, offsets, tap_weights, origin, dims, alpha,
+                                         mask) > 0
+        assert np.array_equal(compiled_alpha, alpha) and np.array_equal(compiled_mask, mask)
+        assert not counts[0].any() and not counts[1].any()
 
 
 def random_pose(rng: np.random.Generator, position: np.ndarray) -> np.ndarray:
@@ -306,9 +383,11 @@ def test_window_exits_compiled_equals_numpy_and_lie_on_the_boundary():
     rng = np.random.default_rng(4)
     origin, dims, sensor = np.array([-10, -12, -5]), np.array([20, 24, 10]), np.array([0.3, -0.2, 0.1])
     points = rng.uniform(-40, 40, (3000, 3))
+    points[:30] = [[np.nan, 50, 0], [np.inf, 0, 0], [-np.inf, np.nan, 0]] * 10  # skipped, never an exit
     compiled = _exit_linear_numba(points, sensor, origin, dims)
     assert (compiled == _exit_linear_numpy(points, sensor, origin, dims)).all()
     exits, rays = window_exits(sensor, points, origin, dims)
+    points = points[30:]
     outside = ((points < origin) | (points >= origin + dims)).any(axis=1)
     assert rays.sum() == outside.sum() == len(compiled)
     on_boundary = ((exits == origin) | (exits == origin + dims - 1)).any(axis=1)
