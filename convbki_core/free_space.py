@@ -39,22 +39,30 @@ long runs, which the pass adds branch-free.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from convbki_core.clamping import clamp_numpy
 from convbki_core.native import HAVE_NUMBA
 from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
+
+FREE_CLASS = 0
+_KEEP_UNTOUCHED = 0xFF & ~TOUCHED  # the mask bits left after a scan
+# A mask bit that lives only inside one free-space pass: the voxel's free concentration grew.
+_GREW = 8
 
 if HAVE_NUMBA:
     import numba
     from numba import njit, prange
 
+    from convbki_core.clamping import clamp_voxel
+
     # Bytes, so that the mask's update stays in bytes and vectorises.
     _CHANGED_BYTE = np.uint8(CHANGED)
+    _GREW_BYTES = np.uint8(CHANGED | _GREW)
     _NO_BYTE = np.uint8(0)
-
-FREE_CLASS = 0
-_KEEP_UNTOUCHED = 0xFF & ~TOUCHED  # the mask bits left after a scan
 
 
 def free_taps(free_filter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +102,8 @@ def ray_weights(features: np.ndarray) -> np.ndarray:
 
 def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndarray, offsets: np.ndarray,
                       tap_weights: np.ndarray, origin: np.ndarray, dims: np.ndarray, alpha: np.ndarray,
-                      mask: np.ndarray, counts: np.ndarray, through: np.ndarray | None = None) -> int:
+                      mask: np.ndarray, counts: np.ndarray, through: np.ndarray | None = None,
+                      max_concentration: float = 0.0) -> int:
     """Add one scan's free-space evidence into the torus window, in place; returns the number
     of voxels whose free concentration grew.
 
@@ -105,7 +114,8 @@ def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndar
     this scan's class evidence and take no free evidence; the bit is cleared here.
     ``counts``: the scratch of ``scratch_counts``. ``through`` (M,) bool: rays whose return
     lies beyond the window; they end in the window's boundary voxel ``occupied[m]``, which
-    they cross too (``window_exits``).
+    they cross too (``window_exits``). ``max_concentration``: the clamping limit of the
+    voxels that take free evidence (``clamping``; 0: none).
     """
     occupied = np.ascontiguousarray(occupied, np.int64)
     through = np.zeros(len(occupied), np.bool_) if through is None else np.ascontiguousarray(through, np.bool_)
@@ -114,8 +124,9 @@ def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndar
     sensor = np.ascontiguousarray(sensor, np.float64)
     if HAVE_NUMBA:
         return int(_free_space_numba(sensor, occupied, np.ascontiguousarray(weights, np.float32), through, offsets,
-                                     tap_weights, origin, dims, alpha, mask, counts))
-    return _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask)
+                                     tap_weights, origin, dims, alpha, mask, counts, float(max_concentration)))
+    return _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
+                             float(max_concentration))
 
 
 def window_exits(sensor: np.ndarray, points: np.ndarray, origin: np.ndarray,
@@ -209,7 +220,8 @@ def _walk_ray(start, end_voxel, visit, through=False) -> None:
         t_max[axis] += delta[axis]
 
 
-def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask) -> int:
+def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
+                      max_concentration=0.0) -> int:
     """The same pass in Python loops and numpy (the fallback without numba, and a reference)."""
     counts = np.zeros(tuple(int(d) for d in dims), np.float64)
 
@@ -230,7 +242,9 @@ def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, 
         evidence[inside] += weight * counts[tuple(source_physical.T)]
     grew = evidence > 0
     x, y, z = physical[grew].T
+    before = alpha[FREE_CLASS, x, y, z].copy()
     alpha[FREE_CLASS, x, y, z] += evidence[grew]
+    clamp_numpy(alpha, (x, y, z), before, max_concentration)
     mask[x, y, z] |= np.uint8(CHANGED)
     mask &= np.uint8(_KEEP_UNTOUCHED)
     return int(grew.sum())
@@ -380,10 +394,11 @@ if HAVE_NUMBA:
                                    -1 if group == 0 else shared_x, shared_plane)
 
     @njit(cache=True, nogil=True, inline="always")
-    def _apply_run(free, marks, counted, weight):  # pragma: no cover - compiled
+    def _apply_run(free, marks, counted, weight, clamping):  # pragma: no cover - compiled
         """``_apply_centre`` over a run of the window (``free``, ``marks``: flat runs of the
         free concentrations and the mask) and its counts; branch-free over indices from 0,
-        so that it vectorises."""
+        so that it vectorises. With ``clamping``, the voxels that grew keep their counts and
+        get the ``_GREW`` bit for ``_clamp_run``."""
         found = 0
         for j in range(marks.shape[0]):
             m = marks[j]
@@ -391,13 +406,41 @@ if HAVE_NUMBA:
             grows = (m & (EVIDENCE | TOUCHED)) == EVIDENCE and evidence > 0
             if grows:
                 free[j] += evidence
-            marks[j] = (m & _KEEP_UNTOUCHED) | (_CHANGED_BYTE if grows else _NO_BYTE)
-            counted[j] = 0.0
+            marks[j] = (m & _KEEP_UNTOUCHED) | (_GREW_BYTES if grows and clamping else
+                                                 (_CHANGED_BYTE if grows else _NO_BYTE))
+            counted[j] = counted[j] if grows and clamping else np.float32(0.0)
             found += grows
         return found
 
+    @njit(cache=True, nogil=True)
+    def _clamp_run(alpha, start, marks, counted, weight, limit):  # pragma: no cover - compiled
+        """Clamp the voxels of a run that ``_apply_run`` marked ``_GREW`` (``alpha`` (C, V)
+        flat planes, the run starting at flat index ``start``); clear their bit and counts.
+        Their free concentration before is the one after less the evidence: equal but for the
+        rounding, which decides only for a value within a rounding error of a power of two."""
+        for j in range(marks.shape[0]):
+            m = marks[j]
+            if m & _GREW == 0:
+                continue
+            marks[j] = m & ~_GREW
+            evidence = counted[j] * weight
+            counted[j] = 0.0
+            voxel = start + j
+            after = alpha[FREE_CLASS, voxel]
+            before = after - evidence
+            if before > 0 and math.frexp(after)[1] <= math.frexp(before)[1]:
+                continue
+            total = np.float32(0.0)
+            for c in range(alpha.shape[0]):
+                total += alpha[c, voxel]
+            if total > limit:
+                scale = np.float32(limit) / total
+                for c in range(alpha.shape[0]):
+                    alpha[c, voxel] *= scale
+
     @njit(cache=True, parallel=True, nogil=True)
-    def _apply_centre(sensor_x, weight, origin, alpha, mask, counts, shared_plane, parts):  # pragma: no cover
+    def _apply_centre(sensor_x, weight, origin, alpha, mask, counts, shared_plane, parts,
+                      limit):  # pragma: no cover
         """Add the counted rays as free evidence through a centre-only free kernel, each thread
         over its own x planes; clear the counts and the ``TOUCHED`` bits. ``counts`` as
         ``_count_rays`` left them with ``corner`` (origin x, origin y, 0), ``sensor_x`` the
@@ -409,24 +452,30 @@ if HAVE_NUMBA:
         plane = size_y * size_z
         seam = (origin[1] % size_y) * size_z  # the window's flat offset of the counts' first row
         free = alpha[FREE_CLASS].reshape(plane * size_x)
+        planes = alpha.reshape(alpha.shape[0], plane * size_x)
         marks = mask.reshape(plane * size_x)
         counted = counts.reshape(plane * size_x)
+        clamping = limit > 0
         grew = np.zeros(parts, np.int64)
         for part in prange(parts):
             found = 0
             for x in range(size_x * part // parts, size_x * (part + 1) // parts):
                 window = x * plane
                 local = ((x - origin[0]) % size_x) * plane
-                found += _apply_run(free[window + seam:window + plane], marks[window + seam:window + plane],
-                                    counted[local:local + plane - seam], weight)
-                found += _apply_run(free[window:window + seam], marks[window:window + seam],
-                                    counted[local + plane - seam:local + plane], weight)
+                runs = ((window + seam, window + plane, local), (window, window + seam, local + plane - seam))
+                for begin, end, source in runs:
+                    grown = _apply_run(free[begin:end], marks[begin:end], counted[source:source + end - begin],
+                                       weight, clamping)
+                    if clamping and grown:
+                        _clamp_run(planes, begin, marks[begin:end], counted[source:source + end - begin], weight,
+                                   limit)
+                    found += grown
             grew[part] = found
         return grew.sum()
 
     @njit(cache=True, parallel=True, nogil=True)
     def _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, counts,
-                      shared_plane, parts):  # pragma: no cover - compiled
+                      shared_plane, parts, limit):  # pragma: no cover - compiled
         """Add the counted rays as free evidence through a free kernel of any taps, each thread
         over its own x planes; clear the counts and the ``TOUCHED`` bits. ``counts`` and
         ``sensor_x`` as in ``_apply_centre``."""
@@ -455,7 +504,9 @@ if HAVE_NUMBA:
                                         and origin[2] <= sz < origin[2] + dims[2]):
                                     evidence += tap_weights[t] * counts[sx - origin[0], sy - origin[1], sz % dims[2]]
                             if evidence > 0:
+                                before = alpha[FREE_CLASS, x, y, z]
                                 alpha[FREE_CLASS, x, y, z] += evidence
+                                clamp_voxel(alpha, x, y, z, before, limit)
                                 mask[x, y, z] = marks | CHANGED
                                 found += 1
                         elif marks & TOUCHED != 0:
@@ -508,7 +559,7 @@ if HAVE_NUMBA:
         return out
 
     def _free_space_numba(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
-                          counts):
+                          counts, limit):
         volume, shared_plane = counts
         # Counted in window order along x and y, where a window around the sensor holds every
         # ray whole, and on the torus along z, where the window's planes keep their runs long.
@@ -517,5 +568,6 @@ if HAVE_NUMBA:
         sensor_x = (int(np.floor(sensor[0])) - int(origin[0])) % int(dims[0])
         parts = max(1, min(numba.get_num_threads(), int(dims[0])))
         if len(offsets) == 1 and not offsets[0].any():
-            return _apply_centre(sensor_x, tap_weights[0], origin, alpha, mask, volume, shared_plane, parts)
-        return _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, volume, shared_plane, parts)
+            return _apply_centre(sensor_x, tap_weights[0], origin, alpha, mask, volume, shared_plane, parts, limit)
+        return _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, volume, shared_plane, parts,
+                             limit)

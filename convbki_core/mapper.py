@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from convbki_core.clamping import DEFAULT_LIMIT, check_limit, clamp_torch
 from convbki_core.devices import resolve_device
 from convbki_core.free_space import (
     FREE_CLASS,
@@ -117,6 +118,9 @@ class ConvBKIMapper:
     for ``take_changes`` (outputs that send only changes); off, nothing is kept for it.
     ``free_space``: the rays between the sensor and its returns add evidence that the voxels
     they cross are empty, into class 0 (``free_space`` module); class 0 must be ignored.
+    ``max_concentration``: with free space, a voxel that takes free evidence while its
+    concentrations sum to more than this is scaled down to it (``clamping`` module), so a
+    bounded number of rays can empty what a mover left; 0 turns that off.
     """
 
     def __init__(self, kernel: ConvBKIKernel | KernelConfig | str | Path,
@@ -124,7 +128,8 @@ class ConvBKIMapper:
                      (-40.0, -40.0, -2.6), (40.0, 40.0, 2.6)),
                  prior: float = 1e-3, resolution: float | None = None, filter_size: int | None = None,
                  device: str = "auto", frame_id: str = "map", ignore_classes: tuple[int, ...] = (0,),
-                 update_path: str = "auto", track_changes: bool = False, free_space: bool = False):
+                 update_path: str = "auto", track_changes: bool = False, free_space: bool = False,
+                 max_concentration: float = DEFAULT_LIMIT):
         if isinstance(kernel, (str, Path)):
             kernel = load_kernel_file(kernel)
         # The mapper's own kernel: a caller's kernel object keeps its device and grid.
@@ -147,6 +152,7 @@ class ConvBKIMapper:
             raise ValueError(f"free space is kept in class {FREE_CLASS}, which must be an ignored class "
                              f"(ignored: {list(self.ignore_classes)})")
         self.free_space = bool(free_space)
+        self.max_concentration = check_limit(max_concentration)
         self.store = VoxelStore(kernel.num_classes, prior=self.prior)
         self.window = RollingWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store, track_changes)
         if update_path not in UPDATE_PATHS:
@@ -226,12 +232,15 @@ class ConvBKIMapper:
             sensor = pose[:3, 3] / self.resolution
             if self.update_path == "torch":  # the rays are counted here, applied on the device
                 counts = count_rays(sensor, ends, weights, through, self.geometry.dims, self._free_counts)
+                before = self.window.alpha[FREE_CLASS].clone()
                 result.freed_voxels = torch_free_space(counts, self._free_filter, self.window)
                 counts.fill(0.0)
+                clamp_torch(self.window.alpha, self.window.alpha[FREE_CLASS] != before, before,
+                            self.max_concentration)
             else:
                 result.freed_voxels = free_space_update(sensor, ends, weights, offsets, tap_weights, origin,
                                                         self.geometry.dims, self.window.alpha, self.window.mask,
-                                                        self._free_counts, through)
+                                                        self._free_counts, through, self.max_concentration)
         self.scans_integrated += 1
         finished = time.perf_counter()
         result.timing_ms = {"voxelize": 1e3 * (voxelized - started), "query": 1e3 * (moved - voxelized),

@@ -91,7 +91,8 @@ class MappingCore:
                              filter_size=node.param("filter_size"), device=node.param("device"),
                              frame_id=node.param("map_frame") or "map", update_path=node.param("update_path"),
                              ignore_classes=self.label_map.ignore_classes, track_changes=True,
-                             free_space=node.param("free_space"))
+                             free_space=node.param("free_space"),
+                             max_concentration=node.param("max_concentration"))
 
     def _optional(self, name: str):
         from rclpy.exceptions import ParameterUninitializedException

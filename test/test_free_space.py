@@ -190,6 +190,46 @@ def test_the_compiled_pass_is_exactly_the_numpy_pass_on_awkward_rays(sensor_kind
         assert not counts[0].any() and not counts[1].any()
 
 
+@pytest.mark.parametrize("wide", [False, True])
+def test_the_compiled_pass_clamps_exactly_as_the_numpy_pass(wide):
+    """With a clamping limit, the compiled pass (the centre kernel's vectorised runs and the
+    wider kernel's loop) and the numpy pass scale the same voxels by the same factors."""
+    rng = np.random.default_rng(11 + wide)
+    limit = 40.0
+    clamped_somewhere = False
+    for trial in range(4):
+        dims = np.array([[12, 14, 6], [16, 10, 8]][trial % 2])
+        origin = rng.integers(-40, 40, 3)
+        sensor, ends, weights, through = awkward_scan(rng, origin, dims, "random")
+        free = np.zeros((3, 3, 3), np.float32)
+        free[1, 1, 1] = 1
+        if wide:
+            free[2, 1, 1], free[1, 0, 1] = 0.25, 0.5
+        offsets, tap_weights = free_taps(free)
+        # heavy voxels (a mover stood there), light ones, free concentrations small and large
+        alpha = (rng.uniform(1e-3, 2, (4, *dims)) * rng.choice([1.0, 30.0], (4, *dims))).astype(np.float32)
+        alpha[0] = rng.uniform(1e-3, 6, tuple(dims)).astype(np.float32)
+        mask = (rng.random(tuple(dims)) < 0.6).astype(np.uint8)
+        mask[(rng.random(tuple(dims)) < 0.2) & (mask == 1)] |= TOUCHED
+        compiled_alpha, compiled_mask = alpha.copy(), mask.copy()
+        unclamped, unclamped_mask = alpha.copy(), mask.copy()
+        counts = scratch_counts(dims)
+        grew = free_space_update(sensor, ends, weights, offsets, tap_weights, origin, dims, compiled_alpha,
+                                 compiled_mask, counts, through, limit)
+        assert grew == _free_space_numpy(sensor, ends, weights, through, offsets, tap_weights, origin, dims, alpha,
+                                         mask, limit) > 0
+        assert np.array_equal(compiled_alpha, alpha) and np.array_equal(compiled_mask, mask)
+        assert not counts[0].any() and not counts[1].any()
+        assert not (compiled_mask & 8).any()  # the pass's own bit does not outlive it
+        _free_space_numpy(sensor, ends, weights, through, offsets, tap_weights, origin, dims, unclamped,
+                          unclamped_mask, 0.0)
+        scaled = (alpha[1:] != unclamped[1:]).any(axis=0)
+        if scaled.any():
+            clamped_somewhere = True
+            np.testing.assert_allclose(alpha[:, scaled].sum(axis=0), limit, rtol=1e-5)
+    assert clamped_somewhere
+
+
 def random_pose(rng: np.random.Generator, position: np.ndarray) -> np.ndarray:
     yaw, pitch, roll = rng.uniform(-math.pi, math.pi), rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2)
     cz, sz, cy, sy = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
@@ -245,7 +285,8 @@ def test_free_evidence_equals_a_ray_by_ray_reference(tmp_path, free_ell):
     rng = np.random.default_rng(7 if free_ell is None else 8)
     kernel = ConvBKIKernel("compound", 20, 3, 0.5, ell_h=0.7, ell_z=0.6, free_ell=free_ell)
     bounds = ((-4.0, -4.0, -2.0), (4.0, 4.0, 2.0))
-    with_free = ConvBKIMapper(kernel, local_bounds=bounds, free_space=True, device="cpu")
+    # the unclamped model: clamping has its own tests
+    with_free = ConvBKIMapper(kernel, local_bounds=bounds, free_space=True, device="cpu", max_concentration=0.0)
     position = np.zeros(3)
     freed = 0
     for scan in range(6):
@@ -353,6 +394,31 @@ def test_a_car_crossing_the_street_leaves_no_trail_once_the_street_is_seen_again
         assert np.count_nonzero(labels == BUILDING) > 500
     else:
         assert car_voxels > 1000  # plain ConvBKI keeps the trail
+
+
+@pytest.mark.parametrize("limit", [0.0, 300.0])
+def test_a_car_that_stood_long_is_emptied_soon_after_it_leaves_only_with_clamping(limit):
+    """A car parked beside the ego vehicle for 60 scans holds thousands of units of "car";
+    clamped, the rays of 15 scans after it left empty its voxels; unclamped they cannot."""
+    mapper = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS,
+                           free_space=True, device="cpu", max_concentration=limit)
+    car_low, car_high = np.array([4.5, -2.0, 0.35]), np.array([6.3, 2.0, 1.85])
+    sensor = np.array([0.05, 0.05, 1.73])
+    for scan in range(75):
+        boxes = [BUILDING_ACROSS] + ([(car_low, car_high, CAR)] if scan < 60 else [])
+        integrate_world(mapper, sensor + [0.01 * scan, 0, 0], boxes)
+    centres, labels = map_labels(mapper)
+    # The face the sensor saw (where the evidence piled up), below the sensor's height, which
+    # the later rays to the house cross.
+    face = ((centres[:, 0] > car_low[0] - 0.2) & (centres[:, 0] < car_low[0] + 0.3)
+            & (np.abs(centres[:, 1]) < 1.6) & (centres[:, 2] > 0.5) & (centres[:, 2] < 1.6))
+    seen_through = face
+    car_left = int(np.count_nonzero((labels == CAR) & seen_through))
+    if limit:
+        assert car_left == 0
+        assert np.count_nonzero(labels == BUILDING) > 500
+    else:
+        assert car_left > 20
 
 
 def test_a_pole_seen_from_all_sides_stays_a_pole():

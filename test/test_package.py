@@ -8,6 +8,7 @@ next to this interpreter (the venv's), so the repo's own build/ and install/ are
 
 from __future__ import annotations
 
+import inspect
 import os
 import shutil
 import subprocess
@@ -315,3 +316,17 @@ def test_node_reference_documents_every_parameter() -> None:
     text = (REPO / "docs" / "node.md").read_text()
     rows = {line.split("|")[1].strip().strip("`") for line in text.splitlines() if line.startswith("| `")}
     assert {spec.name for spec in PARAMETERS} <= rows
+
+
+def test_evaluate_maps_as_the_node_does_by_default() -> None:
+    """evaluate's free-space switches default to the node's parameters, so its figures are the
+    node's map."""
+    from convbki_core.mapper import ConvBKIMapper
+    from convbki_core.tools.evaluate import build_parser
+    from convbki_ros.params import SPECS
+
+    args = build_parser().parse_args(["--dataset", "D", "--sequence", "08", "--report", "R.json"])
+    assert args.free_space is SPECS["free_space"].default
+    assert args.max_concentration == SPECS["max_concentration"].default
+    mapper_default = inspect.signature(ConvBKIMapper).parameters["max_concentration"].default
+    assert mapper_default == SPECS["max_concentration"].default

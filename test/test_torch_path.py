@@ -73,13 +73,14 @@ def test_the_torch_path_equals_the_fast_path(kind, filter_size, probabilities):
     assert np.array_equal(dirichlet_statistics(torch_alpha).label, dirichlet_statistics(fast_alpha).label)
 
 
-@pytest.mark.parametrize("free_ell", [None, 0.4])
-def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell):
+@pytest.mark.parametrize("free_ell, limit", [(None, 300.0), (0.4, 300.0), (None, 3.0), (0.4, 3.0)])
+def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell, limit):
+    """Free space and its clamping (a low limit clamps many voxels) give the same map on both paths."""
     maps, changes = {}, {}
     for path in ("fast", "torch"):
         chosen = ConvBKIKernel("compound", 6, 5, 0.25, ell_h=0.6, ell_z=0.5, free_ell=free_ell)
         mapper = ConvBKIMapper(chosen, local_bounds=BOUNDS, device="cpu", update_path=path, free_space=True,
-                               ignore_classes=(0,), track_changes=True)
+                               ignore_classes=(0,), track_changes=True, max_concentration=limit)
         drive(mapper, 3, False)
         maps[path] = sorted_items(mapper)
         taken = mapper.take_changes()
@@ -88,6 +89,14 @@ def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell):
     np.testing.assert_allclose(maps["torch"][1], maps["fast"][1], rtol=1e-5)
     assert (maps["fast"][1][:, 0] > 1e-3).sum() > 20  # free space did something
     assert changes["fast"] == changes["torch"]
+    if limit < 10:  # clamping did something: against the unclamped map, voxels were scaled down
+        chosen = ConvBKIKernel("compound", 6, 5, 0.25, ell_h=0.6, ell_z=0.5, free_ell=free_ell)
+        unclamped = ConvBKIMapper(chosen, local_bounds=BOUNDS, device="cpu", free_space=True,
+                                  ignore_classes=(0,), max_concentration=0.0)
+        drive(unclamped, 3, False)
+        indices, alpha = sorted_items(unclamped)
+        assert np.array_equal(indices, maps["fast"][0])
+        assert (maps["fast"][1][:, 1:] < alpha[:, 1:] * 0.99).any(axis=1).sum() > 5
 
 
 def test_slabs_leaving_and_entering_the_device_window_round_trip_exactly():

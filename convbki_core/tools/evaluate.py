@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from convbki_core.calibration import CalibrationStats, MapCalibration, input_distribution, tempered_distribution
+from convbki_core.clamping import DEFAULT_LIMIT, check_limit
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
@@ -78,7 +79,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
                     prior: float, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
                     show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto",
                     free_space: bool = True, input_calibration: CalibrationStats | None = None,
-                    tempered_calibration: CalibrationStats | None = None) -> KernelRun:
+                    tempered_calibration: CalibrationStats | None = None,
+                    max_concentration: float = DEFAULT_LIMIT) -> KernelRun:
     """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
 
     ``input_scores`` (when given) also receives the input segmentation's confusion counts, and
@@ -87,13 +89,15 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
     the run's ``calibration`` measures the map's class distributions on the scored points;
     ``labels_folder`` (when given, an existing folder) receives one NNNNNN.label per frame.
     Where the ground truth marks moving objects, the run also counts the map's trail voxels.
+    ``max_concentration``: the clamping limit with free space (``ConvBKIMapper``).
     """
     config = load_kernel_file(kernel_file)
     label_map = dataset.label_map
     if config.num_classes != label_map.num_classes:
         raise UserError(f"{kernel_file}: kernel has {config.num_classes} classes, the dataset {label_map.num_classes}")
     mapper = ConvBKIMapper(config, local_bounds=local_bounds, prior=prior, device=device,
-                           ignore_classes=label_map.ignore_classes, update_path=update_path, free_space=free_space)
+                           ignore_classes=label_map.ignore_classes, update_path=update_path, free_space=free_space,
+                           max_concentration=max_concentration)
     run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
                                                                              label_map.ignore_classes), mapper=mapper)
     run_result.calibration = MapCalibration(label_map.num_classes, label_map.ignore_classes, free_space=free_space)
@@ -163,7 +167,8 @@ def build_report(sequence: str, frame_count: int, class_names: Sequence[str], in
         if run_result.trail_voxels is not None:
             scores["trail_voxels"] = run_result.trail_voxels
         return {"kernel": run_result.kernel, "kernel_file": run_result.kernel_file,
-                "free_space": run_result.mapper.free_space, "map": scores,
+                "free_space": run_result.mapper.free_space,
+                "max_concentration": run_result.mapper.max_concentration, "map": scores,
                 "timing_ms": {"update_median": float(np.median(run_result.update_ms)),
                               "query_median": float(np.median(run_result.query_ms))}}
 
@@ -231,6 +236,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-free-space", dest="free_space", action="store_false",
                    help="map without free space: the rays between the sensor and its returns add no evidence "
                    "that the voxels they cross are empty (the paper's ConvBKI; movers then leave trails)")
+    p.add_argument("--max-concentration", default=DEFAULT_LIMIT, type=float,
+                   help="with free space: a voxel that rays find empty while its concentrations sum to more than "
+                   "this is scaled down to it (clamping), so a bounded number of rays can empty what a mover "
+                   "left; 0 = never (default: %(default)s, as the node)")
     p.add_argument("--prior", default=DEFAULT_PRIOR, type=float,
                    help="initial concentration of every class in a new voxel (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -261,6 +270,11 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         load_kernel_file(kernel_file)  # fail before any work on a bad kernel file
     if not args.prior > 0:
         raise UserError(f"--prior must be positive, got {args.prior}")
+    try:
+        check_limit(args.max_concentration)
+    except ValueError:
+        raise UserError("--max-concentration must be 0 (off) or a positive number, "
+                        f"got {args.max_concentration}") from None
     bounds = PAPER_BOUNDS
     if args.local_bounds:
         bounds = (tuple(args.local_bounds[:3]), tuple(args.local_bounds[3:]))
@@ -307,6 +321,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                                     labels_folder if number == 0 else None,
                                     show_progress=not args.quiet, local_bounds=bounds,
                                     update_path=args.update_path, free_space=args.free_space,
+                                    max_concentration=args.max_concentration,
                                     input_calibration=input_calibration if number == 0 else None,
                                     tempered_calibration=tempered[1] if number == 0 and tempered else None))
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,

@@ -1,0 +1,110 @@
+"""Clamping: a voxel's concentrations stay updatable where the rays say the world changed.
+
+The Dirichlet update is a sum, so a voxel where a car stood for a few seconds holds thousands
+of units of "car" evidence; the rays that later cross the empty voxel add about one unit per
+return behind it, and would need thousands of scans to win it back. OctoMap meets the same
+problem in occupancy mapping with its clamping policy: a voxel's belief is held within bounds
+so that a bounded number of contrary observations can overturn it. Here the bound is on the
+total concentration: when free evidence arrives at a voxel whose concentrations sum to more
+than ``limit``, all of them (the free one included) are scaled down to sum to ``limit``:
+
+    alpha[:, v] <- alpha[:, v] * limit / sum_c alpha[c, v]    if sum_c alpha[c, v] > limit
+
+Scaling keeps the expected class and the ratios between the classes: the map reads the same
+at that moment, only later evidence weighs more against the old. It is applied only where
+free evidence arrives, i.e. where a ray says the voxel is empty while it holds evidence of
+something: voxels that are never contradicted keep the paper's exact sum.
+
+Reading a voxel's C concentrations costs C scattered reads, and most voxels that take free
+evidence take it scan after scan (the air that rays cross near surfaces). So the sum is
+checked when the voxel's free concentration passes a power of two (its float exponent
+grows): the first ray that contradicts a voxel checks it at once, and a voxel being emptied
+is checked again each time its free evidence has doubled, while a voxel long known to be
+empty is rarely looked at again.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from convbki_core.native import HAVE_NUMBA
+
+if HAVE_NUMBA:
+    from numba import njit
+
+DEFAULT_LIMIT = 300.0
+
+
+def check_limit(limit: float) -> float:
+    """The clamping limit as a float: 0 turns clamping off, otherwise it must be positive
+    and finite. Raises ValueError with one line otherwise."""
+    value = float(limit)
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"max_concentration must be 0 (off) or a positive number, got {limit!r}")
+    return value
+
+
+def crossed_power_of_two(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Whether each free concentration passed a power of two going from ``before`` to
+    ``after`` (a value that was not positive always counts)."""
+    return (before <= 0) | (np.frexp(after)[1] > np.frexp(before)[1])
+
+
+def clamp_numpy(alpha: np.ndarray, voxels: tuple[np.ndarray, np.ndarray, np.ndarray], before: np.ndarray,
+                limit: float) -> None:
+    """Clamp, in place, the voxels ``voxels`` (x, y, z index arrays into ``alpha`` (C, X, Y, Z))
+    that have just taken free evidence; ``before`` their free concentrations before it."""
+    if limit <= 0 or len(voxels[0]) == 0:
+        return
+    after = alpha[(0, *voxels)]
+    check = crossed_power_of_two(before.astype(np.float32), after)
+    x, y, z = (axis[check] for axis in voxels)
+    column = alpha[:, x, y, z]
+    total = np.zeros(column.shape[1], np.float32)
+    for row in column:  # class by class, as the compiled pass sums
+        total += row
+    over = total > limit
+    scale = np.float32(limit) / total[over]
+    alpha[:, x[over], y[over], z[over]] = column[:, over] * scale
+
+
+if HAVE_NUMBA:
+
+    @njit(cache=True, nogil=True, inline="always")
+    def clamp_voxel(alpha, x, y, z, before, limit):  # pragma: no cover - compiled; tested against numpy
+        """The clamping of one voxel that has just taken free evidence (``before``: its free
+        concentration before it); ``limit`` <= 0: off."""
+        if limit <= 0:
+            return
+        after = alpha[0, x, y, z]
+        if before > 0 and math.frexp(after)[1] <= math.frexp(before)[1]:
+            return
+        total = np.float32(0.0)
+        for c in range(alpha.shape[0]):
+            total += alpha[c, x, y, z]
+        if total > limit:
+            scale = np.float32(limit) / total
+            for c in range(alpha.shape[0]):
+                alpha[c, x, y, z] *= scale
+
+
+def clamp_torch(alpha: torch.Tensor, takes: torch.Tensor, before: torch.Tensor, limit: float) -> None:
+    """The same on a device window: ``takes`` (X, Y, Z) bool, the voxels that have just taken
+    free evidence; ``before`` (X, Y, Z) their free concentrations before it."""
+    if limit <= 0:
+        return
+    after = alpha[0]
+    check = takes & ((before <= 0) | (torch.frexp(after).exponent > torch.frexp(before).exponent))
+    index = torch.nonzero(check, as_tuple=True)
+    if index[0].numel() == 0:
+        return
+    column = alpha[:, index[0], index[1], index[2]]
+    total = torch.zeros(column.shape[1], dtype=alpha.dtype, device=alpha.device)
+    for row in column:
+        total += row
+    over = total > limit
+    scale = torch.tensor(limit, dtype=alpha.dtype, device=alpha.device) / total[over]
+    alpha[:, index[0][over], index[1][over], index[2][over]] = column[:, over] * scale
