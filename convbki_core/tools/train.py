@@ -43,6 +43,7 @@ from convbki_core.tools.cli import (
     sequence_arg,
 )
 from convbki_core.training.trainer import (
+    FREE_WEIGHT,
     TARGET_UPDATES,
     TEMPERATURE_MIOU_LOSS,
     VALIDATION_BLOCK,
@@ -115,6 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-free-ell", action="store_true",
                    help="do not learn the free-space length: no free-space questions in the samples, and the start "
                    "kernel's free_ell (none: one voxel) is written")
+    p.add_argument("--free-weight", default=FREE_WEIGHT, type=_non_negative, metavar="W",
+                   help="weight of the free-space question (mean NLL that points the scan saw through are free) "
+                   "against the paper's point loss when free_ell is learned; larger values clear more trails of "
+                   "movers and empty more real surface (default: %(default)s)")
     p.add_argument("--temperature-miou-loss", default=TEMPERATURE_MIOU_LOSS, type=_non_negative, metavar="M",
                    help="with --probabilities-dir: the validation mIoU the fitted temperature may cost (a fraction; "
                    "sharpening soft probabilities calibrates the map but can change its labels); inf: no bound "
@@ -193,7 +198,7 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                           args.resolution, args.filter_size, seed=args.seed,
                           progress=None if args.quiet else _progress, log=_log(args.quiet), device=device,
                           start=start, validator=validator, validate_every=args.validate_every,
-                          learn_free_ell=not args.keep_free_ell)
+                          learn_free_ell=not args.keep_free_ell, free_weight=args.free_weight)
     losses = result.losses
     if not losses:
         raise UserError("no training sample had scored points (check labels and predictions)")

@@ -92,6 +92,7 @@ PLAN_CACHE_BYTES = 2 << 30  # built samples kept in memory for later epochs
 FREE_ELL_START_VOXELS = 1.25  # learning free_ell starts at least this many voxels long
 TEMPERATURE_MIOU_LOSS = 0.01  # the validation mIoU a fitted temperature may cost (fit_temperature)
 BOUNDARY_STEPS = 5  # bisections of the allowed temperatures' boundary
+FREE_WEIGHT = 1.0  # the free points' mean NLL against the labelled points' (sample_loss)
 
 
 def class_weights(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]],
@@ -244,10 +245,12 @@ def weighted_nll(plan: SparsePlan, filters: torch.Tensor, point_query: torch.Ten
 
 
 def sample_loss(built: tuple, kernel: ConvBKIKernel, weights: torch.Tensor, prior: float,
-                device: torch.device) -> torch.Tensor:
+                device: torch.device, free_weight: float = FREE_WEIGHT) -> torch.Tensor:
     """The loss of one built sample: the paper's weighted point NLL; with free-space questions,
-    class 0 there holds the past scans' free evidence, plus the mean NLL of "free" at the free
-    points (the two means weigh the same: what a surface is and whether space is empty)."""
+    class 0 there holds the past scans' free evidence, plus ``free_weight`` times the mean NLL
+    of "free" at the free points. Two means, so that the balance does not depend on how many
+    free points a ray gives: by default they weigh the same (what a surface is, and whether
+    space the scan saw through is empty)."""
     plan, point_query, truth = built[:3]
     free = built[3] if len(built) > 3 else None
     filters = kernel.filters()
@@ -260,7 +263,7 @@ def sample_loss(built: tuple, kernel: ConvBKIKernel, weights: torch.Tensor, prio
     if free.at_free.num_queries:
         # Only free_ell learns from the free points: the class lengths keep the paper's objective.
         alpha = prior + free.free_plan.increment(filters.detach())
-        loss = loss + free_nll(alpha, free.at_free.increment(free_filter), prior)
+        loss = loss + free_weight * free_nll(alpha, free.at_free.increment(free_filter), prior)
     return loss
 
 
@@ -513,7 +516,7 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
                  progress: Progress | None = None, log: Callable[[str], None] | None = None, log_every: int = 25,
                  device: str | torch.device = "cpu", start: KernelConfig | None = None,
                  validator: Validator | None = None, validate_every: int | None = None,
-                 learn_free_ell: bool = False) -> TrainResult:
+                 learn_free_ell: bool = False, free_weight: float = FREE_WEIGHT) -> TrainResult:
     """Learn the kernel lengths on ``device`` from ``start`` (default: every length ``INITIAL_ELL``).
 
     With a ``validator``, the start and every ``validate_every`` steps (default: about
@@ -522,7 +525,7 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
     (``free_samples``) and ``free_ell`` is learned from at least ``FREE_ELL_START_VOXELS``
     voxels; the kernel written carries its value after the last step (the protocol's mIoU
     cannot rank it: a return asks for a class other than free). Otherwise ``free_ell`` is not
-    optimised and the start's value is kept.
+    optimised and the start's value is kept. ``free_weight``: see ``sample_loss``.
     """
     label_map = datasets[0].label_map
     num_classes = label_map.num_classes
@@ -585,7 +588,7 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
         if built is not None:
             for group in optimiser.param_groups:
                 group["lr"] = learning_rate(step - 1, total, lr)
-            loss = sample_loss(built, kernel, weights, prior, device)
+            loss = sample_loss(built, kernel, weights, prior, device, free_weight)
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
