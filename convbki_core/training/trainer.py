@@ -27,10 +27,12 @@ Around that recipe (``train_kernel``):
 * Samples are shuffled (one permutation per epoch); the learning rate follows a cosine decay
   from ``lr`` at the first step to ``MIN_LR_FRACTION`` * ``lr`` at the last (``learning_rate``).
 * Epochs are sized to the data: ``ceil(TARGET_UPDATES / training samples)`` unless given.
-* The free-space length ``free_ell`` is not learned: it is kept out of the optimiser and the
-  start kernel's value is written. Neither the point loss nor the protocol's mIoU can see it:
-  scan t's points lie in voxels reached by scan t's own class evidence, which take no free
-  evidence from scan t, and the map labels a point by the most likely class other than free.
+* The free-space length ``free_ell``: neither the paper's point loss nor the protocol's mIoU
+  can see it (scan t's points lie in voxels reached by scan t's own class evidence, which
+  take no free evidence from scan t, and the map labels a point by the most likely class
+  other than free). With ``learn_free_ell`` each sample also asks the free-space questions
+  of ``training.free_samples`` and ``free_ell`` is optimised with the lengths; its value
+  after the last step is written. Otherwise the start kernel's value is kept.
 * Probability inputs are tempered by the start kernel's ``temperature`` (none: as given) in
   the samples and the validation maps alike. With the lengths chosen, ``fit_temperature``
   fits the temperature on the validation frames (``training.temperature``): the one whose
