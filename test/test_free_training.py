@@ -109,3 +109,37 @@ def test_free_ell_grows_where_freeing_is_right_and_shrinks_where_it_is_wrong(tmp
         assert last < start - 0.05
     assert (last > first) == (direction == "up")
     assert result.config.free_ell == pytest.approx(last, abs=1e-6)
+
+
+def test_the_ray_counts_a_sample_reads_are_those_of_a_walk_of_every_ray():
+    """H[q, tap] is the weighted number of the later scan's rays that cross q + tap - h, at the
+    voxels the earlier scan gave class evidence and the later one did not (checked against
+    ``free_space.crossed_voxels``, ray by ray)."""
+    from convbki_core.free_space import crossed_voxels
+    from convbki_core.training.free_samples import free_evidence, past_rays, reached, support_offsets
+    from convbki_core.volume import voxelize
+
+    rng = np.random.default_rng(2)
+    geometry = WindowGeometry(0.2, (-2.0, -2.0, -1.0), (6.0, 2.0, 1.0))
+    origin, dims = geometry.origin_for(np.zeros(3)), geometry.dims
+    block = grid((2.0, 3.0), (-0.6, 0.6), (-0.4, 0.4), step=0.2)  # scan 0: class evidence the rays cross
+    returns = np.column_stack([rng.uniform(4.5, 5.8, 40), rng.uniform(-0.5, 0.5, 40), rng.uniform(-0.3, 0.3, 40)])
+    volumes = [voxelize(points, np.full(len(points), 13), origin, dims, 0.2, 20) for points in (block, returns)]
+    support = support_offsets(ConvBKIKernel("single", 20, 3, 0.2, ell=IDENTITY).filters().detach().numpy()[:, 0])
+    reach = [reached(volume, *support) for volume in volumes]
+    rays = [past_rays(points, np.eye(4), volume, 0.2) for points, volume in zip((block, returns), volumes)]
+    queries = np.unique(np.floor(block / 0.2).astype(np.int64), axis=0)
+    evidence, held = free_evidence(queries, rays, reach, origin, dims, 3)
+    assert held.all()
+    got = np.zeros((len(queries), 27))
+    np.add.at(got, (evidence.row.numpy(), evidence.tap.numpy()), evidence.value.numpy())
+    sensor, ends, weights, through = rays[1]
+    crossed = {}
+    for end, weight, beyond in zip(ends, weights, through):
+        for voxel in crossed_voxels(sensor, end, bool(beyond)):
+            crossed[voxel] = crossed.get(voxel, 0.0) + float(weight)
+    steps = np.arange(3) - 1
+    taps = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), axis=-1).reshape(-1, 3)
+    expected = np.array([[crossed.get(tuple(int(v) for v in q + tap), 0.0) for tap in taps] for q in queries])
+    assert expected.sum() > 100  # the rays do cross the block
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
