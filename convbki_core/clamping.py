@@ -11,16 +11,15 @@ than ``limit``, all of them (the free one included) are scaled down to sum to ``
     alpha[:, v] <- alpha[:, v] * limit / sum_c alpha[c, v]    if sum_c alpha[c, v] > limit
 
 Scaling keeps the expected class and the ratios between the classes: the map reads the same
-at that moment, only later evidence weighs more against the old. It is applied only where
-free evidence arrives, i.e. where a ray says the voxel is empty while it holds evidence of
-something: voxels that are never contradicted keep the paper's exact sum.
+at that moment, only later evidence weighs more against the old.
 
-Reading a voxel's C concentrations costs C scattered reads, and most voxels that take free
-evidence take it scan after scan (the air that rays cross near surfaces). So the sum is
-checked when the voxel's free concentration passes a power of two (its float exponent
-grows): the first ray that contradicts a voxel checks it at once, and a voxel being emptied
-is checked again each time its free evidence has doubled, while a voxel long known to be
-empty is rarely looked at again.
+It is applied where a ray first contradicts a voxel: when the voxel takes free evidence while
+its free concentration is still below one unit (``FIRST_CONTRADICTION``), i.e. the rays had
+not yet found it empty. A mover's voxels are clamped by the first rays through them once it
+has gone, and then lose to the rays that follow. Voxels that are never contradicted keep the
+paper's exact sum. Reading a voxel's C concentrations costs C scattered reads, so the check
+is made once per contradiction, not on every ray: most voxels that take free evidence take
+it scan after scan (the air that rays cross near surfaces).
 """
 
 from __future__ import annotations
@@ -36,6 +35,9 @@ if HAVE_NUMBA:
     from numba import njit
 
 DEFAULT_LIMIT = 300.0
+# A voxel whose free concentration is below this is seen empty for the first time (the prior
+# is far below one unit, one ray adds one).
+FIRST_CONTRADICTION = 1.0
 
 
 def check_limit(limit: float) -> float:
@@ -47,10 +49,10 @@ def check_limit(limit: float) -> float:
     return value
 
 
-def crossed_power_of_two(before: np.ndarray, after: np.ndarray) -> np.ndarray:
-    """Whether each free concentration passed a power of two going from ``before`` to
-    ``after`` (a value that was not positive always counts)."""
-    return (before <= 0) | (np.frexp(after)[1] > np.frexp(before)[1])
+def first_contradiction(before: np.ndarray) -> np.ndarray:
+    """Whether voxels whose free concentration was ``before`` as they took free evidence are
+    contradicted for the first time (and so checked for clamping)."""
+    return before < FIRST_CONTRADICTION
 
 
 def clamp_numpy(alpha: np.ndarray, voxels: tuple[np.ndarray, np.ndarray, np.ndarray], before: np.ndarray,
@@ -59,8 +61,7 @@ def clamp_numpy(alpha: np.ndarray, voxels: tuple[np.ndarray, np.ndarray, np.ndar
     that have just taken free evidence; ``before`` their free concentrations before it."""
     if limit <= 0 or len(voxels[0]) == 0:
         return
-    after = alpha[(0, *voxels)]
-    check = crossed_power_of_two(before.astype(np.float32), after)
+    check = first_contradiction(before)
     x, y, z = (axis[check] for axis in voxels)
     column = alpha[:, x, y, z]
     total = np.zeros(column.shape[1], np.float32)
@@ -77,10 +78,7 @@ if HAVE_NUMBA:
     def clamp_voxel(alpha, x, y, z, before, limit):  # pragma: no cover - compiled; tested against numpy
         """The clamping of one voxel that has just taken free evidence (``before``: its free
         concentration before it); ``limit`` <= 0: off."""
-        if limit <= 0:
-            return
-        after = alpha[0, x, y, z]
-        if before > 0 and math.frexp(after)[1] <= math.frexp(before)[1]:
+        if limit <= 0 or before >= FIRST_CONTRADICTION:
             return
         total = np.float32(0.0)
         for c in range(alpha.shape[0]):
@@ -96,8 +94,7 @@ def clamp_torch(alpha: torch.Tensor, takes: torch.Tensor, before: torch.Tensor, 
     free evidence; ``before`` (X, Y, Z) their free concentrations before it."""
     if limit <= 0:
         return
-    after = alpha[0]
-    check = takes & ((before <= 0) | (torch.frexp(after).exponent > torch.frexp(before).exponent))
+    check = takes & (before < FIRST_CONTRADICTION)
     index = torch.nonzero(check, as_tuple=True)
     if index[0].numel() == 0:
         return

@@ -39,19 +39,17 @@ long runs, which the pass adds branch-free.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from convbki_core.clamping import clamp_numpy
+from convbki_core.clamping import FIRST_CONTRADICTION, clamp_numpy
 from convbki_core.native import HAVE_NUMBA
 from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
 
 FREE_CLASS = 0
 _KEEP_UNTOUCHED = 0xFF & ~TOUCHED  # the mask bits left after a scan
-# A mask bit that lives only inside one free-space pass: the voxel's free concentration grew.
-_GREW = 8
+# A mask bit that lives only inside one free-space pass: the voxel is to be checked for clamping.
+_CHECK = 8
 
 if HAVE_NUMBA:
     import numba
@@ -61,7 +59,7 @@ if HAVE_NUMBA:
 
     # Bytes, so that the mask's update stays in bytes and vectorises.
     _CHANGED_BYTE = np.uint8(CHANGED)
-    _GREW_BYTES = np.uint8(CHANGED | _GREW)
+    _CHECK_BYTES = np.uint8(CHANGED | _CHECK)
     _NO_BYTE = np.uint8(0)
 
 
@@ -397,39 +395,37 @@ if HAVE_NUMBA:
     def _apply_run(free, marks, counted, weight, clamping):  # pragma: no cover - compiled
         """``_apply_centre`` over a run of the window (``free``, ``marks``: flat runs of the
         free concentrations and the mask) and its counts; branch-free over indices from 0,
-        so that it vectorises. With ``clamping``, the voxels that grew keep their counts and
-        get the ``_GREW`` bit for ``_clamp_run``."""
+        so that it vectorises. With ``clamping``, the voxels first contradicted get the
+        ``_CHECK`` bit for ``_clamp_run``. Returns (voxels grown, the last index to check + 1,
+        the first index to check), so that the clamping pass reads only that stretch."""
+        size = marks.shape[0]
         found = 0
-        for j in range(marks.shape[0]):
+        last = 0
+        first = size
+        for j in range(size):
             m = marks[j]
             evidence = counted[j] * weight
             grows = (m & (EVIDENCE | TOUCHED)) == EVIDENCE and evidence > 0
+            check = grows and clamping and free[j] < FIRST_CONTRADICTION
             if grows:
                 free[j] += evidence
-            marks[j] = (m & _KEEP_UNTOUCHED) | (_GREW_BYTES if grows and clamping else
-                                                 (_CHANGED_BYTE if grows else _NO_BYTE))
-            counted[j] = counted[j] if grows and clamping else np.float32(0.0)
+            marks[j] = (m & _KEEP_UNTOUCHED) | (_CHECK_BYTES if check else (_CHANGED_BYTE if grows else _NO_BYTE))
+            counted[j] = 0.0
             found += grows
-        return found
+            last = max(last, j + 1 if check else 0)
+            first = min(first, j if check else size)
+        return found, last, first
 
     @njit(cache=True, nogil=True)
-    def _clamp_run(alpha, start, marks, counted, weight, limit):  # pragma: no cover - compiled
-        """Clamp the voxels of a run that ``_apply_run`` marked ``_GREW`` (``alpha`` (C, V)
-        flat planes, the run starting at flat index ``start``); clear their bit and counts.
-        Their free concentration before is the one after less the evidence: equal but for the
-        rounding, which decides only for a value within a rounding error of a power of two."""
+    def _clamp_run(alpha, start, marks, limit):  # pragma: no cover - compiled
+        """Clamp the voxels of a run that ``_apply_run`` marked ``_CHECK`` (``alpha`` (C, V)
+        flat planes, the run starting at flat index ``start``) and clear their bit."""
         for j in range(marks.shape[0]):
             m = marks[j]
-            if m & _GREW == 0:
+            if m & _CHECK == 0:
                 continue
-            marks[j] = m & ~_GREW
-            evidence = counted[j] * weight
-            counted[j] = 0.0
+            marks[j] = m & ~_CHECK
             voxel = start + j
-            after = alpha[FREE_CLASS, voxel]
-            before = after - evidence
-            if before > 0 and math.frexp(after)[1] <= math.frexp(before)[1]:
-                continue
             total = np.float32(0.0)
             for c in range(alpha.shape[0]):
                 total += alpha[c, voxel]
@@ -464,11 +460,10 @@ if HAVE_NUMBA:
                 local = ((x - origin[0]) % size_x) * plane
                 runs = ((window + seam, window + plane, local), (window, window + seam, local + plane - seam))
                 for begin, end, source in runs:
-                    grown = _apply_run(free[begin:end], marks[begin:end], counted[source:source + end - begin],
-                                       weight, clamping)
-                    if clamping and grown:
-                        _clamp_run(planes, begin, marks[begin:end], counted[source:source + end - begin], weight,
-                                   limit)
+                    grown, last, first = _apply_run(free[begin:end], marks[begin:end],
+                                                    counted[source:source + end - begin], weight, clamping)
+                    if last:
+                        _clamp_run(planes, begin + first, marks[begin + first:begin + last], limit)
                     found += grown
             grew[part] = found
         return grew.sum()
