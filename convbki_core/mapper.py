@@ -118,7 +118,7 @@ class ConvBKIMapper:
     for ``take_changes`` (outputs that send only changes); off, nothing is kept for it.
     ``free_space``: the rays between the sensor and its returns add evidence that the voxels
     they cross are empty, into class 0 (``free_space`` module); class 0 must be ignored.
-    ``max_concentration``: with free space, a voxel that takes free evidence while its
+    ``max_concentration``: with free space, a voxel that rays first find empty while its
     concentrations sum to more than this is scaled down to it (``clamping`` module), so a
     bounded number of rays can empty what a mover left; 0 turns that off.
     """

@@ -85,8 +85,8 @@ PARAMETERS: tuple[Spec, ...] = (
          1, 100_000_000, run_time=True),
     Spec("free_space", True, "the rays between the sensor and its returns add evidence that the voxels they "
          "cross are empty, so moving objects leave no trail; false: the paper's ConvBKI; bool"),
-    Spec("max_concentration", 300.0, "with free_space: a voxel that rays find empty while its concentrations sum "
-         "to more than this is scaled down to it, so a bounded number of rays can empty what a mover left "
+    Spec("max_concentration", 300.0, "with free_space: a voxel that rays first find empty while its concentrations "
+         "sum to more than this is scaled down to it, so a bounded number of rays can empty what a mover left "
          "(OctoMap's clamping); 0 = never; unitless (points of evidence)", 0.0, 1e12),
     Spec("device", "auto", "torch device: auto (CUDA when present, else CPU), cpu, cuda[:N]"),
     Spec("update_path", "auto", "how the update runs: auto (fast on the CPU, torch on CUDA), fast (compiled "

@@ -237,8 +237,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="map without free space: the rays between the sensor and its returns add no evidence "
                    "that the voxels they cross are empty (the paper's ConvBKI; movers then leave trails)")
     p.add_argument("--max-concentration", default=DEFAULT_LIMIT, type=float,
-                   help="with free space: a voxel that rays find empty while its concentrations sum to more than "
-                   "this is scaled down to it (clamping), so a bounded number of rays can empty what a mover "
+                   help="with free space: a voxel that rays first find empty while its concentrations sum to more "
+                   "than this is scaled down to it (clamping), so a bounded number of rays can empty what a mover "
                    "left; 0 = never (default: %(default)s, as the node)")
     p.add_argument("--prior", default=DEFAULT_PRIOR, type=float,
                    help="initial concentration of every class in a new voxel (default: %(default)s)")
