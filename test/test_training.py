@@ -42,8 +42,7 @@ def test_a_start_kernel_that_is_already_best_is_written_back_unchanged(tmp_path,
     start_path, start = _start_file(tmp_path)
     monkeypatch.setattr(trainer.Validator, "score", _scores_start_best(start, 0.5))
     out = tmp_path / "k.yaml"
-    code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05",
-                                  "--keep-free-ell"))
+    code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05"))
     assert code == 0
     printed = capsys.readouterr().out
     assert "no trained kernel beat the start kernel" in printed
@@ -53,12 +52,12 @@ def test_a_start_kernel_that_is_already_best_is_written_back_unchanged(tmp_path,
     assert written["free_ell"] == given["free_ell"] == 0.3
 
 
-def test_the_best_validated_kernel_is_written_and_free_ell_is_kept_when_asked(tmp_path, capsys):
+def test_the_best_validated_kernel_is_written_and_free_ell_is_kept_by_default(tmp_path, capsys):
     write_drive(tmp_path / "data", "01", frames=14, seed=3)
     start_path, _start = _start_file(tmp_path)
     out = tmp_path / "k.yaml"
     code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05",
-                                  "--validate-every", "3", "--keep-free-ell"))
+                                  "--validate-every", "3"))
     assert code == 0
     printed = capsys.readouterr().out
     line = next(line for line in printed.splitlines() if line.startswith("validation mIoU: start"))
@@ -69,11 +68,12 @@ def test_the_best_validated_kernel_is_written_and_free_ell_is_kept_when_asked(tm
     assert "free_ell: learned" not in printed
 
 
-def test_free_ell_is_learned_by_default_and_written(tmp_path, capsys):
+def test_free_ell_is_learned_when_asked_and_written(tmp_path, capsys):
     write_drive(tmp_path / "data", "01", frames=14, seed=3)
     start_path, _start = _start_file(tmp_path)
     out = tmp_path / "k.yaml"
-    assert train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05")) == 0
+    assert train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05",
+                                  "--learn-free-ell")) == 0
     line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("free_ell: learned"))
     learned = float(line.split()[2])
     assert learned != pytest.approx(0.3, abs=1e-3)  # it moved from the start's 0.3 m

@@ -7,12 +7,13 @@ frames held out of the training sequences (every 4th block of 10 frames, at most
 ``--init FILE`` or every length 0.5 m; epochs sized to about 300 optimiser steps; cosine
 learning-rate decay from ``--lr`` to 5 % of it; the kernel with the best validation mIoU
 (the paper's protocol) is written, the start kernel when no trained kernel beats it
-(``--strict``: refuse instead, exit 2). The free-space length ``free_ell`` is learned too:
-besides the paper's point loss, each sample asks whether points on the scan's rays in front of
-its returns are free in the past scans' map, and whether its returns' voxels are not
-(``training.free_samples``); the value after the last step is written (``--keep-free-ell``:
-the start kernel's). With probability inputs, the temperature that calibrates
-them is fitted on the validation frames for the written lengths (the lowest map NLL that
+(``--strict``: refuse instead, exit 2). With ``--learn-free-ell`` the free-space length
+``free_ell`` is learned too: besides the paper's point loss, each sample asks whether points
+on the scan's rays in front of its returns are free in the past scans' map, and whether its
+returns' voxels are not (``training.free_samples``); the value after the last step is written.
+Without it the start kernel's ``free_ell`` is kept: a longer free kernel clears more trails
+but empties real surface and multiplies the free-space pass's time. With probability inputs,
+the temperature that calibrates them is fitted on the validation frames for the written lengths (the lowest map NLL that
 costs at most ``--temperature-miou-loss`` of validation mIoU) and written as the kernel's
 ``temperature`` (``--keep-temperature``: the start's)."""
 
@@ -113,9 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--probabilities-dir", default=None, metavar="DIR",
                    help="train on per-point class probabilities (.npy) from this folder instead of labels; the "
                    "temperature that calibrates them is then fitted on the validation frames and written")
-    p.add_argument("--keep-free-ell", action="store_true",
-                   help="do not learn the free-space length: no free-space questions in the samples, and the start "
-                   "kernel's free_ell (none: one voxel) is written")
+    p.add_argument("--learn-free-ell", action="store_true",
+                   help="also learn the free-space length free_ell from free-space questions in the samples; a longer "
+                   "free kernel clears more trails of movers but empties real surface and makes the free-space pass "
+                   "several times slower, so by default the start kernel's free_ell (none: one voxel) is kept")
     p.add_argument("--free-weight", default=FREE_WEIGHT, type=_non_negative, metavar="W",
                    help="weight of the free-space question (mean NLL that points the scan saw through are free) "
                    "against the paper's point loss when free_ell is learned; larger values clear more trails of "
@@ -198,7 +200,7 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                           args.resolution, args.filter_size, seed=args.seed,
                           progress=None if args.quiet else _progress, log=_log(args.quiet), device=device,
                           start=start, validator=validator, validate_every=args.validate_every,
-                          learn_free_ell=not args.keep_free_ell, free_weight=args.free_weight)
+                          learn_free_ell=args.learn_free_ell, free_weight=args.free_weight)
     losses = result.losses
     if not losses:
         raise UserError("no training sample had scored points (check labels and predictions)")
