@@ -22,6 +22,9 @@ Why the two conditions:
   being gone, and that same scan sees the surface there. A mover's voxels, once it has left,
   receive no class evidence, so the rays that now pass through them empty them.
 
+Where the rays first find a voxel empty, its concentrations are clamped to a bounded sum
+(``clamping``), so that a mover that stood long can be emptied by a bounded number of rays.
+
 Rays: returns that fall into the same voxel share one ray, from the sensor to that voxel's
 centre, weighted by their number (the evidence sum of the voxel: one per labelled point);
 octomap's discretised insertion does the same. Each ray is walked voxel by voxel (the
