@@ -62,6 +62,7 @@ def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys
     assert code == 0
     report = json.loads(report_path.read_text())
     assert report["sequence"] == "08" and report["frames"] == 5 and report["kernel"] == "compound"
+    assert report["free_space"] is True and report["max_concentration"] == 300.0  # the node's defaults
     assert set(report["input"]["iou"]) == {"road", "sidewalk", "building", "pole"}
     # The input segmentation's files and the label files written, scored independently, give
     # the reported scores.

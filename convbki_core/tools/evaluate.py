@@ -183,6 +183,7 @@ def build_report(sequence: str, frame_count: int, class_names: Sequence[str], in
         input_entry["tempered"] = {"temperature": tempered[0], **tempered[1].summary(with_curve=False)}
     report = {"sequence": sequence, "frames": frame_count, "kernel": entries[0]["kernel"],
               "kernel_file": entries[0]["kernel_file"], "input": input_entry,
+              "free_space": entries[0]["free_space"], "max_concentration": entries[0]["max_concentration"],
               "map": entries[0]["map"], "timing_ms": entries[0]["timing_ms"]}
     if len(entries) > 1:
         report["runs"] = entries
