@@ -89,12 +89,13 @@ if HAVE_NUMBA:
                 alpha[c, x, y, z] *= scale
 
 
-def clamp_torch(alpha: torch.Tensor, takes: torch.Tensor, before: torch.Tensor, limit: float) -> None:
-    """The same on a device window: ``takes`` (X, Y, Z) bool, the voxels that have just taken
-    free evidence; ``before`` (X, Y, Z) their free concentrations before it."""
+def clamp_torch(alpha: torch.Tensor, before: torch.Tensor, limit: float) -> None:
+    """The same on a device window, just after its free evidence was added: ``before``
+    (X, Y, Z) the free concentrations before it (the voxels whose free concentration changed
+    are those that took free evidence)."""
     if limit <= 0:
         return
-    check = takes & (before < FIRST_CONTRADICTION)
+    check = (alpha[0] != before) & (before < FIRST_CONTRADICTION)
     index = torch.nonzero(check, as_tuple=True)
     if index[0].numel() == 0:
         return

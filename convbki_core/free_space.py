@@ -313,6 +313,24 @@ if HAVE_NUMBA:
                     pz = dims[2] - 1
 
     @njit(cache=True, nogil=True, inline="always")
+    def _step_inside(tx, ty, tz, tdx, tdy, tdz, index, pz, sz, stride_x, stride_y, size_z):  # pragma: no cover
+        """One step of ``_count_ray_inside``'s walk (the first smallest of tx, ty, tz, as
+        ``_walk_ray``): the new (tx, ty, tz, flat index, z on the torus, whether it stepped along x)."""
+        if tx <= ty and tx <= tz:
+            return tx + tdx, ty, tz, index + stride_x, pz, True
+        if ty <= tz:
+            return tx, ty + tdy, tz, index + stride_y, pz, False
+        pz += sz
+        index += sz
+        if pz == size_z:
+            pz = 0
+            index -= size_z
+        elif pz < 0:
+            pz = size_z - 1
+            index += size_z
+        return tx, ty, tz + tdz, index, pz, False
+
+    @njit(cache=True, nogil=True, inline="always")
     def _count_ray_inside(sensor, end_voxel, weight, through, corner, dims, counts, shared_plane,
                           shared):  # pragma: no cover - compiled
         """``_count_ray`` for a ray whose voxels lie within ``corner`` + ``dims`` in x and y,
@@ -331,41 +349,14 @@ if HAVE_NUMBA:
             while steps > 0:
                 shared_plane[index - base] += weight
                 steps -= 1
-                if tx <= ty and tx <= tz:
-                    tx += tdx
-                    index += stride_x
+                tx, ty, tz, index, pz, along_x = _step_inside(tx, ty, tz, tdx, tdy, tdz, index, pz, sz, stride_x,
+                                                              stride_y, size_z)
+                if along_x:
                     break  # x only decreases along this ray: it has left the plane
-                elif ty <= tz:
-                    ty += tdy
-                    index += stride_y
-                else:
-                    tz += tdz
-                    pz += sz
-                    index += sz
-                    if pz == size_z:
-                        pz = 0
-                        index -= size_z
-                    elif pz < 0:
-                        pz = size_z - 1
-                        index += size_z
         for _ in range(steps):
             counts[index] += weight
-            if tx <= ty and tx <= tz:
-                tx += tdx
-                index += stride_x
-            elif ty <= tz:
-                ty += tdy
-                index += stride_y
-            else:
-                tz += tdz
-                pz += sz
-                index += sz
-                if pz == size_z:
-                    pz = 0
-                    index -= size_z
-                elif pz < 0:
-                    pz = size_z - 1
-                    index += size_z
+            tx, ty, tz, index, pz, _along_x = _step_inside(tx, ty, tz, tdx, tdy, tdz, index, pz, sz, stride_x,
+                                                           stride_y, size_z)
 
     @njit(cache=True, parallel=True, nogil=True)
     def _count_rays(sensor, occupied, weights, through, corner, dims, counts, shared_plane):  # pragma: no cover

@@ -232,11 +232,11 @@ class ConvBKIMapper:
             sensor = pose[:3, 3] / self.resolution
             if self.update_path == "torch":  # the rays are counted here, applied on the device
                 counts = count_rays(sensor, ends, weights, through, self.geometry.dims, self._free_counts)
-                before = self.window.alpha[FREE_CLASS].clone()
+                before = self.window.alpha[FREE_CLASS].clone() if self.max_concentration else None
                 result.freed_voxels = torch_free_space(counts, self._free_filter, self.window)
                 counts.fill(0.0)
-                clamp_torch(self.window.alpha, self.window.alpha[FREE_CLASS] != before, before,
-                            self.max_concentration)
+                if before is not None:
+                    clamp_torch(self.window.alpha, before, self.max_concentration)
             else:
                 result.freed_voxels = free_space_update(sensor, ends, weights, offsets, tap_weights, origin,
                                                         self.geometry.dims, self.window.alpha, self.window.mask,

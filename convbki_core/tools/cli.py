@@ -69,6 +69,17 @@ def positive(kind: type, name: str) -> Callable[[str], int | float]:
     return parse
 
 
+def window_bounds(values: Sequence[float] | None):
+    """``--local-bounds XMIN YMIN ZMIN XMAX YMAX ZMAX`` as ((min), (max)), None when not given;
+    ``UserError`` unless each minimum lies below its maximum."""
+    if not values:
+        return None
+    bounds = (tuple(values[:3]), tuple(values[3:]))
+    if any(not low < high for low, high in zip(*bounds)):
+        raise UserError(f"--local-bounds must have each minimum below its maximum, got {list(values)}")
+    return bounds
+
+
 def output_folder(path: str | Path, what: str = "output") -> Path:
     """``path``'s folder, which must exist: a command checks this before it does any work."""
     folder = Path(path).parent if str(Path(path).parent) else Path(".")

@@ -43,6 +43,7 @@ from convbki_core.tools.cli import (
     progress,
     run,
     sequence_arg,
+    window_bounds,
 )
 from convbki_core.trails import SweptSpace
 from convbki_core.volume import tempers, transform_points
@@ -276,11 +277,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     except ValueError:
         raise UserError("--max-concentration must be 0 (off) or a positive number, "
                         f"got {args.max_concentration}") from None
-    bounds = PAPER_BOUNDS
-    if args.local_bounds:
-        bounds = (tuple(args.local_bounds[:3]), tuple(args.local_bounds[3:]))
-        if any(not low < high for low, high in zip(*bounds)):
-            raise UserError(f"--local-bounds must have each minimum below its maximum, got {args.local_bounds}")
+    bounds = window_bounds(args.local_bounds) or PAPER_BOUNDS
     report_path = Path(args.report)
     output_folder(report_path, "report")
     if report_path.is_dir():

@@ -42,6 +42,7 @@ from convbki_core.tools.cli import (
     progress,
     run,
     sequence_arg,
+    window_bounds,
 )
 from convbki_core.training.trainer import (
     FREE_WEIGHT,
@@ -185,11 +186,7 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     if args.val_sequences:
         for dataset, chosen in zip(val_datasets, val_positions):
             dataset.check_files(chosen)
-    bounds = None
-    if args.local_bounds:
-        bounds = (tuple(args.local_bounds[:3]), tuple(args.local_bounds[3:]))
-        if any(not low < high for low, high in zip(*bounds)):
-            raise UserError(f"--local-bounds must have each minimum below its maximum, got {args.local_bounds}")
+    bounds = window_bounds(args.local_bounds)
     device = resolve_device(args.device)
     validator = Validator(val_datasets, val_positions, device=device, local_bounds=bounds)
     held = ", ".join(f"{d.sequence}: {_ranges(c)}" for d, c in zip(val_datasets, val_positions) if c)
