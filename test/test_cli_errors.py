@@ -419,6 +419,7 @@ def test_demo_missing_dataset_creates_nothing(tmp_path, capsys):
 @pytest.mark.parametrize("module, argv", [
     (evaluate, ["--dataset", "d", "--sequence", "x", "--report", "r.json"]),
     (train, ["--dataset", "d", "--sequences", "0", "--out", "k.yaml", "--epochs", "0"]),
+    (train, ["--dataset", "d", "--sequences", "0", "--out", "k.yaml", "--min-class-points", "-1"]),
     (kitti_to_bag, ["--dataset", "d", "--sequence", "0", "--out", "b", "--frames", "5:2"]),
     (play_bag, ["bag", "--rate", "-1"]),
     (demo, ["--frames", "0"]),

@@ -150,3 +150,43 @@ def test_the_optimiser_follows_the_schedule(tmp_path, monkeypatch):
     assert train.main(_train_args(tmp_path, tmp_path / "k.yaml", "--epochs", "3", "--lr", "0.01")) == 0
     assert len(seen) == 27 and seen[0] == pytest.approx(0.01) and seen[-1] == pytest.approx(0.0005)
     assert all(later <= earlier for earlier, later in itertools.pairwise(seen))
+
+
+def test_only_classes_under_the_point_floor_are_kept():
+    counts = np.array([0, 40, 50, 0, 1000, 49])
+    assert trainer.kept_classes(counts, 50, ignore=[0]).tolist() == [1, 3, 5]
+    assert trainer.kept_classes(counts, 0, ignore=[0]).tolist() == []
+    weights = trainer.class_weights(counts)
+    assert weights[0] == weights[3] == 0 and weights[1] > weights[2] > weights[4] > 0
+    assert weights[weights > 0].mean() == pytest.approx(1.0)
+
+
+def test_a_class_under_the_point_floor_keeps_its_start_lengths_while_the_others_learn(tmp_path):
+    write_drive(tmp_path / "data", "01", frames=8, seed=3)
+    dataset = trainer.SemanticKittiSequence(tmp_path / "data", "01")
+    counts = trainer.class_counts([dataset], [range(8)], 20, dataset.label_map.ignore_classes)
+    present = np.flatnonzero(counts)
+    assert len(present) >= 3
+    floor = int(np.sort(counts[present])[len(present) // 2])  # about half the classes fall under it
+    _path, start = _start_file(tmp_path)
+    result = trainer.train_kernel([dataset], [range(8)], "compound", frames_per_sample=3, epochs=2, lr=0.05,
+                                  start=start, min_class_points=floor)
+    kept = set(result.kept_classes)
+    assert kept == set(np.flatnonzero(counts < floor)) - {0}
+    learned = [c for c in present if c not in kept]
+    assert kept and learned
+    for c in kept:  # exactly the start's lengths (held as float32)
+        assert result.config.ell_h[c] == float(np.float32(start.ell_h[c]))
+        assert result.config.ell_z[c] == float(np.float32(start.ell_z[c]))
+    moved = [c for c in learned if abs(result.config.ell_h[c] - start.ell_h[c]) > 1e-3]
+    assert moved  # the others learned
+
+
+def test_the_point_floor_is_given_on_the_command_line_and_reported(tmp_path, capsys):
+    write_drive(tmp_path / "data", "01", frames=14, seed=3)
+    out = tmp_path / "k.yaml"
+    assert train.main(_train_args(tmp_path, out, "--epochs", "1", "--min-class-points", "0")) == 0
+    assert "kept at the start" not in capsys.readouterr().out
+    assert train.main(_train_args(tmp_path, out, "--epochs", "1", "--min-class-points", "10000000")) == 0
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("kept at the start"))
+    assert "under 10000000 ground-truth points" in line and "road" in line

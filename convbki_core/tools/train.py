@@ -46,6 +46,7 @@ from convbki_core.tools.cli import (
 )
 from convbki_core.training.trainer import (
     FREE_WEIGHT,
+    MIN_CLASS_POINTS,
     TARGET_UPDATES,
     TEMPERATURE_MIOU_LOSS,
     VALIDATION_BLOCK,
@@ -123,6 +124,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="weight of the free-space question (mean NLL that points the scan saw through are free) "
                    "against the paper's point loss when free_ell is learned; larger values clear more trails of "
                    "movers and empty more real surface (default: %(default)s)")
+    p.add_argument("--min-class-points", default=MIN_CLASS_POINTS, type=_count, metavar="N",
+                   help="a class with fewer ground-truth points than this in the training frames keeps the start "
+                   "kernel's lengths: the few objects such a class has in one drive make its learned lengths fit "
+                   "them and cost that class on other drives; 0 learns every class (default: %(default)s)")
     p.add_argument("--temperature-miou-loss", default=TEMPERATURE_MIOU_LOSS, type=_non_negative, metavar="M",
                    help="with --probabilities-dir: the validation mIoU the fitted temperature may cost (a fraction; "
                    "sharpening soft probabilities calibrates the map but can change its labels); inf: no bound "
@@ -197,12 +202,17 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                           args.resolution, args.filter_size, seed=args.seed,
                           progress=None if args.quiet else _progress, log=_log(args.quiet), device=device,
                           start=start, validator=validator, validate_every=args.validate_every,
-                          learn_free_ell=args.learn_free_ell, free_weight=args.free_weight)
+                          learn_free_ell=args.learn_free_ell, free_weight=args.free_weight,
+                          min_class_points=args.min_class_points)
     losses = result.losses
     if not losses:
         raise UserError("no training sample had scored points (check labels and predictions)")
     print(f"validation mIoU: start {result.start_miou:.4f}, best {result.best_miou:.4f} "
           f"(step {result.best_step} of {result.total_steps}, {result.epochs} epochs)")
+    if result.kept_classes:
+        names = datasets[0].label_map.class_names
+        print(f"kept at the start (under {args.min_class_points} ground-truth points in the training frames): "
+              + ", ".join(names[c] for c in result.kept_classes))
     if result.free_ells:
         print(f"free_ell: learned {result.free_ells[-1]:.4f} m (from {result.free_ells[0]:.4f} m after the first "
               f"step; start kernel: {_length(result.start.free_ell)})")
@@ -273,6 +283,16 @@ def _start_kernel(args: argparse.Namespace):
             flag = "--" + name.replace("_", "-")
             raise UserError(f"{args.init}: {name} {getattr(config, name)}, but {flag} is {wanted}")
     return config
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return value
 
 
 def _non_negative(text: str) -> float:

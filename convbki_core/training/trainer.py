@@ -44,6 +44,12 @@ equals the dense layer there (tested) and keeps a training step cheap enough for
 Class weights are 1 / sqrt(frequency) of the training ground truth, normalised to mean 1
 over the classes present (rare classes count more without letting a handful of points
 dominate); ignored classes (0) weigh nothing.
+
+A class with fewer than ``MIN_CLASS_POINTS`` ground-truth points in the training frames keeps
+its start lengths (``kept_classes``). Its points come from a handful of objects, each seen in
+many scans with the same persistent input errors, so the lengths the loss finds for it fit those
+objects rather than the class, while each Adam step still moves them as far as a common
+class's; the validation mIoU cannot catch that when the class is rare there too.
 """
 
 from __future__ import annotations
@@ -95,11 +101,12 @@ FREE_ELL_START_VOXELS = 1.25  # learning free_ell starts at least this many voxe
 TEMPERATURE_MIOU_LOSS = 0.01  # the validation mIoU a fitted temperature may cost (fit_temperature)
 BOUNDARY_STEPS = 5  # bisections of the allowed temperatures' boundary
 FREE_WEIGHT = 1.0  # the free points' mean NLL against the labelled points' (sample_loss)
+MIN_CLASS_POINTS = 50_000  # a class with fewer training ground-truth points keeps its start lengths
 
 
-def class_weights(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]],
-                  num_classes: int, ignore: Sequence[int]) -> np.ndarray:
-    """1 / sqrt(frequency) of the ground-truth classes, mean 1 over present classes, 0 for absent/ignored."""
+def class_counts(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]],
+                 num_classes: int, ignore: Sequence[int]) -> np.ndarray:
+    """Ground-truth points of each class over the chosen frames; 0 for the ignored classes."""
     counts = np.zeros(num_classes, np.int64)
     for dataset, chosen in zip(datasets, positions):
         if not dataset.has_ground_truth:
@@ -108,11 +115,24 @@ def class_weights(datasets: Sequence[SemanticKittiSequence], positions: Sequence
             words = read_label_words(dataset.labels_folder / f"{dataset.names[position]}.label")
             counts += np.bincount(dataset.label_map.to_learning(words), minlength=num_classes)[:num_classes]
     counts[list(ignore)] = 0
-    weights = np.zeros(num_classes)
+    return counts
+
+
+def class_weights(counts: np.ndarray) -> np.ndarray:
+    """1 / sqrt(frequency) of the ground-truth classes, mean 1 over present classes, 0 for absent ones."""
+    weights = np.zeros(counts.size)
     present = counts > 0
     weights[present] = 1.0 / np.sqrt(counts[present] / counts.sum())
     weights[present] /= weights[present].mean()
     return weights
+
+
+def kept_classes(counts: np.ndarray, min_points: int, ignore: Sequence[int]) -> np.ndarray:
+    """The classes whose lengths stay at the start: fewer than ``min_points`` ground-truth points
+    in the training frames (module docstring), the ignored classes excepted (they carry no evidence)."""
+    kept = counts < min_points
+    kept[list(ignore)] = False
+    return np.flatnonzero(kept)
 
 
 class SampleBuilder:
@@ -413,6 +433,7 @@ class TrainResult:
     epochs: int = 0
     total_steps: int = 0
     free_ells: list[float] = field(default_factory=list)  # free_ell after each step, when learned
+    kept_classes: list[int] = field(default_factory=list)  # classes whose lengths stayed at the start
 
     @property
     def start_miou(self) -> float | None:
@@ -518,7 +539,8 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
                  progress: Progress | None = None, log: Callable[[str], None] | None = None, log_every: int = 25,
                  device: str | torch.device = "cpu", start: KernelConfig | None = None,
                  validator: Validator | None = None, validate_every: int | None = None,
-                 learn_free_ell: bool = False, free_weight: float = FREE_WEIGHT) -> TrainResult:
+                 learn_free_ell: bool = False, free_weight: float = FREE_WEIGHT,
+                 min_class_points: int = MIN_CLASS_POINTS) -> TrainResult:
     """Learn the kernel lengths on ``device`` from ``start`` (default: every length ``INITIAL_ELL``).
 
     With a ``validator``, the start and every ``validate_every`` steps (default: about
@@ -527,7 +549,9 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
     (``free_samples``) and ``free_ell`` is learned from at least ``FREE_ELL_START_VOXELS``
     voxels; the kernel written carries its value after the last step (the protocol's mIoU
     cannot rank it: a return asks for a class other than free). Otherwise ``free_ell`` is not
-    optimised and the start's value is kept. ``free_weight``: see ``sample_loss``.
+    optimised and the start's value is kept. ``free_weight``: see ``sample_loss``. The lengths of
+    a class with fewer than ``min_class_points`` training ground-truth points stay at the start
+    (``kept_classes``; the single kernel's one length is shared and always learned).
     """
     label_map = datasets[0].label_map
     num_classes = label_map.num_classes
@@ -547,8 +571,12 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
         lengths.append(kernel.free_ell)
         with torch.no_grad():
             support = kernel.filters().cpu().numpy()[:, 0]
-    weights = torch.from_numpy(class_weights(datasets, positions, num_classes, label_map.ignore_classes)).float()
-    weights = weights.to(device)
+    counts = class_counts(datasets, positions, num_classes, label_map.ignore_classes)
+    weights = torch.from_numpy(class_weights(counts)).float().to(device)
+    kept = torch.from_numpy(kept_classes(counts, min_class_points, label_map.ignore_classes)).to(device)
+    # The per-class lengths (not the single kernel's shared one, nor free_ell) whose kept classes
+    # never move: their gradient is zeroed, so Adam's moments stay zero and its steps too.
+    per_class = [parameter for parameter in lengths if parameter.numel() == num_classes] if kind != "single" else []
     optimiser = torch.optim.Adam(lengths, lr=lr)
     builder = SampleBuilder(WindowGeometry(start.resolution), num_classes, frames_per_sample, start.filter_size,
                             label_map.ignore_classes, start.temperature, free_support=support, seed=seed)
@@ -558,7 +586,8 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
     order = [samples[i] for _ in range(epochs) for i in rng.permutation(len(samples))]
     total = len(order)
     validate_every = validate_every or max(1, math.ceil(total / VALIDATIONS))
-    result = TrainResult(config=start, start=start, epochs=epochs, total_steps=total)
+    result = TrainResult(config=start, start=start, epochs=epochs, total_steps=total,
+                         kept_classes=[int(c) for c in kept] if per_class else [])
 
     def written(config: KernelConfig) -> KernelConfig:
         if not learn_free_ell:
@@ -593,6 +622,9 @@ def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[
             loss = sample_loss(built, kernel, weights, prior, device, free_weight)
             optimiser.zero_grad()
             loss.backward()
+            if len(kept):
+                for parameter in per_class:
+                    parameter.grad[kept] = 0.0
             optimiser.step()
             kernel.clamp_lengths_()
             result.losses.append(float(loss.detach()))
