@@ -323,20 +323,18 @@ def bad_probability_rows(probabilities: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 if HAVE_NUMBA:
 
-    @njit(cache=True, nogil=True)
-    def _voxelize_numba(points, pose, labels, probabilities, use_probabilities, origin, dims, resolution,
-                        ignored, slot):  # pragma: no cover - compiled; tested through voxelize_scan
+    @njit(cache=True, nogil=True, parallel=True)
+    def _point_voxels(points, pose, labels, probabilities, use_probabilities, origin, dims, resolution,
+                      ignored):  # pragma: no cover - compiled; tested through voxelize_scan
+        """Each point's window-linear voxel, or -1 - k when it is dropped for reason k of
+        ``_voxelize_numba``'s stats. Points are independent here, so every core takes a share."""
         count = points.shape[0]
         num_classes = ignored.shape[0]
-        point_slot = np.full(count, -1, np.int64)
-        point_linear = np.full(count, -1, np.int64)
-        occupied = np.empty(count, np.int64)
-        stats = np.zeros(5, np.int64)  # non-finite, unknown label, ignored class, outside window, bad probabilities
-        used = 0
-        for i in range(count):
+        code = np.empty(count, np.int64)
+        for i in prange(count):
             x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
             if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
-                stats[0] += 1
+                code[i] = -1
                 continue
             if use_probabilities:
                 # One pass over the row decides what probabilities.bad_probability_rows decides. A
@@ -348,22 +346,19 @@ if HAVE_NUMBA:
                     p = probabilities[i, c]
                     total += p
                     lowest = min(lowest, p)
-                finite = np.isfinite(total)
-                negative = lowest < 0
-                positive = total > 0
-                if not finite:
-                    stats[0] += 1
+                if not np.isfinite(total):
+                    code[i] = -1
                     continue
-                if negative or not positive:
-                    stats[4] += 1
+                if lowest < 0 or not total > 0:
+                    code[i] = -5
                     continue
             else:
                 label = labels[i]
                 if label < 0 or label >= num_classes:
-                    stats[1] += 1
+                    code[i] = -2
                     continue
                 if ignored[label]:
-                    stats[2] += 1
+                    code[i] = -3
                     continue
             # Same operation order as voxelize.transform_points: identical rounding, identical voxels.
             vx = np.int64(np.floor((((x * pose[0, 0] + y * pose[0, 1]) + z * pose[0, 2]) + pose[0, 3]) / resolution))
@@ -371,20 +366,70 @@ if HAVE_NUMBA:
             vz = np.int64(np.floor((((x * pose[2, 0] + y * pose[2, 1]) + z * pose[2, 2]) + pose[2, 3]) / resolution))
             lx, ly, lz = vx - origin[0], vy - origin[1], vz - origin[2]
             if lx < 0 or ly < 0 or lz < 0 or lx >= dims[0] or ly >= dims[1] or lz >= dims[2]:
-                stats[3] += 1
+                code[i] = -4
                 continue
-            linear = (lx * dims[1] + ly) * dims[2] + lz
+            code[i] = (lx * dims[1] + ly) * dims[2] + lz
+        return code
+
+    @njit(cache=True, nogil=True)
+    def _radix_sort(values, bound):  # pragma: no cover - compiled; tested against np.sort
+        """``values`` (distinct, 0 <= v < bound) sorted: least significant digit first, 11 bits a
+        pass, so a window of up to 2^22 voxels takes two counting passes over the voxels instead
+        of a comparison sort."""
+        bits, passes = 11, 1
+        while (1 << (bits * passes)) < bound:
+            passes += 1
+        source = values.copy()
+        target = np.empty_like(values)
+        counts = np.empty(1 << bits, np.int64)
+        for number in range(passes):
+            shift = bits * number
+            counts[:] = 0
+            for v in source:
+                counts[(v >> shift) & ((1 << bits) - 1)] += 1
+            start = 0
+            for digit in range(counts.size):
+                counts[digit], start = start, start + counts[digit]
+            for v in source:
+                digit = (v >> shift) & ((1 << bits) - 1)
+                target[counts[digit]] = v
+                counts[digit] += 1
+            source, target = target, source
+        return source
+
+    @njit(cache=True, nogil=True)
+    def _voxelize_numba(points, pose, labels, probabilities, use_probabilities, origin, dims, resolution,
+                        ignored, slot):  # pragma: no cover - compiled; tested through voxelize_scan
+        """(occupied voxels in increasing window-linear order, their (M, C) features, each point's
+        voxel or -1, dropped-point counts: non-finite, unknown label, ignored class, outside the
+        window, bad probabilities). ``slot``: the caller's scratch table, left all -1."""
+        count = points.shape[0]
+        num_classes = ignored.shape[0]
+        code = _point_voxels(points, pose, labels, probabilities, use_probabilities, origin, dims, resolution,
+                             ignored)
+        stats = np.zeros(5, np.int64)
+        point_linear = np.full(count, -1, np.int64)
+        occupied = np.empty(count, np.int64)
+        used = 0
+        for i in range(count):
+            linear = code[i]
+            if linear < 0:
+                stats[-1 - linear] += 1
+                continue
+            point_linear[i] = linear
             if slot[linear] < 0:
-                slot[linear] = used
+                slot[linear] = 0
                 occupied[used] = linear
                 used += 1
-            point_slot[i] = slot[linear]
-            point_linear[i] = linear
+        occupied = _radix_sort(occupied[:used], dims[0] * dims[1] * dims[2])
+        for m in range(used):  # rows in voxel order: the features need no reordering
+            slot[occupied[m]] = m
         features = np.zeros((used, num_classes), np.float32)
         for i in range(count):
-            s = point_slot[i]
-            if s < 0:
+            linear = point_linear[i]
+            if linear < 0:
                 continue
+            s = slot[linear]
             if use_probabilities:
                 for c in range(num_classes):
                     if not ignored[c]:
@@ -393,7 +438,7 @@ if HAVE_NUMBA:
                 features[s, labels[i]] += 1.0
         for m in range(used):  # leave the scratch table clean for the next scan
             slot[occupied[m]] = -1
-        return occupied[:used], features, point_linear, stats
+        return occupied, features, point_linear, stats
 
 
 if HAVE_NUMBA:
@@ -440,7 +485,10 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
     """``voxelize(transform_points(points, pose), values, ...)`` in one compiled pass.
 
     ``slot`` is a scratch int32 table of the window's size, all -1 (left so on return): it
-    finds each voxel's row without sorting the points. Probabilities are judged and summed
+    finds each voxel's row without sorting the points. The points' voxels are computed on
+    every core; the voxels found are put in window order by a radix sort (a few counting
+    passes over the voxels, not the points), and the points are summed into their rows in
+    point order. Probabilities are judged and summed
     in float32, as ``voxelize`` does; with a ``temperature`` other than 1 the kept rows are
     calibrated first (a compiled pass on every core). Returns a ``voxelize.SparseVolume``
     equal to the numpy path's (same voxels, same sums, same counts).
@@ -461,11 +509,10 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
     occupied, features, point_linear, counts = _voxelize_numba(
         points, np.ascontiguousarray(pose, np.float64), labels, probabilities, with_probabilities,
         np.ascontiguousarray(origin, np.int64), np.ascontiguousarray(dims, np.int64), float(resolution), ignored, slot)
-    order = np.argsort(occupied)
     stats = VoxelizeStats(points_in=len(points), non_finite=int(counts[0]), unknown_label=int(counts[1]),
                           ignored_class=int(counts[2]), outside_window=int(counts[3]),
                           bad_probabilities=int(counts[4]))
     stats.used = (stats.points_in - stats.non_finite - stats.bad_probabilities - stats.unknown_label
                   - stats.ignored_class - stats.outside_window)
-    return SparseVolume(np.asarray(origin, np.int64), np.asarray(dims, np.int64), occupied[order], features[order],
+    return SparseVolume(np.asarray(origin, np.int64), np.asarray(dims, np.int64), occupied, features,
                         point_linear, stats)

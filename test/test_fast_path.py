@@ -1,6 +1,7 @@
 """The CPU fast path (compiled scatter into the rolling window) equals the dense reference."""
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from kitti_fixture import write_drive
@@ -190,3 +191,16 @@ def test_compiled_scatter_handles_any_zero_pattern_in_the_filters(seed, filter_s
     assert created == expected
     np.testing.assert_array_equal(compiled_mask, numpy_mask)
     np.testing.assert_allclose(compiled_alpha, numpy_alpha, rtol=1e-6)
+
+
+@pytest.mark.parametrize("bound", [1, 2047, 2048, 4_160_000, 1 << 30])
+def test_the_voxelisers_radix_sort_equals_numpy_sort(bound):
+    from convbki_core.native import HAVE_NUMBA
+    if not HAVE_NUMBA:
+        pytest.skip("the radix sort is part of the compiled voxeliser")
+    from convbki_core.volume import _radix_sort
+
+    rng = np.random.default_rng(bound)
+    values = rng.choice(bound, size=min(bound, 30_000), replace=False).astype(np.int64)
+    np.testing.assert_array_equal(_radix_sort(values, bound), np.sort(values))
+    assert _radix_sort(values[:0], bound).size == 0
