@@ -69,6 +69,22 @@ def positive(kind: type, name: str) -> Callable[[str], int | float]:
     return parse
 
 
+def non_negative(kind: type) -> Callable[[str], int | float]:
+    """argparse type: an int or float that is 0 or more."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected a {'whole ' if kind is int else ''}number, got {text!r}") from None
+        if not value >= 0:
+            raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+        return value
+
+    return parse
+
+
 def window_bounds(values: Sequence[float] | None):
     """``--local-bounds XMIN YMIN ZMIN XMAX YMAX ZMAX`` as ((min), (max)), None when not given;
     ``UserError`` unless each minimum lies below its maximum."""

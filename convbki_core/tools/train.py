@@ -37,6 +37,7 @@ from convbki_core.tools.cli import (
     UserError,
     device_arg,
     frames_arg,
+    non_negative,
     output_folder,
     positive,
     progress,
@@ -120,15 +121,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also learn the free-space length free_ell from free-space questions in the samples; a longer "
                    "free kernel clears more trails of movers but empties real surface and makes the free-space pass "
                    "several times slower, so by default the start kernel's free_ell (none: one voxel) is kept")
-    p.add_argument("--free-weight", default=FREE_WEIGHT, type=_non_negative, metavar="W",
+    p.add_argument("--free-weight", default=FREE_WEIGHT, type=non_negative(float), metavar="W",
                    help="weight of the free-space question (mean NLL that points the scan saw through are free) "
                    "against the paper's point loss when free_ell is learned; larger values clear more trails of "
                    "movers and empty more real surface (default: %(default)s)")
-    p.add_argument("--min-class-points", default=MIN_CLASS_POINTS, type=_count, metavar="N",
+    p.add_argument("--min-class-points", default=MIN_CLASS_POINTS, type=non_negative(int), metavar="N",
                    help="a class with fewer ground-truth points than this in the training frames keeps the start "
                    "kernel's lengths: the few objects such a class has in one drive make its learned lengths fit "
                    "them and cost that class on other drives; 0 learns every class (default: %(default)s)")
-    p.add_argument("--temperature-miou-loss", default=TEMPERATURE_MIOU_LOSS, type=_non_negative, metavar="M",
+    p.add_argument("--temperature-miou-loss", default=TEMPERATURE_MIOU_LOSS, type=non_negative(float), metavar="M",
                    help="with --probabilities-dir: the validation mIoU the fitted temperature may cost (a fraction; "
                    "sharpening soft probabilities calibrates the map but can change its labels); inf: no bound "
                    "(default: %(default)s)")
@@ -283,26 +284,6 @@ def _start_kernel(args: argparse.Namespace):
             flag = "--" + name.replace("_", "-")
             raise UserError(f"{args.init}: {name} {getattr(config, name)}, but {flag} is {wanted}")
     return config
-
-
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
-    return value
-
-
-def _non_negative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
-    return value
 
 
 def _length(value: float | None) -> str:
