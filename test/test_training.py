@@ -190,3 +190,6 @@ def test_the_point_floor_is_given_on_the_command_line_and_reported(tmp_path, cap
     assert train.main(_train_args(tmp_path, out, "--epochs", "1", "--min-class-points", "10000000")) == 0
     line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("kept at the start"))
     assert "under 10000000 ground-truth points" in line and "road" in line
+    assert train.main(_train_args(tmp_path, out, "--epochs", "1")) == 0  # labels: the default floor
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("kept at the start"))
+    assert f"under {trainer.MIN_CLASS_POINTS} ground-truth points" in line

@@ -125,10 +125,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="weight of the free-space question (mean NLL that points the scan saw through are free) "
                    "against the paper's point loss when free_ell is learned; larger values clear more trails of "
                    "movers and empty more real surface (default: %(default)s)")
-    p.add_argument("--min-class-points", default=MIN_CLASS_POINTS, type=non_negative(int), metavar="N",
+    p.add_argument("--min-class-points", default=None, type=non_negative(int), metavar="N",
                    help="a class with fewer ground-truth points than this in the training frames keeps the start "
-                   "kernel's lengths: the few objects such a class has in one drive make its learned lengths fit "
-                   "them and cost that class on other drives; 0 learns every class (default: %(default)s)")
+                   "kernel's lengths: with labels as input, the few objects such a class has in one drive make its "
+                   "learned lengths fit them and cost that class on other drives; 0 learns every class (default: "
+                   f"{MIN_CLASS_POINTS} with labels, 0 with --probabilities-dir, where every point's row trains "
+                   "every class and the floor cost mIoU and calibration)")
     p.add_argument("--temperature-miou-loss", default=TEMPERATURE_MIOU_LOSS, type=non_negative(float), metavar="M",
                    help="with --probabilities-dir: the validation mIoU the fitted temperature may cost (a fraction; "
                    "sharpening soft probabilities calibrates the map but can change its labels); inf: no bound "
@@ -204,7 +206,7 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                           progress=None if args.quiet else _progress, log=_log(args.quiet), device=device,
                           start=start, validator=validator, validate_every=args.validate_every,
                           learn_free_ell=args.learn_free_ell, free_weight=args.free_weight,
-                          min_class_points=args.min_class_points)
+                          min_class_points=_min_class_points(args))
     losses = result.losses
     if not losses:
         raise UserError("no training sample had scored points (check labels and predictions)")
@@ -212,7 +214,7 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
           f"(step {result.best_step} of {result.total_steps}, {result.epochs} epochs)")
     if result.kept_classes:
         names = datasets[0].label_map.class_names
-        print(f"kept at the start (under {args.min_class_points} ground-truth points in the training frames): "
+        print(f"kept at the start (under {_min_class_points(args)} ground-truth points in the training frames): "
               + ", ".join(names[c] for c in result.kept_classes))
     if result.free_ells:
         print(f"free_ell: learned {result.free_ells[-1]:.4f} m (from {result.free_ells[0]:.4f} m after the first "
@@ -284,6 +286,12 @@ def _start_kernel(args: argparse.Namespace):
             flag = "--" + name.replace("_", "-")
             raise UserError(f"{args.init}: {name} {getattr(config, name)}, but {flag} is {wanted}")
     return config
+
+
+def _min_class_points(args: argparse.Namespace) -> int:
+    if args.min_class_points is not None:
+        return args.min_class_points
+    return 0 if args.probabilities_dir else MIN_CLASS_POINTS
 
 
 def _length(value: float | None) -> str:

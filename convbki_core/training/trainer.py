@@ -49,7 +49,9 @@ A class with fewer than ``MIN_CLASS_POINTS`` ground-truth points in the training
 its start lengths (``kept_classes``). Its points come from a handful of objects, each seen in
 many scans with the same persistent input errors, so the lengths the loss finds for it fit those
 objects rather than the class, while each Adam step still moves them as far as a common
-class's; the validation mIoU cannot catch that when the class is rare there too.
+class's; the validation mIoU cannot catch that when the class is rare there too. That is
+measured with labels as input; with probabilities every point's row trains every class, and
+``train`` learns every class by default.
 """
 
 from __future__ import annotations
@@ -101,7 +103,7 @@ FREE_ELL_START_VOXELS = 1.25  # learning free_ell starts at least this many voxe
 TEMPERATURE_MIOU_LOSS = 0.01  # the validation mIoU a fitted temperature may cost (fit_temperature)
 BOUNDARY_STEPS = 5  # bisections of the allowed temperatures' boundary
 FREE_WEIGHT = 1.0  # the free points' mean NLL against the labelled points' (sample_loss)
-MIN_CLASS_POINTS = 50_000  # a class with fewer training ground-truth points keeps its start lengths
+MIN_CLASS_POINTS = 25_000  # a class with fewer training ground-truth points keeps its start lengths
 
 
 def class_counts(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]],
