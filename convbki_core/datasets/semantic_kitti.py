@@ -223,7 +223,9 @@ class SemanticKittiSequence:
         position %= len(self)
         name = self.names[position]
         scan = read_points(self.scan_files[position])
-        frame = Frame(index=int(name) if name.isdigit() else position, name=name, points=scan[:, :3],
+        # Contiguous (N, 3), as the node decodes a cloud: the voxeliser would copy a strided view.
+        points = np.ascontiguousarray(scan[:, :3])
+        frame = Frame(index=int(name) if name.isdigit() else position, name=name, points=points,
                       remission=scan[:, 3], pose=self.poses[position], stamp=float(self.times[position]))
         count = scan.shape[0]
         if self.has_ground_truth:
