@@ -201,12 +201,13 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     print(f"validation: {validator.frame_count} frames ({held}); training: "
           f"{sum(len(c) for c in train_positions)} samples")
     started = time.perf_counter()
+    floor = _min_class_points(args)
     result = train_kernel(datasets, train_positions, args.kernel, args.frames_per_sample, args.epochs, args.lr,
                           args.resolution, args.filter_size, seed=args.seed,
                           progress=None if args.quiet else _progress, log=_log(args.quiet), device=device,
                           start=start, validator=validator, validate_every=args.validate_every,
                           learn_free_ell=args.learn_free_ell, free_weight=args.free_weight,
-                          min_class_points=_min_class_points(args))
+                          min_class_points=floor)
     losses = result.losses
     if not losses:
         raise UserError("no training sample had scored points (check labels and predictions)")
@@ -214,7 +215,7 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
           f"(step {result.best_step} of {result.total_steps}, {result.epochs} epochs)")
     if result.kept_classes:
         names = datasets[0].label_map.class_names
-        print(f"kept at the start (under {_min_class_points(args)} ground-truth points in the training frames): "
+        print(f"kept at the start (under {floor} ground-truth points in the training frames): "
               + ", ".join(names[c] for c in result.kept_classes))
     if result.free_ells:
         print(f"free_ell: learned {result.free_ells[-1]:.4f} m (from {result.free_ells[0]:.4f} m after the first "
