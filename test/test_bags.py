@@ -4,6 +4,7 @@ received by an rclpy subscriber in this process while play_bag runs as a subproc
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import time
@@ -317,8 +318,12 @@ def test_play_bag_paces_by_stamps_and_stops_on_ctrl_c(dataset, tmp_path: Path) -
             process.kill()
             process.communicate()
     assert process.returncode == 0
-    # only the first timestamp's messages (odometry + cloud) were due: pacing by the stamps
-    assert "interrupted after 2 messages" in stderr and "Traceback" not in stderr
+    # Only the first timestamp's messages (odometry + cloud) were due: pacing by the stamps. Ctrl-C
+    # may land while that stamp's messages are still going out (the cloud can arrive before its
+    # publish call returns), so the count is at most 2; without pacing all 8 would be out by then.
+    assert "Traceback" not in stderr
+    sent = int(re.search(r"interrupted after (\d+) messages", stderr).group(1))
+    assert sent <= 2, stderr
 
 
 def test_play_bag_bad_input_is_one_line(tmp_path: Path) -> None:

@@ -229,6 +229,7 @@ class BagPlayer:
             message = self.typestore[channel.msgtype].deserialize_cdr(bytes(data), channel.msgtype)
             channel.publisher.publish(to_rclpy(message, channel.cls))
         channel.count += 1
+        self.sent += 1  # per message, so Ctrl-C between two messages of one stamp counts the first
 
     def _publish_clock(self, timestamp: int) -> None:
         if self.clock_publisher is None:
@@ -261,7 +262,6 @@ class BagPlayer:
                 self._publish_clock(max(timestamp, previous))
                 for connection, data in sorted(group, key=lambda item: self.channels[item[0].id].priority):
                     self._publish(self.channels[connection.id], data, timestamp)
-                self.sent += len(group)
                 if bar is not None:
                     bar.update(len(group))
         finally:
