@@ -137,7 +137,6 @@ class BagPlayer:
         self.typestore = None
         self.clock_publisher = None
         self.clock_class = None
-        self.sent = 0  # messages published so far
         for connection in reader.connections:
             self.channels[connection.id] = self._channel(connection)
         if args.clock:
@@ -228,8 +227,7 @@ class BagPlayer:
             assert self.typestore is not None
             message = self.typestore[channel.msgtype].deserialize_cdr(bytes(data), channel.msgtype)
             channel.publisher.publish(to_rclpy(message, channel.cls))
-        channel.count += 1
-        self.sent += 1  # per message, so Ctrl-C between two messages of one stamp counts the first
+        channel.count += 1  # per message, so Ctrl-C between two messages of one stamp counts the first
 
     def _publish_clock(self, timestamp: int) -> None:
         if self.clock_publisher is None:
@@ -268,6 +266,11 @@ class BagPlayer:
             if bar is not None:
                 bar.close()
         return self.sent
+
+    @property
+    def sent(self) -> int:
+        """Messages published so far (the clock excluded)."""
+        return sum(channel.count for channel in self.channels.values())
 
     def flush(self, timeout: float = 5.0) -> None:
         """Wait (bounded) until reliable subscribers acknowledged everything published."""
