@@ -1,8 +1,12 @@
 """Build script for the convbki_ros ament_python package (colcon or pip)."""
 
+import os
+import subprocess
+import sys
 from glob import glob
 
 from setuptools import find_packages, setup
+from setuptools.command.install import install
 
 package_name = "convbki_ros"
 
@@ -24,7 +28,33 @@ data_files = [
 if _files("rviz/*.rviz"):
     data_files.append(("share/" + package_name + "/rviz", _files("rviz/*.rviz")))
 
+
+
+class InstallWarm(install):
+    """``install``, then compile the installed copy's numba kernels into its cache, so that a
+    node started right after ``colcon build`` is ready at once instead of compiling for a
+    minute. Best effort: a build machine without the run-time dependencies (torch, numba)
+    only says so. ``CONVBKI_SKIP_WARM_UP=1`` skips it."""
+
+    def run(self):
+        super().run()
+        if os.environ.get("CONVBKI_SKIP_WARM_UP"):
+            return
+        environment = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [self.install_lib,
+                                                                               os.environ.get("PYTHONPATH")])))
+        # Run from the install folder, so that Python imports the copy just installed.
+        result = subprocess.run([sys.executable, "-m", "convbki_core.tools.warm_up"], cwd=self.install_lib,
+                                env=environment, stdin=subprocess.DEVNULL, capture_output=True, text=True)
+        lines = (result.stdout + result.stderr).strip().splitlines()
+        if result.returncode == 0:
+            print(lines[-1] if lines else "warm_up: done")
+        else:
+            print(f"warning: the compiled kernels were not cached at install ({lines[-1] if lines else 'no output'}); "
+                  "the node compiles them at its first start instead", file=sys.stderr)
+
+
 setup(
+    cmdclass={"install": InstallWarm},
     name=package_name,
     version="0.1.0",
     packages=find_packages(

@@ -32,7 +32,7 @@ import torch
 from convbki_core.native import HAVE_NUMBA
 
 if HAVE_NUMBA:
-    from numba import njit
+    from convbki_core.native import njit
 
 DEFAULT_LIMIT = 300.0
 # A voxel whose free concentration is below this is seen empty for the first time (the prior
@@ -74,7 +74,7 @@ def clamp_numpy(alpha: np.ndarray, voxels: tuple[np.ndarray, np.ndarray, np.ndar
 
 if HAVE_NUMBA:
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def clamp_voxel(alpha, x, y, z, before, limit):  # pragma: no cover - compiled; tested against numpy
         """The clamping of one voxel that has just taken free evidence (``before``: its free
         concentration before it); ``limit`` <= 0: off."""

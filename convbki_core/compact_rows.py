@@ -13,7 +13,7 @@ import numpy as np
 from convbki_core.native import HAVE_NUMBA
 
 if HAVE_NUMBA:
-    from numba import njit
+    from convbki_core.native import njit
 
 
 def entry_starts(counts: np.ndarray) -> np.ndarray:
@@ -32,7 +32,7 @@ def entry_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 if HAVE_NUMBA:
 
-    @njit(cache=True, nogil=True)
+    @njit(nogil=True)
     def _compress_numba(bits, order, prior_bits, counts, classes, values):  # pragma: no cover - compiled
         m = 0
         for i in range(order.size):
@@ -46,7 +46,7 @@ if HAVE_NUMBA:
             counts[i] = m - first
         return m
 
-    @njit(cache=True, nogil=True)
+    @njit(nogil=True)
     def _expand_numba(out, positions, starts, counts, classes, values, prior_bits):  # pragma: no cover - compiled
         for k in range(positions.size):
             p = positions[k]

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 
 from convbki_core.clamping import FIRST_CONTRADICTION, clamp_numpy
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.native import HAVE_NUMBA, parallel_region
 from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
 
@@ -56,9 +56,9 @@ _CHECK = 8
 
 if HAVE_NUMBA:
     import numba
-    from numba import njit, prange
 
     from convbki_core.clamping import clamp_voxel
+    from convbki_core.native import njit, prange
 
     # Bytes, so that the mask's update stays in bytes and vectorises.
     _CHANGED_BYTE = np.uint8(CHANGED)
@@ -124,8 +124,10 @@ def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndar
     dims = np.ascontiguousarray(dims, np.int64)
     sensor = np.ascontiguousarray(sensor, np.float64)
     if HAVE_NUMBA:
-        return int(_free_space_numba(sensor, occupied, np.ascontiguousarray(weights, np.float32), through, offsets,
-                                     tap_weights, origin, dims, alpha, mask, counts, float(max_concentration)))
+        with parallel_region():
+            return int(_free_space_numba(sensor, occupied, np.ascontiguousarray(weights, np.float32), through,
+                                         offsets, tap_weights, origin, dims, alpha, mask, counts,
+                                         float(max_concentration)))
     return _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
                              float(max_concentration))
 
@@ -173,8 +175,9 @@ def count_rays(sensor: np.ndarray, ends: np.ndarray, weights: np.ndarray, throug
     sensor = np.ascontiguousarray(sensor, np.float64)
     dims = np.ascontiguousarray(dims, np.int64)
     if HAVE_NUMBA:
-        _count_rays(sensor, np.ascontiguousarray(ends, np.int64), np.ascontiguousarray(weights, np.float32),
-                    np.ascontiguousarray(through, np.bool_), np.zeros(3, np.int64), dims, volume, shared_plane)
+        with parallel_region():
+            _count_rays(sensor, np.ascontiguousarray(ends, np.int64), np.ascontiguousarray(weights, np.float32),
+                        np.ascontiguousarray(through, np.bool_), np.zeros(3, np.int64), dims, volume, shared_plane)
         volume[int(np.floor(sensor[0])) % int(dims[0])] += shared_plane
         shared_plane[:] = 0.0
         return volume
@@ -189,9 +192,10 @@ def _add(volume: np.ndarray, voxel, dims: np.ndarray, weight: float) -> None:
 
 def scratch_counts(dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The zeroed scratch ``free_space_update`` counts into (left zeroed): a window-sized count
-    volume and one (Y, Z) plane."""
+    volume and one (Y, Z) plane. Written now (np.zeros alone maps the pages lazily), so the
+    first scan does not pay for the page faults."""
     shape = tuple(int(d) for d in dims)
-    return np.zeros(shape, np.float32), np.zeros(shape[1:], np.float32)
+    return np.full(shape, 0.0, np.float32), np.full(shape[1:], 0.0, np.float32)
 
 
 def crossed_voxels(start: np.ndarray, end_voxel: np.ndarray, through: bool = False) -> list[tuple[int, int, int]]:
@@ -253,7 +257,7 @@ def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, 
 
 if HAVE_NUMBA:
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _ray_start(sensor, end_voxel, through):  # pragma: no cover - compiled
         """The walk of ``_walk_ray`` at the sensor's voxel: (voxel x, y, z, steps, step x, y, z,
         the times of the next boundary crossings x, y, z and their increments x, y, z)."""
@@ -272,7 +276,7 @@ if HAVE_NUMBA:
                 abs(1.0 / dx) if dx != 0 else inf, abs(1.0 / dy) if dy != 0 else inf,
                 abs(1.0 / dz) if dz != 0 else inf)
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _count_ray(sensor, end_voxel, weight, through, corner, dims, counts, shared_x,
                    shared_plane):  # pragma: no cover - compiled
         """Add ``weight`` to the count of every voxel the ray crosses before its end voxel (and
@@ -312,7 +316,7 @@ if HAVE_NUMBA:
                 elif pz < 0:
                     pz = dims[2] - 1
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _step_inside(tx, ty, tz, tdx, tdy, tdz, index, pz, sz, stride_x, stride_y, size_z):  # pragma: no cover
         """One step of ``_count_ray_inside``'s walk (the first smallest of tx, ty, tz, as
         ``_walk_ray``): the new (tx, ty, tz, flat index, z on the torus, whether it stepped along x)."""
@@ -330,7 +334,7 @@ if HAVE_NUMBA:
             index += size_z
         return tx, ty, tz + tdz, index, pz, False
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _count_ray_inside(sensor, end_voxel, weight, through, corner, dims, counts, shared_plane,
                           shared):  # pragma: no cover - compiled
         """``_count_ray`` for a ray whose voxels lie within ``corner`` + ``dims`` in x and y,
@@ -358,7 +362,7 @@ if HAVE_NUMBA:
             tx, ty, tz, index, pz, _along_x = _step_inside(tx, ty, tz, tdx, tdy, tdz, index, pz, sz, stride_x,
                                                            stride_y, size_z)
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @njit(parallel=True, nogil=True)
     def _count_rays(sensor, occupied, weights, through, corner, dims, counts, shared_plane):  # pragma: no cover
         """Two threads, no shared voxel: rays that end at or beyond the sensor's x plane only
         visit planes on that side, the others only planes below it; the sensor's own plane,
@@ -385,7 +389,7 @@ if HAVE_NUMBA:
                         _count_ray(sensor, occupied[m], weights[m], through[m], corner, dims, counts,
                                    -1 if group == 0 else shared_x, shared_plane)
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _apply_run(free, marks, counted, weight, clamping):  # pragma: no cover - compiled
         """``_apply_centre`` over a run of the window (``free``, ``marks``: flat runs of the
         free concentrations and the mask) and its counts; branch-free over indices from 0,
@@ -410,7 +414,7 @@ if HAVE_NUMBA:
             first = min(first, j if check else size)
         return found, last, first
 
-    @njit(cache=True, nogil=True)
+    @njit(nogil=True)
     def _clamp_run(alpha, start, marks, limit):  # pragma: no cover - compiled
         """Clamp the voxels of a run that ``_apply_run`` marked ``_CHECK`` (``alpha`` (C, V)
         flat planes, the run starting at flat index ``start``) and clear their bit."""
@@ -428,7 +432,7 @@ if HAVE_NUMBA:
                 for c in range(alpha.shape[0]):
                     alpha[c, voxel] *= scale
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @njit(parallel=True, nogil=True)
     def _apply_centre(sensor_x, weight, origin, alpha, mask, counts, shared_plane, parts,
                       limit):  # pragma: no cover
         """Add the counted rays as free evidence through a centre-only free kernel, each thread
@@ -462,7 +466,7 @@ if HAVE_NUMBA:
             grew[part] = found
         return grew.sum()
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @njit(parallel=True, nogil=True)
     def _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, counts,
                       shared_plane, parts, limit):  # pragma: no cover - compiled
         """Add the counted rays as free evidence through a free kernel of any taps, each thread
@@ -504,7 +508,7 @@ if HAVE_NUMBA:
         counts[:] = 0.0  # a tap reads other threads' planes: clear only after every thread has read
         return grew.sum()
 
-    @njit(cache=True, nogil=True)
+    @njit(nogil=True)
     def _exit_linear_numba(points, sensor, origin, dims):  # pragma: no cover - compiled; tested against numpy
         """Window-local linear index of the voxel where each finite outside point's ray leaves
         the window."""
@@ -535,7 +539,7 @@ if HAVE_NUMBA:
             count += 1
         return out[:count]
 
-    @njit(cache=True, nogil=True)
+    @njit(nogil=True)
     def _unravel_numba(linear, origin, dims):  # pragma: no cover - compiled; the twin of unravel_linear
         """Global indices (N, 3) of window-linear indices."""
         out = np.empty((linear.shape[0], 3), np.int64)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,7 +47,7 @@ from convbki_core.records import RECORD, records_from_alpha, window_records
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
 from convbki_core.torch_window import TorchFilters, TorchWindow, torch_free_space, torch_update
-from convbki_core.update import FilterPlan, dense_volume, scatter_volume, warm_up
+from convbki_core.update import FilterPlan, dense_volume, scatter_volume
 from convbki_core.volume import (
     SparseVolume,
     VoxelizeStats,
@@ -163,15 +164,15 @@ class ConvBKIMapper:
         if update_path == "torch":
             self.window = TorchWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store, track_changes,
                                       self.device)
-        if HAVE_NUMBA:
-            warm_up()  # compiled code loads now, not during the first scan
         self.scans_integrated = 0
+        self.sensor_position: np.ndarray | None = None  # map frame (m), at the last scan (or from a loaded file)
         self._removed: list[np.ndarray] = []  # voxels that left the map since the changes were taken
         self._everything_changed = False  # a load replaced the map: every voxel is a change
         self._plan: FilterPlan | None = None
         self._free_taps: tuple[np.ndarray, np.ndarray] | None = None
         self._plan_key: tuple | None = None
         self._free_counts = scratch_counts(self.geometry.dims) if self.free_space else None
+        self._refresh_filters()  # the filters of the first scan, prepared now
 
     # -- properties ------------------------------------------------------------------------
     @property
@@ -242,6 +243,7 @@ class ConvBKIMapper:
                                                         self.geometry.dims, self.window.alpha, self.window.mask,
                                                         self._free_counts, through, self.max_concentration)
         self.scans_integrated += 1
+        self.sensor_position = pose[:3, 3].copy()
         finished = time.perf_counter()
         result.timing_ms = {"voxelize": 1e3 * (voxelized - started), "query": 1e3 * (moved - voxelized),
                             "update": 1e3 * (updated - moved), "free": 1e3 * (finished - updated),
@@ -364,6 +366,24 @@ class ConvBKIMapper:
         self.store.clear()
         self.window.clear()
         self.scans_integrated = 0
+        self.sensor_position = None
+
+    def forget_box(self, box_min: Sequence[float], box_max: Sequence[float]) -> np.ndarray:
+        """Forget the evidence of every voxel whose centre lies in the box ``box_min`` ..
+        ``box_max`` (x, y, z in the map frame, m), as if it had never been observed (octomap's
+        clear_bbox). Returns the global indices (n, 3) of the voxels forgotten; they are
+        reported as removed by ``take_changes``."""
+        box_min, box_max = np.asarray(box_min, np.float64), np.asarray(box_max, np.float64)
+        if box_min.shape != (3,) or box_max.shape != (3,) or not np.isfinite([box_min, box_max]).all():
+            raise ValueError(f"a box needs finite x, y, z corners, got {box_min.tolist()} and {box_max.tolist()}")
+        # Voxel i's centre is (i + 0.5) * resolution: the first and one past the last voxel inside.
+        lo = np.ceil(box_min / self.resolution - 0.5).astype(np.int64)
+        hi = np.floor(box_max / self.resolution - 0.5).astype(np.int64) + 1
+        if (hi <= lo).any():
+            return np.zeros((0, 3), np.int64)
+        forgotten = np.concatenate([self.store.forget_box(lo, hi), self.window.forget_box(lo, hi)])
+        self._removed.append(forgotten)
+        return forgotten
 
     def take_changes(self, everything: bool = False) -> MapChanges:
         """The voxels that changed or left the map since the last call (``everything``: every
@@ -396,20 +416,44 @@ class ConvBKIMapper:
             "kernel": kernel_config_to_dict(self.kernel.to_config()),
             "scans_integrated": self.scans_integrated,
         }
+        if self.sensor_position is not None:
+            metadata["sensor_position"] = [float(v) for v in self.sensor_position]
         return MapSnapshot(metadata, indices, alpha)
 
-    def load(self, path: str | Path) -> None:
-        """Replace the map's voxels with those of a map file (resolution and classes must match);
-        the map is untouched if the file is unusable."""
+    def load(self, path: str | Path) -> dict:
+        """Replace the map's voxels with those of a map file (resolution, classes and prior must
+        match); the map is untouched if the file is unusable. Returns the file's metadata."""
         metadata, indices, alpha = read_map(path)
+        self.check_compatible(path, metadata)
+        self.replace_with(metadata, indices, alpha)
+        return metadata
+
+    def check_compatible(self, path: str | Path, metadata: dict) -> None:
+        """Raise ``MapFileError`` unless a map file with this metadata (``read_map``) can be
+        loaded into this mapper: the same classes, resolution and prior."""
         if metadata["num_classes"] != self.num_classes:
             raise MapFileError(f"{path}: map has {metadata['num_classes']} classes, the mapper {self.num_classes}")
         if not np.isclose(float(metadata["resolution"]), self.resolution):
             raise MapFileError(f"{path}: map resolution {metadata['resolution']} m differs from the mapper's "
                                f"{self.resolution} m")
+        if metadata.get("prior") is not None and not np.isclose(float(metadata["prior"]), self.prior):
+            raise MapFileError(f"{path}: map prior {metadata['prior']} differs from the mapper's {self.prior}: its "
+                               "voxels' unobserved classes would hold the wrong concentration")
+
+    def replace_with(self, metadata: dict, indices: np.ndarray, alpha: np.ndarray) -> None:
+        """Make the map the given one (a map file's contents, ``read_map``, checked with
+        ``check_compatible``). The window is placed around the sensor position the file
+        recorded (else the centre of its voxels), so the map around the robot is at hand
+        before the next scan."""
         self.reset()  # its voxels count as removed
         self.store.write(indices, alpha)
         self.scans_integrated = int(metadata.get("scans_integrated", 0))
+        position = metadata.get("sensor_position")
+        if position is None and len(indices):
+            position = voxel_centres((indices.min(axis=0) + indices.max(axis=0)) // 2, self.resolution)
+        if position is not None:
+            self.sensor_position = np.asarray(position, np.float64)
+            self.window.move_to(self.geometry.origin_for(self.sensor_position))
         self._everything_changed = True
 
     def export_ply(self, path: str | Path, max_variance: float | None = None) -> int:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.native import HAVE_NUMBA, parallel_region
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.volume import voxel_centres
 
@@ -61,7 +61,9 @@ def window_records(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims
     palette = np.ascontiguousarray(palette, np.uint32)
     if HAVE_NUMBA:
         words = out.view(np.uint32).reshape(count, 7)
-        if _window_records_numba(alpha, mask, origin, dims, float(resolution), palette, words) != count:
+        with parallel_region():
+            written = _window_records_numba(alpha, mask, origin, dims, float(resolution), palette, words)
+        if written != count:
             raise ValueError(f"output has {count} records, the window {int(np.count_nonzero(mask))} voxels")
         return out
     physical = np.argwhere(mask)
@@ -73,12 +75,11 @@ def window_records(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims
 
 
 if HAVE_NUMBA:
-    from numba import njit, prange
-
+    from convbki_core.native import njit, prange
     from convbki_core.statistics import voxel_statistics
     from convbki_core.window import plane_starts
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @njit(parallel=True, nogil=True)
     def _window_records_numba(alpha, mask, origin, dims, resolution, palette, words):  # pragma: no cover
         size_x, size_y, size_z = mask.shape
         num_classes = alpha.shape[0]

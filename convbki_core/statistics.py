@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.native import HAVE_NUMBA, parallel_region
 
 
 @dataclass
@@ -32,7 +32,8 @@ def dirichlet_statistics(alpha: np.ndarray) -> DirichletStats:
         label = np.empty(alpha.shape[0], np.int64)
         expected = np.empty(alpha.shape[0], np.float32)
         variance = np.empty(alpha.shape[0], np.float32)
-        _rows_numba(np.ascontiguousarray(alpha), label, expected, variance)
+        with parallel_region():
+            _rows_numba(np.ascontiguousarray(alpha), label, expected, variance)
         return DirichletStats(label, expected, variance)
     label = alpha.argmax(axis=1) if alpha.shape[0] else np.zeros(0, np.int64)
     total = alpha.sum(axis=1, dtype=np.float32)
@@ -50,9 +51,9 @@ def expected_probabilities(alpha: np.ndarray) -> np.ndarray:
 
 
 if HAVE_NUMBA:
-    from numba import njit, prange
+    from convbki_core.native import njit, prange
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def voxel_statistics(values):  # pragma: no cover - compiled
         """(expected class, its expected probability, its variance) of one voxel's concentrations,
         summed in class order in float32: the one definition every compiled output shares, so
@@ -69,7 +70,7 @@ if HAVE_NUMBA:
         expected = top / total if total > 0 else np.float32(0.0)
         return best, expected, expected * (np.float32(1.0) - expected) / (np.float32(1.0) + total)
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @njit(parallel=True, nogil=True)
     def _rows_numba(alpha, label, expected, variance):  # pragma: no cover - compiled
         for row in prange(alpha.shape[0]):
             label[row], expected[row], variance[row] = voxel_statistics(alpha[row])

@@ -24,7 +24,7 @@ from convbki_core.native import HAVE_NUMBA
 from convbki_core.volume import linear_index, unravel_linear
 
 if HAVE_NUMBA:
-    from numba import njit
+    from convbki_core.native import njit
 
 CHUNK_SHIFT = 4
 CHUNK_EDGE = 1 << CHUNK_SHIFT
@@ -73,7 +73,7 @@ def _decode_offsets(offsets: np.ndarray) -> np.ndarray:
 
 if HAVE_NUMBA:
 
-    @njit(cache=True, nogil=True)
+    @njit(nogil=True)
     def _window_linear_numba(offsets, first, shift, dims, linear, inside):  # pragma: no cover - compiled
         for k in range(first.size - 1):
             count = 0
@@ -89,7 +89,7 @@ if HAVE_NUMBA:
                     linear[i] = -1
             inside[k] = count
 
-    @njit(cache=True, nogil=True)
+    @njit(nogil=True)
     def _merge_numba(old_offsets, old_counts, old_classes, old_values, new_offsets, new_counts, new_classes,
                      new_values, offsets, counts, classes, values):  # pragma: no cover - compiled
         i = j = k = old_entry = new_entry = entry = 0
@@ -162,7 +162,6 @@ class VoxelStore:
         self.prior = np.float32(prior)
         self._chunks: dict[tuple[int, int, int], _Chunk] = {}
         self._count = 0
-        warm_up()
 
     # -- size ----------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -274,6 +273,30 @@ class VoxelStore:
                 self._count += merged.offsets.size - chunk.offsets.size
                 self._chunks[key] = merged
 
+    def forget_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Remove the stored voxels of the global box [lo, hi) (hi exclusive); returns their
+        indices (n, 3). Visits only the chunks that overlap the box."""
+        lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
+        first, last = _chunk_keys(lo).tolist(), _chunk_keys(hi - 1).tolist()
+        overlapping = [key for key in self._chunks if all(first[a] <= key[a] <= last[a] for a in range(3))]
+        removed = []
+        for key in overlapping:
+            chunk = self._chunks[key]
+            indices = _decode_offsets(chunk.offsets) + (np.asarray(key, np.int64) << CHUNK_SHIFT)
+            inside = ((indices >= lo) & (indices < hi)).all(axis=1)
+            if not inside.any():
+                continue
+            removed.append(indices[inside])
+            if inside.all():
+                del self._chunks[key]
+            else:
+                keep = ~inside
+                entries = np.repeat(keep, chunk.counts)
+                self._chunks[key] = _Chunk(chunk.offsets[keep], chunk.counts[keep], chunk.classes[entries],
+                                           chunk.values[entries])
+            self._count -= int(np.count_nonzero(inside))
+        return np.concatenate(removed) if removed else np.zeros((0, 3), np.int64)
+
     # -- point access ----------------------------------------------------------------------
     def lookup(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Concentrations at global voxel ``indices`` (n, 3): (alpha (n, C), found (n,) bool).
@@ -325,18 +348,3 @@ class VoxelStore:
             raise RuntimeError(f"store counted {self._count} voxels, was given {indices.shape[0]} rows")
         return indices, alpha
 
-
-_warmed_up = False
-
-
-def warm_up() -> None:
-    """Load (or compile) the store's kernels now, on a toy store, once per process."""
-    global _warmed_up
-    if _warmed_up or not HAVE_NUMBA:
-        return
-    _warmed_up = True
-    store = VoxelStore(2, 1.0)
-    store.write(np.array([[0, 0, 0], [1, 0, 0], [40, 0, 0]]), np.array([[1, 2], [1, 1], [3, 1]], np.float32))
-    store.write(np.array([[1, 0, 0], [2, 0, 0]]), np.ones((2, 2), np.float32))
-    store.take_window(np.zeros(3, np.int64), np.array([2, 2, 2]))
-    store.lookup(np.array([[40, 0, 0]]))

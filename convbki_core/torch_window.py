@@ -51,15 +51,15 @@ class TorchWindow(RollingWindow):
         px, py, pz = (torch.as_tensor(axis, device=self.device) for axis in self._physical(lo, hi))
         return px[:, None, None], py[None, :, None], pz[None, None, :]
 
-    def _evict(self, lo: np.ndarray, hi: np.ndarray) -> None:
+    def _evict(self, lo: np.ndarray, hi: np.ndarray, keep: bool = True) -> np.ndarray:
         gx, gy, gz = self._grid(lo, hi)
         mask = self.mask[gx, gy, gz]
         local = torch.nonzero(mask)
-        if local.shape[0]:
+        indices = local.cpu().numpy() + lo
+        if local.shape[0] and keep:
             x, y, z = gx[local[:, 0], 0, 0], gy[0, local[:, 1], 0], gz[0, 0, local[:, 2]]
             rows = self.alpha[:, x, y, z].T.cpu().numpy()
             marks = mask[local[:, 0], local[:, 1], local[:, 2]].cpu().numpy()
-            indices = local.cpu().numpy() + lo
             if self.track_changes:
                 changed = (marks & CHANGED) != 0
                 if changed.any():
@@ -67,6 +67,7 @@ class TorchWindow(RollingWindow):
             self.store.write(indices, rows)
         self.alpha[:, gx, gy, gz] = float(self.prior)
         self.mask[gx, gy, gz] = 0
+        return indices
 
     def _load(self, lo: np.ndarray, hi: np.ndarray) -> None:
         linear, alpha = self.store.take_window(lo, hi - lo)

@@ -31,13 +31,14 @@ import numpy as np
 import torch
 
 from convbki_core.layer import ConvBKILayer
-from convbki_core.native import HAVE_NUMBA
-from convbki_core.volume import SparseVolume, unravel_linear, voxelize_scan
-from convbki_core.window import CHANGED, EVIDENCE, gather_window
+from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.volume import SparseVolume, unravel_linear
+from convbki_core.window import CHANGED, EVIDENCE
 
 if HAVE_NUMBA:
     import numba
-    from numba import njit, prange
+
+    from convbki_core.native import njit, prange
 
 @dataclass(frozen=True)
 class FilterPlan:
@@ -68,7 +69,7 @@ class FilterPlan:
 
 if HAVE_NUMBA:
 
-    @njit(cache=True, nogil=True, inline="always")
+    @njit(nogil=True, inline="always")
     def _targets_in_part(target, m, x_begin, x_end, px):  # pragma: no cover - compiled
         """px[i]: voxel m's i-th x target if it lies in this thread's planes [x_begin, x_end), else -1.
         Returns whether any does (else the voxel is another thread's work)."""
@@ -79,7 +80,7 @@ if HAVE_NUMBA:
             any_x = any_x or px[i] >= 0
         return any_x
 
-    @njit(cache=True, parallel=True, nogil=True)  # nogil: ROS callbacks keep running during an update
+    @njit(parallel=True, nogil=True)  # nogil: ROS callbacks keep running during an update
     def _scatter_numba(occupied, features, filters, k_lo, k_hi, support, origin, dims, alpha, mask,
                        parts, marks):  # pragma: no cover - compiled; tested through scatter_update
         num_voxels = occupied.shape[0]
@@ -196,8 +197,9 @@ def scatter_update(occupied: np.ndarray, features: np.ndarray, filters: np.ndarr
         return 0
     if HAVE_NUMBA:
         parts = max(1, min(numba.get_num_threads(), int(dims[0])))
-        return int(_scatter_numba(occupied, features, plan.filters, plan.k_lo, plan.k_hi, plan.support, origin,
-                                  dims, alpha, mask, parts, np.uint8(marks)))
+        with parallel_region():
+            return int(_scatter_numba(occupied, features, plan.filters, plan.k_lo, plan.k_hi, plan.support, origin,
+                                      dims, alpha, mask, parts, np.uint8(marks)))
     return _scatter_numpy(occupied, features, plan.filters, origin, dims, alpha, mask, marks)
 
 
@@ -238,32 +240,3 @@ def dense_volume(volume: SparseVolume, layer: ConvBKILayer, alpha: np.ndarray, m
     mask |= touched.astype(np.uint8) * np.uint8(marks)
     return new
 
-
-_warmed_up = False
-
-
-def warm_up() -> None:
-    """Load (or compile) the update's compiled kernels (voxeliser, scatter, gather) now, on a
-    toy problem, once per process.
-
-    The first call of a numba function loads its machine code from the cache and starts the
-    thread pool, which takes a noticeable pause. A mapping node pays that at start-up instead of on its
-    first scan, when the 10 Hz clouds are already queueing.
-    """
-    global _warmed_up
-    if _warmed_up or not HAVE_NUMBA:
-        return
-    dims = np.array([4, 4, 4], np.int64)
-    origin = np.zeros(3, np.int64)
-    slot = np.full(int(np.prod(dims)), -1, np.int32)
-    points = np.array([[0.1, 0.1, 0.1], [0.5, 0.3, 0.1]])
-    alpha = np.ones((2, *dims.tolist()), np.float32)
-    mask = np.zeros(dims.tolist(), np.uint8)
-    filters = np.ones((2, 3, 3, 3), np.float32)
-    for values in (np.array([1, 1]), np.full((2, 2), 0.5, np.float32)):
-        for dtype in (np.float32, np.float64):
-            volume = voxelize_scan(points.astype(dtype), values, np.eye(4), origin, dims, 0.2, 2, (0,), slot)
-        occupied = np.stack(np.unravel_index(volume.linear, dims.tolist()), axis=1)
-        scatter_update(occupied, volume.features, filters, origin, dims, alpha, mask)
-    gather_window(alpha, mask, origin, dims)
-    _warmed_up = True

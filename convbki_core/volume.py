@@ -22,10 +22,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.native import HAVE_NUMBA, parallel_region
 
 if HAVE_NUMBA:
-    from numba import njit, prange
+    from convbki_core.native import njit, prange
 if TYPE_CHECKING:
     import torch
 
@@ -323,7 +323,7 @@ def bad_probability_rows(probabilities: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 if HAVE_NUMBA:
 
-    @njit(cache=True, nogil=True, parallel=True)
+    @njit(nogil=True, parallel=True)
     def _point_voxels(points, pose, labels, probabilities, use_probabilities, origin, dims, resolution,
                       ignored):  # pragma: no cover - compiled; tested through voxelize_scan
         """Each point's window-linear voxel, or -1 - k when it is dropped for reason k of
@@ -371,7 +371,7 @@ if HAVE_NUMBA:
             code[i] = (lx * dims[1] + ly) * dims[2] + lz
         return code
 
-    @njit(cache=True, nogil=True)
+    @njit(nogil=True)
     def _radix_sort(values, bound):  # pragma: no cover - compiled; tested against np.sort
         """``values`` (distinct, 0 <= v < bound) sorted: least significant digit first, 11 bits a
         pass, so a window of up to 2^22 voxels takes two counting passes over the voxels instead
@@ -397,7 +397,7 @@ if HAVE_NUMBA:
             source, target = target, source
         return source
 
-    @njit(cache=True, nogil=True)
+    @njit(nogil=True)
     def _voxelize_numba(points, pose, labels, probabilities, use_probabilities, origin, dims, resolution,
                         ignored, slot):  # pragma: no cover - compiled; tested through voxelize_scan
         """(occupied voxels in increasing window-linear order, their (M, C) features, each point's
@@ -444,7 +444,7 @@ if HAVE_NUMBA:
 if HAVE_NUMBA:
 
     # Not "fastmath=True": the row check below relies on NaN and inf comparing as they should.
-    @njit(cache=True, nogil=True, parallel=True, fastmath={"afn", "arcp", "contract", "nsz"})
+    @njit(nogil=True, parallel=True, fastmath={"afn", "arcp", "contract", "nsz"})
     def _temper_numba(probabilities, inverse_temperature):  # pragma: no cover - compiled; tested against numpy
         """``temper_probabilities`` of every row the voxeliser would keep (finite, no negative
         value, a positive sum), on every core; other rows are copied unchanged, so the
@@ -501,14 +501,16 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
     with np.errstate(over="ignore"):  # beyond float32: inf, then dropped (as voxelize.check_scan does)
         probabilities = (np.ascontiguousarray(values, np.float32) if with_probabilities
                          else np.zeros((0, num_classes), np.float32))
-    if with_probabilities and tempers(temperature):
-        probabilities = _temper_numba(probabilities, 1.0 / temperature)
     points = np.ascontiguousarray(points)
     if points.dtype not in (np.float32, np.float64):
         points = points.astype(np.float64)
-    occupied, features, point_linear, counts = _voxelize_numba(
-        points, np.ascontiguousarray(pose, np.float64), labels, probabilities, with_probabilities,
-        np.ascontiguousarray(origin, np.int64), np.ascontiguousarray(dims, np.int64), float(resolution), ignored, slot)
+    with parallel_region():
+        if with_probabilities and tempers(temperature):
+            probabilities = _temper_numba(probabilities, 1.0 / temperature)
+        occupied, features, point_linear, counts = _voxelize_numba(
+            points, np.ascontiguousarray(pose, np.float64), labels, probabilities, with_probabilities,
+            np.ascontiguousarray(origin, np.int64), np.ascontiguousarray(dims, np.int64), float(resolution), ignored,
+            slot)
     stats = VoxelizeStats(points_in=len(points), non_finite=int(counts[0]), unknown_label=int(counts[1]),
                           ignored_class=int(counts[2]), outside_window=int(counts[3]),
                           bad_probabilities=int(counts[4]))

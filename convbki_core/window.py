@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.native import HAVE_NUMBA, parallel_region
 from convbki_core.store import VoxelStore
 from convbki_core.volume import unravel_linear
 
 if HAVE_NUMBA:
-    from numba import njit, prange
+    from convbki_core.native import njit, prange
 
 # Bits of the window's byte mask: the voxel holds evidence; its concentrations changed since
 # the map's changes were last taken (``RollingWindow.take_changes``); it received class
@@ -74,9 +74,10 @@ class RollingWindow:
         self._evicted_changes: list[tuple[np.ndarray, np.ndarray]] = []
 
     def _allocate(self) -> None:
-        """The window's arrays: concentrations at the prior, no evidence."""
+        """The window's arrays: concentrations at the prior, no evidence. Every page is written
+        now (np.zeros alone maps them lazily), so the first scan does not pay for the faults."""
         self.alpha = np.full((self.num_classes, *self.dims.tolist()), self.prior, np.float32)
-        self.mask = np.zeros(self.dims.tolist(), np.uint8)
+        self.mask = np.full(self.dims.tolist(), 0, np.uint8)
 
     @property
     def nbytes(self) -> int:
@@ -90,12 +91,13 @@ class RollingWindow:
         """Index arrays (for np.ix_) of the torus positions of the global box [lo, hi)."""
         return tuple(np.arange(lo[a], hi[a]) % self.dims[a] for a in range(3))
 
-    def _evict(self, lo: np.ndarray, hi: np.ndarray) -> None:
-        """Move the evidence of global box [lo, hi) to the store and reset it to the prior."""
+    def _evict(self, lo: np.ndarray, hi: np.ndarray, keep: bool = True) -> np.ndarray:
+        """Move the evidence of global box [lo, hi) to the store (``keep``) or drop it, and reset
+        the box to the prior; returns the global indices (n, 3) of the voxels that held evidence."""
         px, py, pz = self._physical(lo, hi)
         mask = self.mask[np.ix_(px, py, pz)]
         local = np.argwhere(mask)
-        if local.size:
+        if local.size and keep:
             rows = self.alpha[:, px[local[:, 0]], py[local[:, 1]], pz[local[:, 2]]].T
             if self.track_changes:
                 changed = (mask[local[:, 0], local[:, 1], local[:, 2]] & CHANGED) != 0
@@ -104,6 +106,7 @@ class RollingWindow:
             self.store.write(local + lo, rows)
         self.alpha[np.ix_(np.arange(self.num_classes), px, py, pz)] = self.prior
         self.mask[np.ix_(px, py, pz)] = 0
+        return local + lo
 
     def _load(self, lo: np.ndarray, hi: np.ndarray) -> None:
         """Bring the stored voxels of global box [lo, hi) into the window."""
@@ -142,6 +145,19 @@ class RollingWindow:
         self.mask.fill(0)
         self.origin = None
         self._evicted_changes.clear()
+
+    def forget_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Drop the evidence of the window's voxels in the global box [lo, hi) (and the changes
+        of voxels in it that left the window untaken); returns the indices (n, 3) dropped."""
+        lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
+        self._evicted_changes = [(indices[~inside], alpha[~inside]) for indices, alpha in self._evicted_changes
+                                 for inside in [((indices >= lo) & (indices < hi)).all(axis=1)]]
+        if self.origin is None:
+            return np.zeros((0, 3), np.int64)
+        lo, hi = np.maximum(lo, self.origin), np.minimum(hi, self.origin + self.dims)
+        if (hi <= lo).any():
+            return np.zeros((0, 3), np.int64)
+        return self._evict(lo, hi, keep=False)
 
     def take_changes(self) -> tuple[np.ndarray, np.ndarray]:
         """Voxels whose concentrations changed since the last call, in the window or since
@@ -187,7 +203,7 @@ class RollingWindow:
 
 if HAVE_NUMBA:
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @njit(parallel=True, nogil=True)
     def plane_starts(mask, select):  # pragma: no cover - compiled
         """Where each x plane's voxels with a bit of ``select`` start in a gathered output: the
         running count over the planes (X + 1 entries, the last one the total), so that the
@@ -203,7 +219,7 @@ if HAVE_NUMBA:
             counts[x + 1] = found
         return np.cumsum(counts)
 
-    @njit(cache=True, parallel=True, nogil=True)
+    @njit(parallel=True, nogil=True)
     def _gather_window_numba(alpha, mask, origin, dims, indices, values, select, keep):  # pragma: no cover
         size_x, size_y, size_z = mask.shape
         num_classes = alpha.shape[0]
@@ -245,8 +261,10 @@ def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims:
         indices = np.empty((count, 3), np.int64)
         values = np.empty((count, alpha.shape[0]), np.float32)
     if HAVE_NUMBA:
-        if _gather_window_numba(alpha, mask, origin, dims, indices, values, np.uint8(select),
-                                np.uint8(~clear & 0xFF)) != indices.shape[0]:
+        with parallel_region():
+            gathered = _gather_window_numba(alpha, mask, origin, dims, indices, values, np.uint8(select),
+                                            np.uint8(~clear & 0xFF))
+        if gathered != indices.shape[0]:
             raise ValueError(f"output has {indices.shape[0]} rows, the window "
                              f"{int(np.count_nonzero(mask & select))} selected voxels")
         return indices, values
@@ -258,5 +276,3 @@ def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims:
     indices[:] = origin + (physical - origin) % dims
     mask[physical[:, 0], physical[:, 1], physical[:, 2]] &= np.uint8(~clear & 0xFF)
     return indices, values
-
-_warmed_up = False

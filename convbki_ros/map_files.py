@@ -1,20 +1,57 @@
-"""The node's files: the map loaded at start, saved on request, on a timer and at shutdown,
-and exported as PLY.
+"""The node's files: the map loaded at start or on request, saved on request, on a timer and at
+shutdown, and exported as PLY.
 
-Every write copies the map under the lock (a fraction of the time a write takes) and
-writes the copy without it, atomically (a temporary file, fsync, rename): updates go on
-while a large map is written, and a failed write leaves the previous file as it was. The
-service and autosave callbacks run in their own callback group, off the thread that takes
-clouds and odometry.
+Nothing a user saved is lost:
+
+* ``map_file``'s folder is made (or refused, exit code 2) and written to once at start, so a
+  folder that does not exist, is read-only or sits on a full disk is found before a whole
+  session's map depends on it;
+* every save is atomic (a temporary file, fsync, rename) and keeps the file it replaces as
+  ``<map_file>.prev``;
+* a save the user did not ask for (autosave, shutdown) never replaces the file with a map
+  that lost evidence the file holds: after a reset, a forgotten box, or a ``map_file`` set to
+  a file this map did not come from, the file is kept until ``~/save_map`` writes there;
+* a save that fails is an ERROR on ``/diagnostics`` until one succeeds, and at shutdown an
+  error line and a non-zero exit code.
+
+Every write copies the map under the lock (a fraction of the time a write takes) and writes
+the copy without it, so updates go on while a large map is written. The service and autosave
+callbacks run in their own callback group, off the thread that takes clouds and odometry.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
+from convbki_core.io.atomic import previous_path
 from convbki_core.io.map_file import MapFileError
 from convbki_core.io.ply import write_voxels_ply
+from convbki_ros.params import StartupError
+from convbki_ros.status import ERROR, WARN
+
+
+def check_map_folder(path: str) -> str | None:
+    """Make ``path``'s folder if it is missing and write a file in it; the reason it cannot be
+    used (None when it can)."""
+    target = Path(path)
+    if target.is_dir():
+        return f"map_file {path} is a folder, not a file"
+    folder = target.parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        return f"map_file {path}: its folder cannot be made ({error.strerror or error})"
+    try:  # a byte written and synced: a read-only folder and a full disk both fail here
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{target.name}.probe-") as probe:
+            probe.write(b"\0")
+            probe.flush()
+            os.fsync(probe.fileno())
+    except OSError as error:
+        return f"map_file {path}: its folder {folder} cannot be written ({error.strerror or error})"
+    return None
 
 
 class MapFiles:
@@ -23,15 +60,54 @@ class MapFiles:
     def __init__(self, node):
         self.node = node
         self.core = node.core
-        self.saved_version = 0  # map_version at the last save (or load): autosave skips an unchanged map
+        self.saved_version: int | None = 0  # map_version at the last save or load of map_file (None: never)
+        # core.lineage when the map last was what map_file holds (saved or loaded); None: never.
+        # While it differs, the map may lack evidence the file holds, and only ~/save_map writes there.
+        self.lineage_in_file: int | None = self.core.lineage
         self.unreadable_map_file: str | None = None  # moved aside before the first save overwrites it
+        self.save_error: str | None = None  # the last failed save, until a save succeeds
+        self.last_save: str | None = None  # what the last save (or attempt) said
+
+    @property
+    def path(self) -> str:
+        return self.node.param("map_file")
+
+    # -- start -----------------------------------------------------------------------------------
+    def check_at_start(self) -> None:
+        """``map_file``'s folder exists (made when missing) and can be written, else ``StartupError``.
+        A node that never saves by itself (no autosave, no save on shutdown) only warns."""
+        path = self.path
+        if not path:
+            return
+        existed = Path(path).parent.is_dir()
+        problem = check_map_folder(path)
+        saves_by_itself = self.node.param("save_on_shutdown") or self.node.param("autosave_period") > 0
+        if problem and saves_by_itself:
+            raise StartupError(f"{problem}: this session's map could not be saved (choose another map_file, or set "
+                               "save_on_shutdown false and autosave_period 0 to only read it)")
+        if problem:
+            self.node.get_logger().warning(f"{problem}: ~/save_map will fail")
+        elif not existed:
+            self.node.get_logger().info(f"made the folder {Path(path).parent} for map_file")
+        self._warn_if_no_room(path)
+
+    def _warn_if_no_room(self, path: str) -> None:
+        """Say so when the disk holds less free space than the map already saved there needs."""
+        try:
+            size = Path(path).stat().st_size
+            free = shutil.disk_usage(Path(path).parent).free
+        except OSError:
+            return
+        if free < size:
+            self.node.get_logger().warning(f"map_file {path}: {free / 1e6:.1f} MB free on its disk, less than the "
+                                           f"{size / 1e6:.1f} MB of the map there: a save is likely to fail")
 
     def load_at_start(self) -> None:
-        path = self.node.param("map_file")
+        path = self.path
         if not path or not Path(path).exists():
             return
         try:
-            self.core.mapper.load(path)
+            count, _ = self.core.load_map(path)
         except MapFileError as error:
             if self.node.param("refuse_bad_map_file"):
                 raise MapFileError(f"{error} (refuse_bad_map_file is true: not starting)") from None
@@ -40,15 +116,27 @@ class MapFiles:
                 f"{error}; starting with an EMPTY map. The file is kept: the first save moves it to "
                 f"{path}.unreadable before writing the new map (set refuse_bad_map_file to exit instead)")
             return
-        self.core.map_version += 1
-        self.saved_version = self.core.map_version
-        self.node.get_logger().info(f"loaded {len(self.core.mapper)} voxels from {path}")
+        self._file_holds_the_map()
+        self.node.get_logger().info(f"loaded {count} voxels from {path}")
 
-    def save_map(self) -> tuple[bool, str]:
-        """Write the map to map_file; (success, what happened)."""
-        path = self.node.param("map_file")
+    # -- saving ----------------------------------------------------------------------------------
+    def _file_holds_the_map(self) -> None:
+        self.saved_version = self.core.map_version
+        self.lineage_in_file = self.core.lineage
+
+    def file_may_hold_more(self) -> bool:
+        """map_file exists and may hold evidence the map lacks (a reset, a forgotten box, another file)."""
+        return self.lineage_in_file != self.core.lineage and os.path.lexists(self.path)
+
+    def save_map(self, requested: bool = True) -> tuple[bool, str]:
+        """Write the map to map_file; (success, what happened). ``requested``: the user asked for
+        this file to be written (``~/save_map``); otherwise a file that may hold evidence the map
+        lacks is kept as it is."""
+        path = self.path
         if not path:
             return False, "map_file parameter is empty: nowhere to save"
+        if not requested and self.file_may_hold_more():
+            return True, f"kept {path} as it is: {self.kept_reason()}"
         try:
             if self.unreadable_map_file == path and os.path.lexists(path):
                 os.replace(path, path + ".unreadable")
@@ -56,22 +144,84 @@ class MapFiles:
             self.unreadable_map_file = None
             with self.core.map_lock:
                 snapshot = self.core.mapper.snapshot()
-                version = self.core.map_version
+                version, lineage = self.core.map_version, self.core.lineage
             snapshot.write(path)
-            self.saved_version = version
         except (OSError, ValueError) as error:
-            return False, f"could not save {path}: {getattr(error, 'strerror', None) or error}"
-        return True, f"saved {len(snapshot)} voxels to {path}"
+            message = f"could not save {path}: {getattr(error, 'strerror', None) or error}"
+            self.save_error = self.last_save = message
+            return False, message
+        self.saved_version, self.lineage_in_file, self.save_error = version, lineage, None
+        kept = f" (the file before kept as {previous_path(path).name})" if previous_path(path).exists() else ""
+        self.last_save = f"saved {len(snapshot)} voxels to {path}{kept}"
+        return True, self.last_save
+
+    def kept_reason(self) -> str:
+        why = ("this map was neither loaded from it nor saved to it" if self.lineage_in_file is None else
+               f"it holds evidence this map no longer has ({self.core.forgotten_by})")
+        return f"{why}; call ~/save_map to write this map there, or set map_file to another file"
+
+    def health(self) -> tuple[int, str] | None:
+        """(level, message) of what the user must know about saving, for /diagnostics: ERROR while
+        the last save failed, WARN while this map is not saved automatically; None when all is well."""
+        if self.save_error:
+            return ERROR, self.save_error
+        saves_by_itself = self.node.param("save_on_shutdown") or self.node.param("autosave_period") > 0
+        if saves_by_itself and self.core.map_version != self.saved_version and self.file_may_hold_more():
+            return WARN, f"this map is not saved automatically: {self.path} is kept as it is, as {self.kept_reason()}"
+        return None
 
     def on_save_map(self, request, response):
-        response.success, response.message = self.save_map()
+        response.success, response.message = self.save_map(requested=True)
         self._log_outcome(response.success, response.message)
         return response
 
+    def autosave(self) -> None:
+        if self.path and self.core.map_version != self.saved_version and not self.file_may_hold_more():
+            ok, message = self.save_map(requested=False)
+            self._log_outcome(ok, f"autosave: {message}")
+
+    def save_on_shutdown(self) -> tuple[bool, str | None]:
+        """Save at shutdown when asked to and the map changed: (success, what happened or None)."""
+        path = self.path
+        if not (self.node.param("save_on_shutdown") and path and self.core.map_version):
+            return True, None
+        if self.core.map_version == self.saved_version:
+            return True, f"the map is unchanged since it was last saved to (or loaded from) {path}"
+        return self.save_map(requested=False)
+
+    # -- map_file at run time ----------------------------------------------------------------------
+    def check_new_path(self, path: str) -> str | None:
+        """Why ``path`` cannot become map_file (None when it can): its folder must be writable."""
+        return check_map_folder(path) if path else None
+
+    def path_changed(self) -> None:
+        """map_file now names another file: the map is not what it holds (if it exists)."""
+        self.saved_version = None
+        self.lineage_in_file = None if os.path.lexists(self.path) else self.core.lineage
+        self.unreadable_map_file = None
+
+    # -- loading at run time -------------------------------------------------------------------------
+    def on_load_map(self, request, response):
+        path = self.path
+        if not path:
+            response.success, response.message = False, "map_file parameter is empty: nothing to load"
+        else:
+            try:
+                count, replaced = self.core.load_map(path)
+            except MapFileError as error:
+                response.success, response.message = False, f"{error}; the map is unchanged"
+            else:
+                self._file_holds_the_map()
+                response.success, response.message = True, f"loaded {count} voxels from {path} (replacing {replaced})"
+                self.node.outputs.map_replaced()
+        self._log_outcome(response.success, response.message)
+        return response
+
+    # -- PLY -----------------------------------------------------------------------------------
     def on_export_ply(self, request, response):
         path = self.node.param("ply_file")
         if not path:
-            map_file = self.node.param("map_file")
+            map_file = self.path
             path = str(Path(map_file).with_suffix(".ply")) if map_file else "convbki_map.ply"
         try:
             with self.core.map_lock:
@@ -83,20 +233,6 @@ class MapFiles:
             response.success, response.message = False, f"could not write {path}: {error.strerror or error}"
         self._log_outcome(response.success, response.message)
         return response
-
-    def autosave(self) -> None:
-        if self.node.param("map_file") and self.core.map_version != self.saved_version:
-            ok, message = self.save_map()
-            self._log_outcome(ok, f"autosave: {message}")
-
-    def save_on_shutdown(self) -> str | None:
-        """Save at shutdown when asked to and the map changed; what happened, or None."""
-        path = self.node.param("map_file")
-        if not (self.node.param("save_on_shutdown") and path and self.core.map_version):
-            return None
-        if self.core.map_version == self.saved_version:
-            return f"the map is unchanged since it was last saved to (or loaded from) {path}"
-        return self.save_map()[1]
 
     def _log_outcome(self, ok: bool, message: str) -> None:
         # Two call sites on purpose: rclpy remembers the severity of each logging call site

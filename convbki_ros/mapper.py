@@ -3,8 +3,9 @@
 Run with ``ros2 run convbki_ros mapper --ros-args --params-file config/mapper.yaml``
 or ``python -m convbki_ros.mapper --ros-args ...``. The node itself is
 ``convbki_ros.node.MapperNode``; this module is its command line: ``--help`` (which needs no
-ROS 2), start-up errors as one line with exit code 2, and a multi-threaded executor so that
-saving a large map never holds up the inputs.
+ROS 2), start-up errors as one line with exit code 2, a multi-threaded executor so that
+saving a large map never holds up the inputs, and exit code 1 when the map could not be
+saved on the way out (a supervisor or launch file must learn that the session's map is lost).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from convbki_ros.params import NODE_NAME, NOT_SET, PARAMETERS, StartupError
 from convbki_ros.ros_args import strip_ros_args
 
 PROG = "mapper"
+SAVE_FAILED = 1  # exit code: the save on shutdown failed
 EXECUTOR_THREADS = 5  # clouds, odometry, files, housekeeping, parameter services: one callback group each
 
 
@@ -38,13 +40,21 @@ def _epilog() -> str:
         "             odom (nav_msgs/Odometry: pose of child_frame_id in header.frame_id)",
         "  publishes  semantic_map (PointCloud2: x, y, z, rgb, label, variance, confidence; latched)",
         "             semantic_map/variance (PointCloud2: x, y, z, intensity = variance; latched)",
+        "             semantic_map/updates (PointCloud2: the voxels that changed, label 0 = left the map)",
+        "             semantic_map/view (PointCloud2: the map around the sensor; latched)",
         "             semantic_map/local (PointCloud2: the window around the sensor after updates)",
         "             /diagnostics (diagnostic_msgs/DiagnosticArray: counters, queue, timings; 1 Hz)",
-        "services: ~/save_map (Trigger), ~/reset (Trigger), ~/export_ply (Trigger)",
+        "services (std_srvs/Trigger): ~/save_map (writes map_file; the file it replaces becomes <map_file>.prev),",
+        "          ~/load_map (replaces the map with map_file's), ~/reset, ~/clear_box (forgets the voxels",
+        "          between clear_box_min and clear_box_max), ~/export_ply",
         "",
         "frames: the map is built in the odometry's frame. A cloud in the odometry's child frame is",
         "placed with the odometry; a cloud in another frame (a LiDAR mounted on base_link) also needs",
         "the mount: parameter base_to_sensor, or TF's /tf_static where tf2_ros is installed.",
+        "",
+        "start: every kernel is compiled (or loaded from numba's cache) before the node subscribes and says",
+        "ready; NUMBA_CACHE_DIR moves the cache. map_file's folder is made, or refused (exit code 2) when it",
+        "cannot be written. exit codes: 0, 2 bad start-up input, 1 the map could not be saved on shutdown.",
         "",
         "parameters (name (default): meaning; unit):",
     ]
@@ -139,6 +149,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from convbki_ros.node import MapperNode
 
     node = None
+    saved = True
     try:
         # The executor exists before the node says "ready", so a Ctrl-C right after it lands in spin().
         executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS)
@@ -158,10 +169,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the save short
         if node is not None:
-            node.stop()
+            saved = node.stop()
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return 0 if saved else SAVE_FAILED
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import threading
 import numpy as np
 
 from convbki_core.io.kernel_file import load_kernel_file
+from convbki_core.io.map_file import MapFileError, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_ros.params import (
@@ -27,6 +28,7 @@ from convbki_ros.params import (
     declare,
     explicitly_set,
     kernel_defaults,
+    optional,
     unknown_parameters,
 )
 from convbki_ros.pointcloud import CloudError, decode_cloud
@@ -48,11 +50,15 @@ class MappingCore:
     def __init__(self, node, status, warnings, label_map):
         self.node, self.status, self.warnings, self.label_map = node, status, warnings, label_map
         self.mapper = self._make_mapper()
-        self.mount = SensorMount(check_mount(self._optional("base_to_sensor")))
+        self.mount = SensorMount(check_mount(optional(node, "base_to_sensor")))
         self.tf_mount = self.mount.attach_tf(node)
         self.queue = CloudQueue(max_pose_jump=node.param("max_pose_jump"))
         self.map_lock = threading.Lock()
         self.map_version = 0  # bumped by every change of the map
+        # Bumped whenever the map loses evidence (a reset, a forgotten box) or is replaced by a load:
+        # a map file saved before then may hold what the map no longer does.
+        self.lineage = 0
+        self.forgotten_by: str | None = None  # what last made the map lose evidence, for the user
         self.newest_odometry_stamp: int | None = None  # ns, of accepted odometry
         self.odometry_frame: str | None = None
         self.last_stamp = None  # header stamp of the last integrated cloud
@@ -93,14 +99,6 @@ class MappingCore:
                              ignore_classes=self.label_map.ignore_classes, track_changes=True,
                              free_space=node.param("free_space"),
                              max_concentration=node.param("max_concentration"))
-
-    def _optional(self, name: str):
-        from rclpy.exceptions import ParameterUninitializedException
-
-        try:
-            return self.node.param(name)
-        except ParameterUninitializedException:
-            return None
 
     def mount_text(self) -> str:
         if self.mount.fixed is not None:
@@ -161,7 +159,7 @@ class MappingCore:
         if self.node.param("reset_on_pose_jump"):
             self.queue.forget_odometry(before=stamp)
             action = "map reset (reset_on_pose_jump): a new map starts at the new pose"
-            self.reset_map()
+            self.reset_map(f"a reset on the pose jump at {stamp / 1e9:.3f} s")
         else:
             action = "map kept; clouds stamped inside the jump are dropped"
         self.warnings.warn("jump", f"odometry jumped {jump:.2f} m at {stamp / 1e9:.3f} s ({after}; "
@@ -207,7 +205,7 @@ class MappingCore:
         self.status.drop("time reset", stale)
         reset = self.node.param("reset_on_stamp_backwards")
         if reset:
-            self.reset_map()
+            self.reset_map(f"a reset when time went back at {stamp / 1e9:.3f} s")
         self.warnings.warn("time", f"time went backwards by {(newest - stamp) / 1e9:.3f} s (odometry stamped "
                            f"{stamp / 1e9:.3f} s after input stamped {newest / 1e9:.3f} s; a restarted bag?): "
                            f"odometry history cleared, {stale} waiting clouds dropped, "
@@ -225,12 +223,50 @@ class MappingCore:
                            f"{topics[1]}: clouds cannot be placed (check the odom remapping, its QoS and its "
                            "publisher)", period=timeout)
 
-    def reset_map(self) -> None:
-        """Clear the map; clouds received before now are stale (their poses may be too)."""
+    def reset_map(self, why: str) -> int:
+        """Clear the map; clouds received before now are stale (their poses may be too). Returns
+        how many voxels it forgot; ``why`` says what asked for it (for the user)."""
         self.queue.new_generation()
         with self.map_lock:
+            forgotten = len(self.mapper)
             self.mapper.reset()
-            self.map_version += 1
+            self._lost_evidence(why)
+        return forgotten
+
+    def clear_box(self, box_min, box_max) -> int:
+        """Forget the voxels whose centres lie in the box (map frame, m); returns how many."""
+        with self.map_lock:
+            forgotten = len(self.mapper.forget_box(box_min, box_max))
+            if forgotten:
+                self._lost_evidence("~/clear_box")
+        return forgotten
+
+    def load_map(self, path: str) -> tuple[int, int]:
+        """Replace the map with a map file's; (voxels loaded, voxels replaced). The file is read
+        and checked without the lock (mapping goes on meanwhile): ``MapFileError`` when it cannot be
+        read or was built for another grid, classes, prior or frame, and the map is untouched."""
+        metadata, indices, alpha = read_map(path)
+        self.mapper.check_compatible(path, metadata)
+        frame = metadata.get("frame_id") or None
+        known = self.odometry_frame or self.node.param("map_frame") or None
+        if frame and known and frame != known:
+            raise MapFileError(f"{path}: the map was built in frame '{frame}', this node maps in '{known}'")
+        with self.map_lock:
+            replaced = len(self.mapper)
+            self.mapper.replace_with(metadata, indices, alpha)
+            if frame and not known:
+                self.mapper.frame_id = frame
+            if self.mapper.sensor_position is not None:
+                self.position = self.mapper.sensor_position.copy()
+            self._lost_evidence(f"~/load_map of {path}" if replaced else None)
+        return len(indices), replaced
+
+    def _lost_evidence(self, why: str | None) -> None:
+        """The map changed other than by adding evidence (call with the map lock held)."""
+        self.map_version += 1
+        self.lineage += 1
+        if why:
+            self.forgotten_by = why
 
     # -- the update thread ---------------------------------------------------------------------
     def run(self) -> None:

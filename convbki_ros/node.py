@@ -11,6 +11,10 @@ Threads, so that no input waits on a slow output:
 * the publishing thread: encodes and sends the map topics; the map is locked only while it
   is copied.
 
+Before it subscribes to anything and says "ready", the node compiles (or loads from the
+cache) every kernel it will run (``convbki_core.warm_up``), so its first scan integrates as
+fast as its tenth.
+
 The node can be added to any executor (``executor.add_node(MapperNode())``); with a
 single-threaded one, saves block the inputs while they write.
 """
@@ -20,8 +24,10 @@ from __future__ import annotations
 import sys
 import threading
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -30,11 +36,15 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from convbki_core.datasets.labels import load_label_map
+from convbki_core.native import kernel_cache
 from convbki_core.records import packed_palette
+from convbki_core.warm_up import warm_up
+from convbki_ros.cloud_encoding import encode_cloud
 from convbki_ros.map_files import MapFiles
 from convbki_ros.mapping import MappingCore
 from convbki_ros.outputs import MapOutputs
-from convbki_ros.params import NODE_NAME, PARAMETERS, check_choice, declare
+from convbki_ros.params import NODE_NAME, NOT_SET, PARAMETERS, SPECS, check_box, check_choice, declare, optional
+from convbki_ros.pointcloud import decode_cloud
 from convbki_ros.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
 
 LEVELS = {OK: DiagnosticStatus.OK, WARN: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
@@ -59,7 +69,9 @@ class MapperNode(Node):
         self.palette = packed_palette(self.label_map.colors)
         self.core = MappingCore(self, self.status, self.warnings, self.label_map)
         self.files = MapFiles(self)
+        self.files.check_at_start()
         self.files.load_at_start()
+        self._warm_up()
 
         inputs, odometry_group, file_io, housekeeping = (MutuallyExclusiveCallbackGroup() for _ in range(4))
         # Clouds and odometry in groups of their own: a cloud being queued never delays odometry.
@@ -72,8 +84,10 @@ class MapperNode(Node):
         self.outputs = MapOutputs(self)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/save_map", self.files.on_save_map, callback_group=file_io)
+        self.create_service(Trigger, "~/load_map", self.files.on_load_map, callback_group=file_io)
         self.create_service(Trigger, "~/export_ply", self.files.on_export_ply, callback_group=file_io)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=housekeeping)
+        self.create_service(Trigger, "~/clear_box", self._on_clear_box, callback_group=housekeeping)
 
         # Housekeeping runs on the steady clock: with use_sim_time the ROS clock stops when a bag
         # pauses or ends, and the map must still be published and the counters reported.
@@ -88,12 +102,15 @@ class MapperNode(Node):
                                  "diagnostics_period": (self._publish_diagnostics, "housekeeping")}
         for name in self._timer_callbacks:
             self._restart_timer(name)
+        self.add_pre_set_parameters_callback(self._integers_as_doubles)
+        self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._on_parameters_changed)
 
         self.core.on_integrated = lambda: self.outputs.request("local")
         self.update_thread = threading.Thread(target=self.core.run, name="convbki_update", daemon=True)
         self.update_thread.start()
         self.outputs.start()
+        self.status.ready()
         mapper = self.core.mapper
         self.get_logger().info(
             f"ConvBKI mapper ready: {mapper.kernel.kind} kernel, {mapper.resolution} m voxels, "
@@ -103,6 +120,20 @@ class MapperNode(Node):
 
     def param(self, name: str):
         return self.get_parameter(name).value
+
+    def _warm_up(self) -> None:
+        """Compile every kernel mapping and its outputs run (the node's own cloud decoder too)
+        before the node subscribes and says ready."""
+        report = warm_up(self.core.mapper)
+        points = np.zeros((4, 3), np.float32)
+        for fields in ({"label": np.zeros(4, np.uint32)},
+                       {f"prob_{c}": np.full(4, 1.0, np.float32) for c in range(self.core.mapper.num_classes)}):
+            decode_cloud(encode_cloud(0, "warm_up", {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2],
+                                                     **fields}), self.core.mapper.num_classes)
+        note = kernel_cache().note
+        if note:
+            self.get_logger().warning(note)
+        self.get_logger().info(report.line())
 
     # -- set-up and run-time parameters ---------------------------------------------------
     def declare_all(self, kernel_values: dict[str, object]) -> None:
@@ -129,15 +160,45 @@ class MapperNode(Node):
             self._period_timers[name] = self.create_timer(period, callback, clock=self._steady,
                                                    callback_group=self._groups[group])
 
+    def _integers_as_doubles(self, parameters):
+        """``ros2 param set ... publish_period 2`` sends an integer; a number parameter takes it as
+        2.0, as it does at start (rclpy would refuse the type)."""
+        from rclpy.parameter import Parameter
+
+        converted = []
+        for parameter in parameters:
+            spec = SPECS.get(parameter.name)
+            if spec is not None and parameter.type_ == Parameter.Type.INTEGER and isinstance(spec.default, float):
+                parameter = Parameter(parameter.name, Parameter.Type.DOUBLE, float(parameter.value))
+            elif (spec is not None and parameter.type_ == Parameter.Type.INTEGER_ARRAY
+                  and (spec.default is NOT_SET or isinstance(spec.default, list))):
+                parameter = Parameter(parameter.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in parameter.value])
+            converted.append(parameter)
+        return converted
+
+    def _check_parameters(self, parameters) -> SetParametersResult:
+        """Values that pass their type and range but cannot be used are refused with the reason."""
+        for parameter in parameters:
+            if parameter.name == "map_file":
+                problem = self.files.check_new_path(parameter.value)
+            elif parameter.name in ("clear_box_min", "clear_box_max"):
+                problem = check_box(parameter.name, parameter.value)
+            else:
+                continue
+            if problem:
+                return SetParametersResult(successful=False, reason=problem)
+        return SetParametersResult(successful=True)
+
     def _on_parameters_changed(self, parameters) -> None:
         for parameter in parameters:
             if parameter.name in self._timer_callbacks:
                 self._restart_timer(parameter.name)
             elif parameter.name == "max_pose_jump":
                 self.core.set_max_pose_jump(parameter.value)
+            elif parameter.name == "map_file":
+                self.files.path_changed()
             if parameter.name == "max_variance":  # the shown map changes as a whole
-                self.outputs.request("cycle", refresh=True)
-                self.outputs.request("map")
+                self.outputs.map_replaced(refresh_updates=True)
             self.get_logger().info(f"parameter {parameter.name} is now {parameter.value}")
 
     # -- reports ----------------------------------------------------------------------------
@@ -151,31 +212,65 @@ class MapperNode(Node):
     def _publish_diagnostics(self) -> None:
         snapshot = self._snapshot()
         level, message = self.status.health(snapshot, self.param("odometry_timeout"))
+        saving = self.files.health()
+        if saving is not None:
+            saving_level, saving_message = saving
+            message = saving_message if level == OK else f"{message}; {saving_message}"
+            level = max(level, saving_level)
         status = DiagnosticStatus(level=LEVELS[level], name=f"{self.get_fully_qualified_name()}: mapping",
                                   message=message, hardware_id=self.core.frame,
                                   values=[KeyValue(key=k, value=v) for k, v in diagnostic_values(snapshot)])
+        status.values.append(KeyValue(key="last_save", value=self.files.last_save or ""))
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_publisher.publish(array)
 
     # -- services -----------------------------------------------------------------------------
     def _on_reset(self, request, response):
-        self.core.reset_map()
-        self.outputs.request("cycle")
-        self.outputs.request("map")
-        response.success, response.message = True, "map reset: 0 voxels"
+        forgotten = self.core.reset_map("~/reset")
+        self.outputs.map_replaced()
+        response.success, response.message = True, f"map reset: forgot {forgotten} voxels{self._file_kept()}"
         self.get_logger().info(response.message)
         return response
 
+    def _on_clear_box(self, request, response):
+        box = [optional(self, name) for name in ("clear_box_min", "clear_box_max")]
+        box = [None if corner is None else [float(v) for v in corner] for corner in box]
+        problem = "set clear_box_min and clear_box_max" if None in box else \
+            check_box("clear_box_min", box[0]) or check_box("clear_box_max", box[1])
+        if not problem and not all(low <= high for low, high in zip(*box)):
+            problem = f"clear_box_min {box[0]} is not below clear_box_max {box[1]} on every axis"
+        if problem:
+            response.success = False
+            response.message = f"{problem} (x, y, z in the map frame '{self.core.frame}', m) first"
+            self.get_logger().warning(response.message)
+            return response
+        forgotten = self.core.clear_box(*box)
+        if forgotten:
+            self.outputs.map_replaced()
+        response.success = True
+        response.message = (f"forgot {forgotten} voxels in the box {box[0]} .. {box[1]} (frame '{self.core.frame}')"
+                            f"{self._file_kept() if forgotten else ''}")
+        self.get_logger().info(response.message)
+        return response
+
+    def _file_kept(self) -> str:
+        if not self.files.file_may_hold_more():
+            return ""
+        return f"; {self.param('map_file')} keeps the map as it was until ~/save_map writes this one there"
+
     # -- shutdown -----------------------------------------------------------------------------
-    def stop(self) -> None:
-        """Stop the threads (the scan in progress finishes) and save when asked to."""
+    def stop(self) -> bool:
+        """Stop the threads (the scan in progress finishes) and save when asked to; False when
+        that save failed (the map of this session is then not on disk)."""
         self.core.stop()
         self.outputs.stop()
         self.update_thread.join(timeout=1.5)
-        message = self.files.save_on_shutdown()
+        saved, message = self.files.save_on_shutdown()
         if message:
-            print(f"[{NODE_NAME}] on shutdown: {message}", file=sys.stderr)
+            what = "on shutdown" if saved else "error on shutdown"
+            print(f"[{NODE_NAME}] {what}: {message}", file=sys.stderr)
+        return saved
 
 
 

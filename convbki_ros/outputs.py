@@ -62,8 +62,12 @@ class MapOutputs:
         self.due = dict.fromkeys(OUTPUTS, False)
         self.refresh_updates = False  # the shown map changed as a whole (max_variance): send every voxel
         self.view_version_shown = -1
+        self.view_sent = False  # a view was sent: the latched topic holds one (then kept current)
+        self.resend_view = False  # the map changed as a whole: send the view even to nobody
         self.shown: ShownMap | None = None  # built when the whole map is first asked for
         self.shown_changed = True  # since the whole map was last sent
+        # semantic_map, semantic_map/variance were sent: their latched samples are kept current from then on
+        self.map_sent = self.variance_sent = False
         self.thread = threading.Thread(target=self._loop, name="convbki_publish", daemon=True)
 
     def start(self) -> None:
@@ -76,6 +80,18 @@ class MapOutputs:
             if refresh:  # everything is shown anew: the view and every voxel as an update
                 self.refresh_updates = True
                 self.view_version_shown = -1
+            self.changed.notify_all()
+
+    def map_replaced(self, refresh_updates: bool = False) -> None:
+        """The shown map changed as a whole (a reset, a load, a forgotten box; with
+        ``refresh_updates``, a new ``max_variance``): send the updates, the view and the whole
+        map now, the latched ones even while nobody listens, so that the next subscriber never
+        first receives the map as it was."""
+        with self.changed:
+            self.due["cycle"] = self.due["map"] = True
+            self.refresh_updates = self.refresh_updates or refresh_updates
+            self.view_version_shown = -1
+            self.resend_view = True
             self.changed.notify_all()
 
     def stop(self) -> None:
@@ -126,13 +142,15 @@ class MapOutputs:
             if listeners:
                 self.updates.publish(records_cloud(stamp, frame, RECORD, len(records), _copy_into(records)))
                 sent = True
-        if self.view.get_subscription_count() and self.view_version_shown != self.core.map_version:
+        with self.changed:
+            resend_view, self.resend_view = self.resend_view and self.view_sent, False
+        if (self.view.get_subscription_count() or resend_view) and self.view_version_shown != self.core.map_version:
             version, centre, window = self.core.window_records(self.node.palette)
             records = view_records(self._shown(window), centre, self.node.param("view_radius"),
                                    self.node.param("view_max_points"))
             self.view.publish(records_cloud(stamp, frame, RECORD, len(records), _copy_into(records)))
             self.view_version_shown = version
-            sent = True
+            self.view_sent = sent = True
         if sent:
             self.node.status.published("cycle", 1e3 * (time.perf_counter() - started))
 
@@ -155,9 +173,11 @@ class MapOutputs:
 
     # -- the whole map ------------------------------------------------------------------------
     def _publish_map(self) -> None:
-        """``semantic_map`` and ``semantic_map/variance`` when the map changed and anyone listens."""
-        map_listeners = self.map.get_subscription_count()
-        variance_listeners = self.variance.get_subscription_count()
+        """``semantic_map`` and ``semantic_map/variance`` when the map changed and anyone listens,
+        or once they were sent: a latched topic's sample is what the next subscriber gets first,
+        so it is kept current even while nobody listens."""
+        map_listeners = self.map.get_subscription_count() or self.map_sent
+        variance_listeners = self.variance.get_subscription_count() or self.variance_sent
         if not (map_listeners or variance_listeners):
             return
         started = time.perf_counter()
@@ -175,9 +195,11 @@ class MapOutputs:
         msg = records_cloud(stamp, frame, RECORD, len(self.shown), self.shown.fill)
         if map_listeners:
             self.map.publish(msg)
+            self.map_sent = True
         if variance_listeners:
             records = np.frombuffer(msg.data, RECORD, count=msg.width)
             fields = {name: records[name] for name in ("x", "y", "z")}
             self.variance.publish(encode_cloud(stamp, frame, {**fields, "intensity": records["variance"]}))
+            self.variance_sent = True
         self.shown_changed = False
         self.node.status.published("map", 1e3 * (time.perf_counter() - started))

@@ -95,10 +95,16 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("input_qos", "reliable",
          "QoS of cloud_in and odom: reliable (bag replay) or sensor_data (live, best effort)",
          choices=("reliable", "sensor_data")),
-    Spec("map_file", "", "map file loaded at start when present, written by ~/save_map; \"\" = none; path"),
+    Spec("map_file", "", "map file loaded at start when present, written by ~/save_map (the file it replaces is kept "
+         "as <map_file>.prev) and read by ~/load_map; its folder is created at start, and one that cannot be "
+         "written is refused; \"\" = none; path", run_time=True),
     Spec("autosave_period", 0.0, "save the map to map_file every this many seconds; 0.0 = never", 0.0, 1e6,
          run_time=True),
     Spec("save_on_shutdown", True, "save the map to map_file when the node stops (SIGINT/SIGTERM); bool",
+         run_time=True),
+    Spec("clear_box_min", NOT_SET, "lower corner [x, y, z] of the box ~/clear_box forgets (voxels whose centre lies "
+         "inside), in the map frame; metres", run_time=True),
+    Spec("clear_box_max", NOT_SET, "upper corner [x, y, z] of the box ~/clear_box forgets, in the map frame; metres",
          run_time=True),
     Spec("ply_file", "", "file written by ~/export_ply; \"\" = map_file with the suffix .ply, else "
          "convbki_map.ply", run_time=True),
@@ -233,6 +239,24 @@ def check_local_bounds(bounds) -> tuple[tuple[float, ...], tuple[float, ...]]:
     if not all(np.isfinite(bounds)) or not all(a < b for a, b in zip(low, high, strict=True)):
         raise StartupError(f"parameter local_bounds: each min must be below its max, got {bounds}")
     return tuple(low), tuple(high)
+
+
+def optional(node, name: str):
+    """The value of an optional parameter (declared without a default), None while unset."""
+    from rclpy.exceptions import ParameterUninitializedException
+
+    try:
+        return node.get_parameter(name).value
+    except ParameterUninitializedException:
+        return None
+
+
+def check_box(name: str, values) -> str | None:
+    """Why ``values`` is not a box corner [x, y, z] (finite, metres); None when it is."""
+    values = list(values)
+    if len(values) != 3 or not all(np.isfinite(values)):
+        return f"parameter {name} needs 3 finite numbers [x, y, z], got {values}"
+    return None
 
 
 def check_mount(values) -> np.ndarray | None:

@@ -225,10 +225,12 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
     if height > 1 and row_step < row_bytes:
         raise CloudError(f"row_step {row_step} is smaller than width * point_step = {row_bytes}")
     raw = _buffer(msg.data)
-    needed = row_step * (height - 1) + row_bytes if count else 0
+    # A cloud holds height rows of row_step bytes; a row_step of 0 in a one-row cloud (some
+    # drivers leave it unset) means the row's own bytes.
+    needed = max(row_step * (height - 1) + row_bytes, header_row_step * height) if count else 0
     if raw.size < needed:
         raise CloudError(f"data holds {raw.size} bytes, expected at least {needed} "
-                         f"(width {width} x height {height} x point_step {point_step})")
+                         f"(width {width} x height {height} x point_step {point_step}, row_step {header_row_step})")
     if count and height > 1 and row_step != row_bytes:  # padding at the end of each row: drop it (one copy)
         raw = np.ascontiguousarray(raw[: row_step * height].reshape(height, row_step)[:, :row_bytes]).reshape(-1)
 

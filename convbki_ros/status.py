@@ -103,9 +103,14 @@ class MapperStatus:
     cycle_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))  # updates and view
     last_cloud_received: float | None = None  # time.monotonic()
     last_odometry_received: float | None = None
-    started: float = field(default_factory=time.monotonic)
+    started: float = field(default_factory=time.monotonic)  # reset when the node is ready
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _dropped_at_last_report: int = 0
+
+    def ready(self) -> None:
+        """The node subscribed and can take input: time without odometry counts from now."""
+        with self._lock:
+            self.started = time.monotonic()
 
     def cloud_received(self) -> None:
         with self._lock:
@@ -177,7 +182,9 @@ class MapperStatus:
             return WARN, f"dropped {new_drops} clouds since the last report"
         if snapshot.waiting_for_pose:
             return WARN, f"{snapshot.waiting_for_pose} clouds wait for odometry covering their stamps"
-        return OK, "mapping" if snapshot.integrated else "waiting for clouds"
+        if snapshot.integrated:
+            return OK, "mapping"
+        return OK, f"{snapshot.queue} clouds queued, none integrated yet" if snapshot.queue else "waiting for clouds"
 
 
 def diagnostic_values(snapshot: Snapshot) -> list[tuple[str, str]]:

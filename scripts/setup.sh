@@ -154,4 +154,19 @@ else
     echo "$FP" > "$BUILD_STAMP"
 fi
 
+# --- 5. compiled kernels --------------------------------------------------------------
+# numba compiles a kernel at its first call and caches the machine code beside the sources.
+# colcon's install step (setup.py) compiles the installed copy's (`ros2 run`); this compiles
+# the source tree's (`.venv/bin/python -m ...`), so a freshly set-up tree starts warm either
+# way. Only after a package file changed (the cache itself notices which kernels changed).
+WARM_STAMP="$ROOT/build/.convbki_warm_stamp"
+if [[ -f "$WARM_STAMP" && "$(cat "$WARM_STAMP")" == "$FP" ]]; then
+    log "compiled kernels up to date"
+else
+    log "compiling the kernels into numba's cache (a minute the first time)"
+    scripts/venv_exec.sh "$VPY" -m convbki_core.tools.warm_up | sed 's/^/[setup] /' \
+        || die "compiling the kernels failed (see above)"
+    echo "$FP" > "$WARM_STAMP"
+fi
+
 log "done in $((SECONDS - T0)) s. Next: make test | make demo | source install/setup.bash"

@@ -77,7 +77,10 @@ class Stats:
     odometry_rejected: int
     voxels: int
     map_version: int
+    maps_published: int
     level: int
+    message: str
+    last_save: str
 
     @classmethod
     def parse(cls, array) -> "Stats":
@@ -87,14 +90,18 @@ class Stats:
                    if key.startswith("dropped.")}
         return cls(int(values["scans_in"]), int(values["integrated"]), int(values["dropped"]), reasons,
                    int(values["odometry_in"]), int(values["odometry_rejected"]), int(values["map_voxels"]),
-                   int(values["map_version"]), status.level[0])
+                   int(values["map_version"]), int(values["maps_published"]), status.level[0], status.message,
+                   values.get("last_save", ""))
 
 
 class Rig:
     """A running mapper node, a probe that publishes its inputs and reads its map, and its log."""
 
-    def __init__(self, folder: Path, *parameters: str, prefix: tuple[str, ...] = (), namespace: str = ""):
-        """``namespace``: run the node in it ("/robot1"); its topics and services move there."""
+    def __init__(self, folder: Path, *parameters: str, prefix: tuple[str, ...] = (), namespace: str = "",
+                 watch_map: bool = True, map_file: Path | None = None):
+        """``namespace``: run the node in it ("/robot1"); its topics and services move there.
+        ``watch_map``: subscribe to ``semantic_map`` (into ``maps``); ``map_file``: the node's map file
+        (default ``folder/maps/map.npz``)."""
         from diagnostic_msgs.msg import DiagnosticArray
         from nav_msgs.msg import Odometry
         from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -102,9 +109,10 @@ class Rig:
 
         self.folder = folder
         self.namespace = namespace
-        self.map_file = folder / "maps" / "map.npz"
-        self.map_file.parent.mkdir(parents=True, exist_ok=True)
-        domain = domain_id()
+        self.map_file = map_file or folder / "maps" / "map.npz"
+        if map_file is None:
+            self.map_file.parent.mkdir(parents=True, exist_ok=True)
+        self.domain = domain = domain_id()
         remap = ("-r", f"__ns:={namespace}") if namespace else ()
         self.process = start("convbki_ros.mapper", domain, "--ros-args", *remap, "-p", f"local_bounds:={BOUNDS}",
                              "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "map_period:=0.2",
@@ -113,7 +121,7 @@ class Rig:
                              prefix=prefix)
         self.log = NodeLog(self.process)
         self.probe = Probe(domain)
-        self.maps = self.probe.subscribe(PointCloud2, f"{namespace}/semantic_map", latched=True)
+        self.maps = self.probe.subscribe(PointCloud2, f"{namespace}/semantic_map", latched=True) if watch_map else []
         self.diagnostics = self.probe.subscribe(DiagnosticArray, "/diagnostics")
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.cloud_publisher = self.probe.node.create_publisher(PointCloud2, f"{namespace}/cloud_in", qos)
@@ -168,6 +176,30 @@ class Rig:
         assert self.probe.spin_until(lambda: self.maps and self.maps[-1].width == voxels, WAIT), \
             f"/semantic_map has {self.maps[-1].width if self.maps else None} voxels, expected {voxels}"
         return self.maps[-1]
+
+    def set_parameters(self, **values) -> list:
+        """Set the node's parameters (types as given: an int is sent as an INTEGER); the results."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        client = self.probe.node.create_client(SetParameters, f"{self.namespace}/convbki_mapper/set_parameters")
+        assert self.probe.spin_until(client.service_is_ready, WAIT)
+        request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()
+                                                    for name, value in values.items()])
+        future = client.call_async(request)
+        assert self.probe.spin_until(future.done, WAIT)
+        return future.result().results
+
+    def parameter(self, name: str):
+        """The node's value of parameter ``name``, as rclpy reads it."""
+        from rcl_interfaces.srv import GetParameters
+        from rclpy.parameter import parameter_value_to_python
+
+        client = self.probe.node.create_client(GetParameters, f"{self.namespace}/convbki_mapper/get_parameters")
+        assert self.probe.spin_until(client.service_is_ready, WAIT)
+        future = client.call_async(GetParameters.Request(names=[name]))
+        assert self.probe.spin_until(future.done, WAIT)
+        return parameter_value_to_python(future.result().values[0])
 
     def call(self, service: str):
         """Call the node's Trigger service ``service`` ("save_map", "reset", "export_ply")."""

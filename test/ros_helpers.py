@@ -32,12 +32,14 @@ def ros_env(domain: int) -> dict:
                 PYTHONUNBUFFERED="1")
 
 
-def start(module: str, domain: int, *args: str, prefix: tuple[str, ...] = ()) -> subprocess.Popen:
+def start(module: str, domain: int, *args: str, prefix: tuple[str, ...] = (), env: dict | None = None,
+          cwd: Path = REPO) -> subprocess.Popen:
     """``python -m module args`` as a separate process on ``domain``; output to pipes.
 
-    ``prefix``: a command that runs it (e.g. ``setpriv ...``)."""
-    return subprocess.Popen([*prefix, sys.executable, "-m", module, *map(str, args)], cwd=REPO, env=ros_env(domain),
-                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    ``prefix``: a command that runs it (e.g. ``setpriv ...``); ``env``: variables to add."""
+    return subprocess.Popen([*prefix, sys.executable, "-m", module, *map(str, args)], cwd=cwd,
+                            env={**ros_env(domain), **(env or {})}, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
 
 
 def stop(process: subprocess.Popen, timeout: float = 10.0) -> str:

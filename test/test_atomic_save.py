@@ -34,7 +34,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError
-from convbki_core.io.atomic import atomic_write_bytes, remove_stale_temp_files, temp_files, writer_tag
+from convbki_core.io.atomic import (
+    atomic_write_bytes,
+    atomic_write_with,
+    previous_path,
+    remove_stale_temp_files,
+    temp_files,
+    writer_tag,
+)
 from convbki_core.io.map_file import MAP_VERSION, read_map
 
 REPO = Path(__file__).resolve().parents[1]
@@ -163,13 +170,14 @@ def sorted_map(path: Path) -> tuple[int, np.ndarray, np.ndarray]:
 
 
 def kill_points(writes: int) -> list[tuple[str, int, int]]:
-    """(phase, save of the child, occurrence in that save) of every round's kill."""
+    """(phase, save of the child, occurrence in that save) of every round's kill. A save renames
+    twice: the file it replaces to NAME.prev (a hard link), then its staging file to NAME."""
     return [("start", 2, 1), ("open", 1, 1), ("write", 1, 1), ("write", 2, max(1, writes // 2)),
-            ("write", 1, writes), ("fsync", 2, 1), ("replace", 1, 1), ("replaced", 1, 1), ("fsync", 2, 2),
-            ("start", 3, 1), ("write", 2, 2)]  # the last one leaves a staging file behind
+            ("write", 1, writes), ("fsync", 2, 1), ("replace", 1, 1), ("replaced", 1, 1), ("replace", 2, 2),
+            ("replaced", 1, 2), ("fsync", 2, 2), ("start", 3, 1), ("write", 2, 2)]  # the last leaves a staging file
 
 
-BEFORE_RENAME = {"open", "write", "replace"}  # and fsync 1
+BEFORE_RENAME = {"open", "write", "replace"}  # and fsync 1, and the first rename (NAME.prev)
 
 
 def test_map_save_survives_kill_9_at_every_point_of_a_save(tmp_path):
@@ -214,8 +222,8 @@ def test_map_save_survives_kill_9_at_every_point_of_a_save(tmp_path):
 
             # What is on disk at the kill: the child's staging file exists exactly while it writes.
             staging = [p for p in temp_files(path) if f".{child}." in p.name]
-            renamed = phase == "replaced" or (phase == "fsync" and count == 2)
-            mid_save = phase in BEFORE_RENAME or (phase == "fsync" and count == 1)
+            renamed = (phase == "replaced" and count == 2) or (phase == "fsync" and count == 2)
+            mid_save = phase in BEFORE_RENAME or (phase, count) in {("fsync", 1), ("replaced", 1)}
             assert len(staging) == (1 if mid_save else 0), (phase, count, staging)
             os.kill(child, signal.SIGKILL)
             assert reader.line() == f"dead {child}"
@@ -228,6 +236,13 @@ def test_map_save_survives_kill_9_at_every_point_of_a_save(tmp_path):
             np.testing.assert_array_equal(index, reference_index)
             assert (alpha[marker] == float(version)).all()
             np.testing.assert_array_equal(alpha[~marker], reference_alpha[~marker])
+            # NAME.prev is a whole map too: an older version, or the same one when the kill came between
+            # the save's two renames.
+            previous_version, previous_index, _ = sorted_map(previous_path(path))
+            between_renames = (phase, count) in {("replaced", 1), ("replace", 2)}
+            assert previous_version == version if between_renames else previous_version < version, \
+                (phase, count, previous_version, version)
+            np.testing.assert_array_equal(previous_index, reference_index)
             last_done = version
         writer.stdin.write(b"quit\n")
         writer.stdin.flush()
@@ -325,7 +340,7 @@ def _as_version_1(good: Path, out: Path, change, alpha_change=lambda alpha: None
     (lambda good, p: p.write_bytes(b""), "empty file"),
     (lambda good, p: p.write_bytes(good.read_bytes()[:100]), "truncated or corrupted"),
     (lambda good, p: p.write_bytes(good.read_bytes()[:-30]), "truncated or corrupted"),
-    (lambda good, p: p.write_text("# a PLY or text file\n"), "truncated or corrupted"),
+    (lambda good, p: p.write_text("# a PLY or text file\n"), r"not a NumPy \.npz archive: text"),
     (lambda good, p: p.write_bytes(_npy_bytes(np.zeros((3, 3)))), "single NumPy array"),
     (lambda good, p: np.savez(p, voxels=np.zeros(3)), "missing class_count, class_id, metadata, value, voxel_index"),
     (lambda good, p: zipfile.ZipFile(p, "w").writestr("readme.txt", "hello"), "missing"),
@@ -400,3 +415,45 @@ def test_any_truncation_or_byte_corruption_gives_map_file_error_or_the_map(tmp_p
     np.testing.assert_array_equal(indices, good_indices)
     np.testing.assert_array_equal(alpha, good_alpha)
     assert metadata["num_classes"] == 4
+
+
+# ----------------------------------------------------------------------------- the file a save replaces
+
+
+def test_a_save_keeps_the_file_it_replaces_as_prev_and_a_failed_save_keeps_both(tmp_path, monkeypatch):
+    path = tmp_path / "map.npz"
+    atomic_write_bytes(path, b"first", keep_previous=True)
+    assert path.read_bytes() == b"first" and not previous_path(path).exists()  # nothing was replaced
+    atomic_write_bytes(path, b"second", keep_previous=True)
+    assert previous_path(path).read_bytes() == b"first" and path.read_bytes() == b"second"
+    assert os.stat(previous_path(path)).st_nlink == 1  # a file of its own once the next rename happened
+
+    def fail(handle):
+        handle.write(b"half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError):
+        atomic_write_with(path, fail, keep_previous=True)
+    assert path.read_bytes() == b"second" and previous_path(path).read_bytes() == b"first"
+    assert temp_files(path) == [] and temp_files(previous_path(path)) == []
+
+    # Without hard links (some network file systems) the file before is copied.
+    def no_links(source, destination):
+        raise OSError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "link", no_links)
+    atomic_write_bytes(path, b"third", keep_previous=True)
+    assert previous_path(path).read_bytes() == b"second" and path.read_bytes() == b"third"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.npz", "map.npz.prev"]
+
+
+def test_a_map_save_over_a_map_keeps_the_map_before_it_loadable(tmp_path):
+    path = _saved_map(tmp_path)
+    before = path.read_bytes()
+    mapper = ConvBKIMapper(ConvBKIKernel("single", 4, 3, 0.2, ell=0.3), local_bounds=((-1, -1, -1), (1, 1, 1)),
+                           device="cpu")
+    mapper.load(path)
+    mapper.store.write(np.array([[9, 9, 9]]), np.full((1, 4), 2.0, np.float32))
+    mapper.save(path)
+    assert previous_path(path).read_bytes() == before
+    assert len(read_map(path)[1]) == 4 and len(read_map(previous_path(path))[1]) == 3

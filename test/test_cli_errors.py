@@ -390,6 +390,7 @@ def test_bench_without_convbki_ros_keeps_the_keys_and_says_why(monkeypatch):
 
     assert bench.ros_figures() is bench_ros
     assert bench.ROS_ENCODE_KEYS == bench_ros.ENCODE_KEYS and bench.ROS_SCAN_TO_MAP_KEYS == bench_ros.SCAN_TO_MAP_KEYS
+    assert set(bench_ros.START_KEYS) < set(bench.ROS_START_KEYS) <= set(bench.REPORTED)
     rng = np.random.default_rng(0)
     frame = SimpleNamespace(points=rng.uniform(-5, 5, (2000, 3)).astype(np.float32),
                             remission=np.zeros(2000, np.float32), input_labels=rng.integers(1, 20, 2000),
@@ -404,10 +405,10 @@ def test_bench_without_convbki_ros_keeps_the_keys_and_says_why(monkeypatch):
                         lambda name, *rest: None if name == "convbki_ros" else find_spec(name, *rest))
     assert bench.ros_figures() is None
     figures = {**dict.fromkeys(bench.REPORTED, 1.0), "machine": "test",
-               **dict.fromkeys(bench.ROS_ENCODE_KEYS + bench.ROS_SCAN_TO_MAP_KEYS)}
+               **dict.fromkeys(bench.ROS_ENCODE_KEYS + bench.ROS_SCAN_TO_MAP_KEYS + bench.ROS_START_KEYS)}
     rows = {line.split()[0]: line for line in bench.format_report(figures, []).splitlines()[3:] if line}
     unmeasured = [key for key in bench.REPORTED if rows[key].endswith(bench.NOT_MEASURED)]
-    assert unmeasured == ["encode_ms_per_million", "scan_to_map_ms"]
+    assert unmeasured == ["encode_ms_per_million", "scan_to_map_ms", *bench.ROS_START_KEYS]
 
 
 def test_demo_missing_dataset_creates_nothing(tmp_path, capsys):

@@ -370,9 +370,13 @@ def test_broken_map_files_are_refused_and_the_map_kept(tmp_path):
     np.savez(foreign, something=np.zeros(3))
     text = tmp_path / "text.npz"
     text.write_text("hello")
+    picture = tmp_path / "picture.npz"  # a PNG saved under a map's name
+    picture.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
     other_classes = tmp_path / "other.npz"
     ConvBKIMapper(kernel_path("semantic_kitti_sbki"), local_bounds=BOUNDS, device="cpu").save(other_classes)
-    for path, message in [(truncated, "not a readable"), (foreign, "missing"), (text, "not a readable"),
+    for path, message in [(truncated, "not a readable"), (foreign, "missing"),
+                          (text, r"not a NumPy \.npz archive: text\)$"),
+                          (picture, r"not a NumPy \.npz archive: a PNG image\)$"),
                           (tmp_path / "absent.npz", "no such"), (other_classes, "20 classes")]:
         with pytest.raises(MapFileError, match=message) as error:
             mapper.load(path)
@@ -414,3 +418,71 @@ def test_ply_export_holds_every_voxel_in_class_colours(tmp_path):
     assert (road["red"] == 255).all() and (road["green"] == 0).all() and (road["blue"] == 255).all()  # magenta
     limited = mapper.export_ply(tmp_path / "limited.ply", max_variance=float(np.median(voxels.variance)))
     assert 0 < limited < written
+
+
+# ----------------------------------------------------------------------------- forgetting a box, loading
+
+
+@pytest.mark.parametrize("update_path", ["fast", "torch"])
+def test_forget_box_removes_exactly_the_voxels_whose_centres_lie_in_it(update_path):
+    rng = np.random.default_rng(21)
+    mapper = small_mapper(update_path=update_path, track_changes=True)
+    reference = small_mapper()
+    for x in (0.0, 2.5, 5.0):  # the window moves, so voxels are both in the store and in the window
+        pose = np.eye(4)
+        pose[0, 3] = x
+        scan = random_scan(rng, 400)
+        mapper.integrate(*scan, pose)
+        reference.integrate(*scan, pose)
+    mapper.take_changes()
+    mapper.integrate(*random_scan(rng, 50, extent=0.5), np.eye(4))  # changes left in the store, untaken
+    reference.integrate(*random_scan(np.random.default_rng(0), 0), np.eye(4))
+    before = voxel_dict(mapper)
+    box_min, box_max = np.array([-0.7, -1.1, -0.3]), np.array([3.1, 0.9, 0.5])
+    centres = {key: (np.array(key) + 0.5) * 0.2 for key in before}
+    inside = {key for key, centre in centres.items() if ((centre >= box_min) & (centre <= box_max)).all()}
+    assert 0 < len(inside) < len(before)
+    forgotten = mapper.forget_box(box_min, box_max)
+    assert set(map(tuple, forgotten.tolist())) == inside and len(forgotten) == len(inside)
+    after = voxel_dict(mapper)
+    assert set(after) == set(before) - inside
+    for key in after:
+        np.testing.assert_array_equal(after[key], before[key])
+    # What the outputs learn: the forgotten voxels left the map, and no change brings one back.
+    changes = mapper.take_changes()
+    assert set(map(tuple, changes.removed.tolist())) == inside
+    assert not inside & set(map(tuple, changes.indices.tolist()))
+    assert len(mapper.forget_box(box_min, box_max)) == 0
+    assert len(mapper.forget_box([1, 1, 1], [0, 0, 0])) == 0  # an empty box
+    with pytest.raises(ValueError, match="finite"):
+        mapper.forget_box([0, 0, np.nan], [1, 1, 1])
+
+
+def test_a_loaded_map_sits_in_the_window_around_the_sensor_position_it_recorded(tmp_path):
+    rng = np.random.default_rng(22)
+    mapper = small_mapper()
+    pose = np.eye(4)
+    pose[:3, 3] = [12.3, -4.5, 0.7]
+    mapper.integrate(*random_scan(rng, 300), pose)
+    mapper.save(tmp_path / "map.npz")
+    loaded = small_mapper()
+    metadata = loaded.load(tmp_path / "map.npz")
+    np.testing.assert_allclose(metadata["sensor_position"], [12.3, -4.5, 0.7])
+    np.testing.assert_allclose(loaded.sensor_position, [12.3, -4.5, 0.7])
+    assert loaded.window.count() == len(loaded) == len(mapper)  # the map around the sensor is in the window
+    assert_same_maps(loaded, mapper)
+    # A file without the position (an older file) places the window on the centre of its voxels.
+    indices, alpha = mapper.items()
+    from convbki_core.io.map_file import MapSnapshot
+
+    snapshot = mapper.snapshot()
+    del snapshot.metadata["sensor_position"]
+    MapSnapshot(snapshot.metadata, indices, alpha).write(tmp_path / "old.npz")
+    older = small_mapper()
+    older.load(tmp_path / "old.npz")
+    centre = ((indices.min(axis=0) + indices.max(axis=0)) // 2 + 0.5) * 0.2
+    np.testing.assert_array_equal(older.window.origin, older.geometry.origin_for(centre))
+    assert older.window.count() > 0
+    # Another prior is refused: the classes a voxel never saw would hold the wrong concentration.
+    with pytest.raises(MapFileError, match=r"map prior 0\.001 differs from the mapper.s 0\.01"):
+        small_mapper(prior=1e-2).load(tmp_path / "map.npz")

@@ -361,9 +361,15 @@ def test_a_save_that_fails_answers_why_keeps_the_old_file_and_mapping_goes_on(ri
     assert failed.message == f"could not save {rig.map_file}: File too large", failed.message
     assert rig.map_file.read_bytes() == before
     assert sorted(p.name for p in rig.map_file.parent.iterdir()) == ["map.npz"]
+    # Until a save succeeds, /diagnostics says the map is not saved (ERROR, with the reason).
+    unsaved = rig.wait_stats(lambda s: s.level == 2)
+    assert failed.message in unsaved.message and unsaved.last_save == failed.message, unsaved
     stats = rig.integrate_good_cloud()
     saved = rig.probe.call(Trigger, "/convbki_mapper/save_map")
-    assert saved.success and saved.message == f"saved {stats.voxels} voxels to {rig.map_file}", saved.message
+    assert saved.success and saved.message == f"saved {stats.voxels} voxels to {rig.map_file} (the file before kept " \
+        "as map.npz.prev)", saved.message
+    assert Path(f"{rig.map_file}.prev").read_bytes() == before  # the file it replaced
+    assert rig.wait_stats(lambda s: s.level != 2 and s.last_save == saved.message).integrated == stats.integrated
     # After every kind of bad input this node has seen, its file still loads.
     reloaded = offline_map(0)
     reloaded.load(rig.map_file)
@@ -420,6 +426,7 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
         assert rig.probe.spin_until(rig.map_file.exists, WAIT), "autosave never wrote the map file"
         expect_file_holds(rig.map_file, offline_map(1))  # saves are atomic: a file that exists is complete
         rig.wait_log(rf"autosave: saved {stats.voxels} voxels to {re.escape(str(rig.map_file))}", mark)
+        autosaved = rig.map_file.read_bytes()
 
         # A pose jump resets the map; mapping resumes at the new pose.
         mark = rig.log.mark()
@@ -441,15 +448,22 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
         rig.integrate_good_cloud()
         assert final.voxels == stats.voxels
 
-        # SIGINT: the map on disk is the last map (saved now, or by autosave if nothing changed since).
+        # The resets were not a request to write the file: autosave keeps the map saved before them,
+        # and /diagnostics says this map is not saved.
+        unsaved = rig.wait_stats(lambda s: s.level == 1 and "not saved automatically" in s.message)
+        assert "a reset when time went back" in unsaved.message, unsaved
+        assert rig.map_file.read_bytes() == autosaved
+
+        # SIGINT: the file is kept as it was, and the log says how to save this map.
         rig.process.send_signal(signal.SIGINT)
         assert rig.process.wait(timeout=WAIT) == 0
     finally:
         output = rig.close()
-    assert re.search(rf"on shutdown: (saved {final.voxels} voxels to {re.escape(str(rig.map_file))}|the map is "
-                     "unchanged since it was last saved)", output), output
+    assert re.search(rf"on shutdown: kept {re.escape(str(rig.map_file))} as it is: it holds evidence this map no "
+                     r"longer has \(a reset when time went back at [\d.]+ s\); call ~/save_map", output), output
     assert "Traceback" not in output, output
-    expect_file_holds(rig.map_file, offline_map(2))
+    assert rig.map_file.read_bytes() == autosaved
+    expect_file_holds(rig.map_file, offline_map(1))
 
 
 # ----------------------------------------------------------------------------- node C, D: bad map files
@@ -496,6 +510,7 @@ def test_an_unreadable_map_file_gives_an_empty_map_or_a_refusal(tmp_path):
         if refusing.poll() is None:
             refusing.kill()
         output = rig.close()
-    assert f"on shutdown: saved {final.voxels} voxels to {truncated}" in output, output
+    assert f"on shutdown: saved {final.voxels} voxels to {truncated} (the file before kept as map.npz.prev)" \
+        in output, output
     assert "Traceback" not in output, output
     expect_file_holds(truncated, offline_map(2))

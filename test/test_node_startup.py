@@ -78,6 +78,10 @@ def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_e
         assert not refused.successful and "read-only" in refused.reason
         refused = set_parameter("publish_period", 0.001)
         assert not refused.successful and "out of range" in refused.reason
+        # An integer for a number parameter, as `ros2 param set ... publish_period 2` sends it.
+        assert rig.set_parameters(publish_period=2)[0].successful
+        assert rig.parameter("publish_period") == 2.0 and isinstance(rig.parameter("publish_period"), float)
+        assert rig.set_parameters(publish_period=0.2)[0].successful
         assert set_parameter("map_period", 0.2).successful
         assert rig.probe.spin_until(lambda: bool(rig.maps), WAIT), "no map after map_period became 0.2 s"
         assert set_parameter("stats_period", 0.2).successful

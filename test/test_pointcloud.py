@@ -304,6 +304,7 @@ XYZ = [_field("x", 0, pc.FLOAT32), _field("y", 4, pc.FLOAT32), _field("z", 8, pc
     ({"point_step": 12}, None, r"'label' \(offset 12, 4 bytes\) does not fit in point_step 12"),
     ({"data": b"\0" * 63}, None, r"data holds 63 bytes, expected at least 64"),
     ({"width": 5, "row_step": 80}, None, r"data holds 64 bytes, expected at least 80"),
+    ({"row_step": 100}, None, r"data holds 64 bytes, expected at least 100 \(.*row_step 100\)"),
     ({"fields": XYZ + [_field("prob_0", 12, pc.FLOAT32), _field("prob_2", 12, pc.FLOAT32)]}, None,
      r"incomplete probability fields for 3 classes: missing prob_1"),
     ({"fields": XYZ + [_field("prob_0", 12, pc.FLOAT32), _field("prob_1", 12, pc.FLOAT32)]}, 3,

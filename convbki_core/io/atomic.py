@@ -5,6 +5,12 @@ folder, flushed and fsync'ed, then renamed over the destination (atomic on POSIX
 finally the folder itself is fsync'ed so the rename survives a power cut. A crash at any
 moment leaves either the old file or the new one, never a mix.
 
+A file written with ``keep_previous`` keeps the version it replaces beside it, as
+``NAME.prev``: a hard link to the old file made before the rename (no copy, no extra space;
+a copy where the file system has no hard links), itself put in place by a rename. Every
+moment of a save leaves ``NAME`` whole, and ``NAME.prev`` is either the file before this
+save or the one before that.
+
 Temporary files and what happens to them when a writer is killed (``kill -9``, power cut):
 
 * they are named ``.NAME.PID.HOST.RANDOM.tmp`` next to ``NAME``: hidden, obviously
@@ -33,6 +39,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 TEMP_SUFFIX = ".tmp"
+PREVIOUS_SUFFIX = ".prev"  # NAME.prev: the version a save with keep_previous replaced
 # This machine, in temporary names: a short hash of the host name (names stay short and safe).
 HOST_TAG = f"{zlib.crc32(socket.gethostname().encode()):08x}"
 
@@ -53,17 +60,51 @@ def temp_prefix(path: str | Path) -> str:
     return f".{Path(path).name}."
 
 
+def previous_path(path: str | Path) -> Path:
+    """Where a save with ``keep_previous`` keeps the version it replaced: ``NAME.prev``."""
+    path = Path(path)
+    return path.with_name(path.name + PREVIOUS_SUFFIX)
+
+
+def _temp_file(path: Path) -> BinaryIO:
+    folder = path.parent if str(path.parent) else Path(".")
+    return tempfile.NamedTemporaryFile(mode="wb", dir=folder, prefix=f"{temp_prefix(path)}{writer_tag()}.",
+                                       suffix=TEMP_SUFFIX, delete=False)
+
+
+def _keep_previous(path: Path) -> None:
+    """Put the current ``path`` (if any) in place as ``NAME.prev``, atomically."""
+    previous = previous_path(path)
+    remove_stale_temp_files(previous)
+    with _temp_file(previous) as handle:
+        temp = Path(handle.name)
+    try:
+        temp.unlink()
+        try:
+            os.link(path, temp)
+        except FileNotFoundError:
+            return  # nothing to keep: the first save of this file
+        except OSError:  # no hard links here (some network and FUSE file systems): a copy
+            with open(path, "rb") as source, open(temp, "wb") as copy:
+                shutil.copyfileobj(source, copy, 1 << 20)
+                copy.flush()
+                os.fsync(copy.fileno())
+        os.replace(temp, previous)
+    finally:
+        temp.unlink(missing_ok=True)
+
+
 @contextmanager
-def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
-    """Open a temporary binary file next to ``path``; on clean exit it replaces ``path``.
+def atomic_open(path: str | Path, keep_previous: bool = False) -> Iterator[BinaryIO]:
+    """Open a temporary binary file next to ``path``; on clean exit it replaces ``path``
+    (and with ``keep_previous`` the file it replaces becomes ``NAME.prev``).
 
     On an exception the temporary file is removed and ``path`` is left as it was.
     """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     remove_stale_temp_files(path)
-    handle = tempfile.NamedTemporaryFile(mode="wb", dir=folder, prefix=f"{temp_prefix(path)}{writer_tag()}.",
-                                         suffix=TEMP_SUFFIX, delete=False)
+    handle = _temp_file(path)
     temp_path = Path(handle.name)
     try:
         # Temporary files are created 0600; give the result the permissions a plain open() would.
@@ -72,6 +113,8 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
+        if keep_previous:
+            _keep_previous(path)
         os.replace(temp_path, path)
     except BaseException:
         temp_path.unlink(missing_ok=True)
@@ -79,15 +122,16 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     _fsync_folder(folder)
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically."""
-    with atomic_open(path) as handle:
+def atomic_write_bytes(path: str | Path, data: bytes, keep_previous: bool = False) -> None:
+    """Write ``data`` to ``path`` atomically (``keep_previous``: the file it replaces becomes ``NAME.prev``)."""
+    with atomic_open(path, keep_previous) as handle:
         handle.write(data)
 
 
-def atomic_write_with(path: str | Path, writer: Callable[[BinaryIO], None]) -> None:
-    """Call ``writer(file)`` on a temporary file that atomically becomes ``path``."""
-    with atomic_open(path) as handle:
+def atomic_write_with(path: str | Path, writer: Callable[[BinaryIO], None], keep_previous: bool = False) -> None:
+    """Call ``writer(file)`` on a temporary file that atomically becomes ``path`` (``keep_previous``:
+    the file it replaces becomes ``NAME.prev``)."""
+    with atomic_open(path, keep_previous) as handle:
         writer(handle)
 
 
@@ -96,10 +140,11 @@ def temp_files(path: str | Path) -> list[Path]:
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     prefix = temp_prefix(path)
-    try:
+    try:  # .NAME.PID...: another file's (.NAME.prev.PID...) begins with a letter there
         with os.scandir(folder) as entries:
             return sorted(folder / entry.name for entry in entries
-                          if entry.name.startswith(prefix) and entry.name.endswith(TEMP_SUFFIX))
+                          if entry.name.startswith(prefix) and entry.name.endswith(TEMP_SUFFIX)
+                          and entry.name[len(prefix):len(prefix) + 1].isdigit())
     except OSError:
         return []
 

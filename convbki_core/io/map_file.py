@@ -4,7 +4,8 @@ Layout (version 2): an uncompressed NumPy ``.npz`` archive (readable from any la
 with a zip reader and the .npy spec) with five members:
 
 * ``metadata``: UTF-8 JSON bytes: format name and version, resolution (m), num_classes,
-  frame_id, prior, local_bounds, the kernel (kernel-file mapping), class names if known;
+  frame_id, prior, local_bounds, the kernel (kernel-file mapping), class names if known,
+  and ``sensor_position`` (x, y, z in frame_id, m: the sensor at the last scan) when known;
 * ``voxel_index``: (N, 3) int32 global voxel indices (centre = (index + 0.5) * resolution);
 * ``class_count``: (N,) uint8, per voxel the number of classes whose concentration is not
   the prior; those classes follow voxel by voxel in
@@ -51,7 +52,8 @@ class MapSnapshot:
         return int(self.indices.shape[0])
 
     def write(self, path: str | Path) -> None:
-        """Write the map file (version 2) atomically: a failed write leaves the previous file as it was.
+        """Write the map file (version 2) atomically: a failed write leaves the previous file as it was,
+        and a successful one keeps the file it replaced as ``NAME.prev``.
 
         Only values that differ from the metadata's ``prior`` are written; the rest is the prior.
         """
@@ -69,7 +71,7 @@ class MapSnapshot:
             "class_id": classes,
             "value": values.view(np.float32),
         }
-        atomic_write_with(path, lambda handle: np.savez(handle, **arrays))
+        atomic_write_with(path, lambda handle: np.savez(handle, **arrays), keep_previous=True)
 
 
 def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
@@ -85,6 +87,7 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
             raise MapFileError(f"{path}: is a folder, not a map file")
         if path.exists() and path.stat().st_size == 0:
             raise MapFileError(f"{path}: empty file, not a ConvBKI map file")
+        _check_magic(path)
         archive = np.load(path, allow_pickle=False)
         if not isinstance(archive, np.lib.npyio.NpzFile):  # a bare .npy array
             raise MapFileError(f"{path}: not a ConvBKI map file (a single NumPy array, not an .npz archive)")
@@ -125,6 +128,26 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
     if len(np.unique(indices, axis=0)) != indices.shape[0]:
         raise MapFileError(f"{path}: duplicate voxel indices")
     return metadata, indices.astype(np.int64), alpha.astype(np.float32, copy=False)
+
+
+# What a file that is not an .npz archive usually is, by its first bytes.
+_OTHER_FILES = ((b"\x89PNG", "a PNG image"), (b"\xff\xd8\xff", "a JPEG image"), (b"\x1f\x8b", "a gzip file"),
+                (b"ply\n", "a PLY point cloud"), (b"BZh", "a bzip2 file"), (b"\x7fELF", "a program"),
+                (b"SQLite format", "an SQLite database"), (b"\x89HDF", "an HDF5 file"))
+
+
+def _check_magic(path: Path) -> None:
+    """The file starts as a zip archive (an .npz) or a NumPy array does; anything else is
+    named, so nobody is sent after numpy's advice about pickles for a picture."""
+    with open(path, "rb") as stream:
+        head = stream.read(16)
+    if head.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):
+        return
+    what = next((name for magic, name in _OTHER_FILES if head.startswith(magic)), None)
+    if what is None:
+        what = "text" if head and all(32 <= b < 127 or b in b"\t\r\n" for b in head) else \
+            f"a file starting with bytes {head[:8].hex(' ')}"
+    raise MapFileError(f"{path}: not a ConvBKI map file (not a NumPy .npz archive: {what})")
 
 
 def _check_format(path: Path, metadata: object) -> None:
@@ -201,3 +224,7 @@ def _check_metadata(path: Path, metadata: dict) -> None:
         raise MapFileError(f"{path}: metadata scans_integrated must be a count, got {scans!r}")
     if not isinstance(metadata.get("frame_id", ""), str):
         raise MapFileError(f"{path}: metadata frame_id must be a string, got {metadata.get('frame_id')!r}")
+    position = metadata.get("sensor_position")
+    if position is not None and not (isinstance(position, list) and len(position) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in position)):
+        raise MapFileError(f"{path}: metadata sensor_position must be three finite numbers (m), got {position!r}")

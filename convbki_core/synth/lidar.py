@@ -7,7 +7,7 @@ cast exactly against the ground plane (z = 0) and the scene's primitives, walkin
 of cells outward from the sensor (Amanatides-Woo), so a ray only tests primitives near its
 path. Porous primitives (foliage, mesh fences) are hit at a random depth or passed through.
 
-All kernels are compiled with ``cache=True`` (the first run in a fresh environment compiles
+All kernels are cached (``convbki_core.native``: the first run in a fresh environment compiles
 them, which takes a while; later runs load them from numba's cache). Frames: ray directions are
 given in the scene frame; the sensor frame only matters to ``Beams`` and the ego-body mask.
 """
@@ -19,19 +19,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-try:
-    import numba
-    from numba import njit, prange
-except ImportError as _error:  # pragma: no cover - exercised only without numba
-    numba = None
-    _NUMBA_ERROR: ImportError | None = _error
+from convbki_core.native import HAVE_NUMBA
 
-    def njit(*args, **kwargs):  # stand-in decorator: the kernels are never called without numba
-        return (lambda f: f) if not args or not callable(args[0]) else args[0]
+if HAVE_NUMBA:
+    from convbki_core.native import njit, prange
+else:  # pragma: no cover - exercised only without numba
+
+    def njit(**options):  # stand-in decorator: the kernels are never called without numba
+        return lambda function: function
 
     prange = range
-else:
-    _NUMBA_ERROR = None
 
 
 class MissingDependency(RuntimeError):
@@ -40,9 +37,9 @@ class MissingDependency(RuntimeError):
 
 def require_numba() -> None:
     """Raise a one-line, actionable error when numba is missing."""
-    if numba is None:
+    if not HAVE_NUMBA:
         raise MissingDependency(
-            f"the synthetic LiDAR needs numba ({_NUMBA_ERROR}); install the pinned version with "
+            "the synthetic LiDAR needs numba, which is not installed; install the pinned version with "
             "`.venv/bin/pip install -r requirements.txt` (numba==0.68.1)")
 
 
@@ -94,7 +91,7 @@ def _ego_mask(dirs: np.ndarray) -> np.ndarray:
 
 
 # ---- hashing: deterministic uniforms tied to integers (world cells, parts, rays) ----------------
-@njit(cache=True, inline="always")
+@njit(inline="always")
 def _mix(h):
     """splitmix64 finaliser."""
     h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -102,7 +99,7 @@ def _mix(h):
     return h ^ (h >> np.uint64(31))
 
 
-@njit(cache=True, inline="always")
+@njit(inline="always")
 def _hash4(a, b, c, d):
     h = _mix(np.uint64(a) + np.uint64(0x9E3779B97F4A7C15))
     h = _mix(h ^ np.uint64(b))
@@ -110,13 +107,13 @@ def _hash4(a, b, c, d):
     return _mix(h ^ np.uint64(d))
 
 
-@njit(cache=True, inline="always")
+@njit(inline="always")
 def _unit(h):
     """uint64 -> float in (0, 1)."""
     return ((h >> np.uint64(11)) + np.uint64(1)) * (1.0 / 9007199254740994.0)
 
 
-@njit(cache=True, parallel=True)
+@njit(parallel=True)
 def hash_uniform(salt, a, b, c):
     """Uniforms in (0, 1) from integer triples (int64 arrays of one length) and a salt."""
     out = np.empty(a.shape[0], np.float64)
@@ -126,7 +123,7 @@ def hash_uniform(salt, a, b, c):
 
 
 # ---- ray-primitive intersection ------------------------------------------------------------------
-@njit(cache=True, inline="always")
+@njit(inline="always")
 def _intersect(kind, p, ox, oy, oz, dx, dy, dz):
     """(t_enter, t_exit, nx, ny, nz) of a ray and a primitive; t_enter = inf when missed.
 
@@ -203,7 +200,7 @@ def _intersect(kind, p, ox, oy, oz, dx, dy, dz):
     return t0, t1, c * gx - s * gy, s * gx + c * gy, gz
 
 
-@njit(cache=True, parallel=True)
+@njit(parallel=True)
 def cast_rays(origin, dirs, max_range, salt, kinds, params, cell_start, cell_items, gx0, gy0, cell, gnx, gny):
     """Nearest hit of each ray from ``origin`` (3,) along ``dirs`` (R, 3) (scene frame).
 
@@ -277,7 +274,7 @@ def cast_rays(origin, dirs, max_range, salt, kinds, params, cell_start, cell_ite
 
 
 # ---- neighbour queries for the boundary-blur part of the noise model --------------------------------
-@njit(cache=True, parallel=True)
+@njit(parallel=True)
 def raster_neighbours_kernel(top, offsets_y, offsets_x, offsets_d):
     """For each cell: the nearest different class among ``offsets`` (sorted by distance)."""
     ny, nx = top.shape
@@ -307,7 +304,7 @@ def raster_neighbours(top: np.ndarray, res: float, radius: float) -> tuple[np.nd
                                     d[keep][order].astype(np.float32))
 
 
-@njit(cache=True, inline="always")
+@njit(inline="always")
 def _sdf(kind, p, x, y, z):
     """Distance (m) from a point to a primitive's surface when outside, 0 inside (ellipsoids approximate)."""
     px, py, pz = x - p[0], y - p[1], z - p[2]
@@ -327,7 +324,7 @@ def _sdf(kind, p, x, y, z):
     return k0 * (k0 - 1.0) / k1
 
 
-@njit(cache=True, parallel=True)
+@njit(parallel=True)
 def neighbour_query(points, point_class, kinds, params, prim_class, cell_start, cell_items, gx0, gy0, cell, gnx,
                     gny, top, nb_class, nb_dist, rx0, ry0, res, width):
     """Nearest surface of another class within ``width`` of each point (scene frame).
@@ -371,7 +368,7 @@ def neighbour_query(points, point_class, kinds, params, prim_class, cell_start, 
     return out_c, out_d
 
 
-@njit(cache=True, parallel=True)
+@njit(parallel=True)
 def blob_field(points, scale, salt):
     """Persistent error blobs: spheres of radius 0.35-0.85 * ``scale`` (m), one per cubic cell of
     edge ``scale``, centred at a random place in the cell, each with an activation draw.

@@ -169,7 +169,7 @@ def tints(movers: list[Mover], salt: int) -> list[np.ndarray]:
 
 
 # ---- ray casting and neighbour queries against the movers of one scan ----------------------------
-@njit(cache=True, parallel=True)
+@njit(parallel=True)
 def _cast_kernel(origin, dirs, best_t, kinds, params, start, bounds):
     n = dirs.shape[0]
     out_t = best_t.copy()
@@ -203,7 +203,7 @@ def cast(origin: np.ndarray, dirs: np.ndarray, best_t: np.ndarray, frame: MoverF
     return _cast_kernel(origin, dirs, best_t, frame.kind, frame.param, frame.start, frame.bounds)
 
 
-@njit(cache=True, parallel=True)
+@njit(parallel=True)
 def _neighbour_kernel(points, point_class, kinds, params, prim_class, start, bounds, width, nb_class, nb_dist):
     n = points.shape[0]
     out_c = nb_class.copy()

@@ -19,9 +19,12 @@ Figures (medians over the drive; a shared machine is noisy, so compare ratios fr
   records for semantic_map/updates, applied to the chunked whole map, and the view within
   30 m; 1 M voxels stored), publish_ms_ratio_large_map (the same with 10 M / with 1 M),
   updates_bytes_per_scan (bytes of semantic_map/updates one scan makes),
-  scan_to_map_ms (decode a PointCloud2 + pose lookup + update + window move).
-encode_ms_per_million and scan_to_map_ms run the node's codec (convbki_ros.tools.bench_ros);
-without convbki_ros they are reported as not measured.
+  scan_to_map_ms (decode a PointCloud2 + pose lookup + update + window move),
+  cold_start_s and warm_start_s (the mapper node's process start to "ready", without a
+  compiled-kernel cache and with the one set-up leaves) and, for each, the update time the
+  node reports for its first and its tenth scan (cold_first_scan_ms, cold_tenth_scan_ms, ...).
+encode_ms_per_million, scan_to_map_ms and the start figures run the node's code
+(convbki_ros.tools.bench_ros); without convbki_ros they are reported as not measured.
 Then an ablation table (resolution 0.4 / 0.2 / 0.1 m at f = 5; f = 3 / 5 / 7 / 9 at 0.2 m)
 with latency and peak memory, and a PNG plot of update time against points per scan and
 against filter size.
@@ -64,17 +67,22 @@ PROG = "bench"
 TARGETS = {"update_ms": ("<=", 12), "update_probs_ms": ("<=", 50), "update_free_ms": ("<=", 30),
            "speedup_vs_dense": (">=", 50), "query_ms": ("<=", 25), "query_ms_ratio_large_map": ("<=", 1.5),
            "scan_to_map_ms": ("<=", 50), "encode_ms_per_million": ("<=", 40), "bytes_per_voxel": ("<=", 40),
-           "publish_ms_ratio_large_map": ("<=", 1.5)}
+           "publish_ms_ratio_large_map": ("<=", 1.5), "warm_start_s": ("<=", 3),
+           "cold_first_scan_ratio": ("<=", 1.5), "warm_first_scan_ratio": ("<=", 1.5)}
 # The figures of the printed report, in its order (the JSON holds more).
 REPORTED = ("voxelize_ms", "update_ms", "update_probs_ms", "update_free_ms", "dense_reference_ms", "speedup_vs_dense",
             "query_ms", "query_ms_ratio_large_map", "encode_ms_per_million", "bytes_per_voxel",
             "bytes_per_voxel_with_window", "publish_ms", "publish_ms_10m", "publish_ms_ratio_large_map",
-            "updates_bytes_per_scan", "scan_to_map_ms")
+            "updates_bytes_per_scan", "scan_to_map_ms", "cold_start_s", "warm_start_s", "cold_first_scan_ms",
+            "cold_tenth_scan_ms", "cold_first_scan_ratio", "warm_first_scan_ms", "warm_tenth_scan_ms",
+            "warm_first_scan_ratio")
 ROS_FIGURES = "convbki_ros.tools.bench_ros"
 NOT_MEASURED = "not measured: convbki_ros not importable"
 # The figures bench_ros measures, None in the report where it cannot be imported.
 ROS_ENCODE_KEYS = ("encode_ms_per_million", "encoded_voxels")
 ROS_SCAN_TO_MAP_KEYS = ("scan_to_map_ms",)
+ROS_START_KEYS = ("cold_start_s", "warm_start_s", "cold_first_scan_ms", "cold_tenth_scan_ms", "cold_first_scan_ratio",
+                  "warm_first_scan_ms", "warm_tenth_scan_ms", "warm_first_scan_ratio")
 
 
 def ros_figures() -> ModuleType | None:
@@ -83,6 +91,15 @@ def ros_figures() -> ModuleType | None:
     if importlib.util.find_spec("convbki_ros") is None:
         return None
     return importlib.import_module(ROS_FIGURES)
+
+
+def start_figures(ros: ModuleType, frames: list) -> dict:
+    """The node's start figures, with the first scan's update time over the tenth's."""
+    figures = ros.start_figures(frames)
+    for kind in ("cold", "warm"):
+        figures[f"{kind}_first_scan_ratio"] = figures[f"{kind}_first_scan_ms"] / max(figures[f"{kind}_tenth_scan_ms"],
+                                                                                     1e-6)
+    return figures
 
 
 def save_plot(points_rows: list[dict], ablation_rows: list[dict], path: Path) -> None:
@@ -117,6 +134,8 @@ def format_report(figures: dict, ablation_rows: list[dict]) -> str:
     lines = [f"ConvBKI benchmark: {figures['machine']}, mapping on {figures.get('device', 'cpu')}", "",
              f"{'figure':<26}{'value':>12}  target"]
     for key in REPORTED:
+        if key not in figures:
+            continue
         value = figures[key]
         if value is None:
             lines.append(f"{key:<26}{'':>12}  {NOT_MEASURED}")
@@ -153,6 +172,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="plot of update time vs points per scan and vs filter size (default: next to --json, "
                    "else out/bench/bench.png)")
     p.add_argument("--skip-ablation", action="store_true", help="leave out the ablation table and the plot")
+    p.add_argument("--skip-start", action="store_true",
+                   help="leave out the start figures (they start the mapper node twice, once compiling every kernel)")
     p.add_argument("--seed", type=int, default=5, help="seed of the synthetic drive (default: %(default)s)")
     p.add_argument("--device", default="cpu", type=device_arg,
                    help="torch device to map on: cpu (the compiled CPU path) or cuda[:N] (the torch path, the "
@@ -211,6 +232,8 @@ def _bench_on_device(args: argparse.Namespace) -> int:
         plot.parent.mkdir(parents=True, exist_ok=True)
         save_plot(sweep, ablation_rows, plot)
         figures["plot"] = str(plot)
+    if not args.skip_start:  # skipped: left out of the report
+        figures.update(start_figures(ros, frames) if ros else dict.fromkeys(ROS_START_KEYS))
     figures["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(format_report(figures, ablation_rows))
     if args.json:

@@ -185,6 +185,7 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], parser: argparse.A
     # argparse prints the whole usage before its error; one line is easier to read in a log.
     parser.error = lambda message: parser.exit(2, f"{prog}: error: {message} (see {prog} --help)\n")
     args = parser.parse_args(argv)
+    said = _kernel_cache_note(prog, said=False)
     try:
         return body(args)
     except (UserError, DatasetError, KernelFileError, MapFileError) as error:
@@ -199,3 +200,17 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], parser: argparse.A
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        _kernel_cache_note(prog, said)
+
+
+def _kernel_cache_note(prog: str, said: bool) -> bool:
+    """Print, once, why compiled kernels are cached somewhere unusual or not at all (only where
+    the command uses compiled kernels); True once said or nothing to say."""
+    native = sys.modules.get("convbki_core.native")
+    if said or native is None:
+        return said
+    note = native.kernel_cache().note
+    if note:
+        print(f"{prog}: warning: {note}", file=sys.stderr)
+    return True

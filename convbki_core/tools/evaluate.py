@@ -47,6 +47,7 @@ from convbki_core.tools.cli import (
 )
 from convbki_core.trails import SweptSpace
 from convbki_core.volume import tempers, transform_points
+from convbki_core.warm_up import warm_up
 
 PROG = "evaluate"
 DEFAULT_KERNEL = "semantic_kitti_compound"
@@ -99,6 +100,7 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
     mapper = ConvBKIMapper(config, local_bounds=local_bounds, prior=prior, device=device,
                            ignore_classes=label_map.ignore_classes, update_path=update_path, free_space=free_space,
                            max_concentration=max_concentration)
+    warm_up(mapper)  # every kernel compiled (or loaded) before the first timed frame
     run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
                                                                              label_map.ignore_classes), mapper=mapper)
     run_result.calibration = MapCalibration(label_map.num_classes, label_map.ignore_classes, free_space=free_space)

@@ -71,6 +71,7 @@ def map_info(path: str | Path) -> dict:
     """Everything ``info`` reports about one map file, as JSON-ready values (lengths in m)."""
     from convbki_core.io.map_file import read_map
     from convbki_core.statistics import dirichlet_statistics
+    from convbki_core.store import VoxelStore
 
     metadata, indices, alpha = read_map(path)
     resolution = float(metadata["resolution"])
@@ -85,7 +86,11 @@ def map_info(path: str | Path) -> dict:
     counts = np.bincount(dirichlet_statistics(alpha).label, minlength=num_classes)
     names = class_names_for(metadata)
     kernel = metadata.get("kernel")
-    voxel_bytes = num_classes * alpha.dtype.itemsize + 3 * indices.dtype.itemsize
+    # Measured: the map as the mapper's global store holds it once loaded.
+    store = VoxelStore(num_classes, prior=float(metadata.get("prior") or 1e-3))
+    store.write(indices, alpha)
+    memory = store.resident_bytes
+    del store
     return {
         "file": str(path), "file_bytes": Path(path).stat().st_size,
         "format": metadata.get("format"), "version": metadata.get("version"),
@@ -95,7 +100,7 @@ def map_info(path: str | Path) -> dict:
         "scans_integrated": metadata.get("scans_integrated"), "num_classes": num_classes,
         "class_voxels": [{"class": c, "name": names[c] if names else None, "voxels": int(counts[c])}
                          for c in range(num_classes)],
-        "bytes_per_voxel": voxel_bytes, "memory_bytes": voxel_bytes * len(indices),
+        "bytes_per_voxel": round(memory / len(indices), 1) if len(indices) else 0.0, "memory_bytes": memory,
         "merged_from": metadata.get("merged_from"),
     }
 
@@ -117,7 +122,7 @@ def format_info(info: dict) -> str:
         lines.append(f"scans:       {info['scans_integrated']}")
     if info["merged_from"]:
         lines.append(f"merged from: {', '.join(map(str, info['merged_from']))}")
-    lines.append(f"memory:      {info['bytes_per_voxel']} bytes per voxel when loaded (alpha + indices), "
+    lines.append(f"memory:      {info['bytes_per_voxel']:g} bytes per voxel in the mapper's store once loaded, "
                  f"{_size(info['memory_bytes'])} in all")
     lines.append(f"classes:     {info['num_classes']} (voxels per expected class; class 0: seen empty by free "
                  "space, not shown)")

@@ -68,3 +68,123 @@ class _CloudView:
         self.point_step, self.row_step, self.data = point_step, point_step * count, data
         self.width, self.height, self.is_bigendian, self.is_dense = count, 1, False, True
         self.header = SimpleNamespace(frame_id="velo_link", stamp=SimpleNamespace(sec=0, nanosec=0))
+
+
+# -- start-up: process start to "ready", and the first scans after it ----------------------------
+START_KEYS = ("cold_start_s", "warm_start_s", "cold_first_scan_ms", "cold_tenth_scan_ms", "warm_first_scan_ms",
+              "warm_tenth_scan_ms")
+READY = "mapper ready"
+
+
+def start_figures(frames: list, scans: int = 10) -> dict:
+    """The mapper node started as a user starts it (``python -m convbki_ros.mapper`` with the
+    shipped params, in its own process) with an empty compiled-kernel cache (``NUMBA_CACHE_DIR``
+    on a new folder: a fresh install) and with the cache set-up leaves: seconds from process
+    start to "ready", then the update time the node reports on /diagnostics for its first and
+    its tenth scan, published over DDS one at a time (the first ``scans`` of the drive)."""
+    import tempfile
+
+    figures = {}
+    with tempfile.TemporaryDirectory(prefix="convbki_bench_cache_") as empty_cache:
+        for kind, env in (("cold", {"NUMBA_CACHE_DIR": empty_cache}), ("warm", {})):
+            seconds, update_ms = _time_a_start(frames[:scans], env)
+            figures[f"{kind}_start_s"] = seconds
+            figures[f"{kind}_first_scan_ms"], figures[f"{kind}_tenth_scan_ms"] = update_ms[0], update_ms[-1]
+    return figures
+
+
+def _time_a_start(frames: list, env: dict) -> tuple[float, list[float]]:
+    import os
+    import random
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    from convbki_core.paths import config_dir
+
+    domain = random.randint(101, 200)  # away from the tests' domains (1..100)
+    environment = {**os.environ, "ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+                   "PYTHONUNBUFFERED": "1", **env}
+    started = time.monotonic()
+    node = subprocess.Popen([sys.executable, "-m", "convbki_ros.mapper", "--ros-args", "--params-file",
+                             str(config_dir() / "mapper.yaml"), "-p", "device:=cpu", "-p", "diagnostics_period:=0.1",
+                             "-p", "map_file:=\"\"", "-r", "cloud_in:=/bench/cloud", "-r", "odom:=/bench/odom"],
+                            env=environment, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    ready = threading.Event()
+    output: list[str] = []
+
+    def read() -> None:
+        for line in node.stdout:
+            output.append(line)
+            if READY in line:
+                ready.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        while not ready.wait(0.05):
+            if node.poll() is not None:
+                raise RuntimeError(f"the mapper node stopped before it was ready:\n{''.join(output[-20:])}")
+        seconds = time.monotonic() - started
+        return seconds, _first_scans(domain, frames)
+    finally:
+        node.send_signal(signal.SIGINT)
+        node.wait(timeout=60)
+        reader.join(timeout=10)
+
+
+def _first_scans(domain: int, frames: list) -> list[float]:
+    """Publish each frame (odometry, then its cloud) and wait until the node integrated it; the
+    node's own update time of each, from /diagnostics."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from convbki_ros.cloud_encoding import encode_cloud
+    from convbki_ros.dds import use_large_data_profile
+    from convbki_ros.transforms import pose_to_odometry
+
+    use_large_data_profile()
+    label_map = load_label_map()
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = rclpy.create_node("convbki_bench_probe", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    reports: list = []
+    node.create_subscription(DiagnosticArray, "/diagnostics", reports.append, 10)
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    clouds = node.create_publisher(PointCloud2, "/bench/cloud", qos)
+    odometry = node.create_publisher(Odometry, "/bench/odom", qos)
+
+    def spin_until(done, timeout: float = 120.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not done():
+            if time.monotonic() > deadline:
+                raise RuntimeError("the mapper node did not answer within 120 s")
+            executor.spin_once(timeout_sec=0.05)
+
+    def values() -> dict:
+        return {item.key: item.value for item in reports[-1].status[0].values} if reports else {}
+
+    try:
+        spin_until(lambda: clouds.get_subscription_count() and odometry.get_subscription_count() and reports)
+        update_ms = []
+        for number, frame in enumerate(frames):
+            stamp = (number + 1) * SCAN_PERIOD_NS
+            columns = {"x": frame.points[:, 0], "y": frame.points[:, 1], "z": frame.points[:, 2],
+                       "label": label_map.to_raw(frame.input_labels).astype(np.uint32)}
+            odometry.publish(pose_to_odometry(frame.pose, stamp, "map", "velo_link"))
+            clouds.publish(encode_cloud(stamp, "velo_link", columns))
+            spin_until(lambda count=number + 1: int(values().get("integrated", 0)) >= count)
+            update_ms.append(float(values()["update_ms_last"]))
+        return update_ms
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        context.try_shutdown()

@@ -1,0 +1,141 @@
+"""Compile every kernel a mapper will run before its first scan arrives.
+
+numba compiles a kernel at its first call, once per combination of argument types (or
+loads the machine code from its cache, which also takes a moment). A node that said
+"ready" and then compiled on its first scans would fall seconds behind a 10 Hz LiDAR and
+drop what queued meanwhile. ``warm_up(mapper)`` therefore runs a throwaway mapper with the
+same kernel, classes, prior, update path and device on a small window through everything
+mapping and its outputs call: scans with labels and with probabilities (float32 and
+float64 points, tempered and not), window moves (slabs out to the store and back), free
+space with clamping, a forgotten box, the map's changes, statistics and point records,
+the shown map, queries inside and outside the window, a save to a temporary file, its
+load and a PLY export. The mapper itself is not touched.
+
+On a GPU the same run also loads the device's kernels, as nvblox warms CUDA up before it
+builds its node.
+"""
+
+from __future__ import annotations
+
+import copy
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from convbki_core.free_space import FREE_CLASS
+from convbki_core.io.map_file import read_map
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.native import KernelCache, kernel_cache, threading_layer
+from convbki_core.records import change_records, packed_palette, view_records
+from convbki_core.shown_map import ShownMap
+
+# The throwaway window: big enough for a filter of up to 31 voxels and a few moves.
+HALF_EXTENT = (3.2, 3.2, 1.2)  # metres at 0.2 m; scaled with the resolution
+
+
+@dataclass(frozen=True)
+class WarmUpReport:
+    """How long the warm-up took, where the compiled kernels are kept, and numba's threading layer."""
+
+    seconds: float
+    cache: KernelCache
+    threading_layer: str | None
+
+    def line(self) -> str:
+        where = f"cached in {self.cache.folder}" if self.cache.folder else "not cached"
+        layer = f", threading layer {self.threading_layer}" if self.threading_layer else ""
+        return f"compiled kernels ready in {self.seconds:.1f} s ({where}{layer})"
+
+
+def _scene(rng: np.random.Generator, resolution: float, shift: float) -> np.ndarray:
+    """A ground patch, a wall and a box in the sensor frame (m), inside the throwaway window."""
+    scale = resolution / 0.2
+    ground = np.column_stack([rng.uniform(-2.5, 2.5, (300, 2)) * scale, np.full(300, -0.9 * scale)])
+    wall = np.column_stack([np.full(120, (1.6 + shift) * scale), rng.uniform(-2.0, 2.0, 120) * scale,
+                            rng.uniform(-0.9, 0.9, 120) * scale])
+    box = rng.uniform([-1.5, -1.5, -0.8], [-0.5, -0.5, 0.2], (80, 3)) * scale
+    return np.concatenate([ground, wall, box])
+
+
+def _labels(rng: np.random.Generator, count: int, num_classes: int, ignored: tuple[int, ...]) -> np.ndarray:
+    usable = [c for c in range(num_classes) if c not in ignored] or [0]
+    return rng.choice(np.asarray(usable, np.int64), count)
+
+
+def _probabilities(rng: np.random.Generator, count: int, num_classes: int) -> np.ndarray:
+    rows = rng.uniform(0.0, 1.0, (count, num_classes)).astype(np.float32)
+    return rows / rows.sum(axis=1, keepdims=True)
+
+
+def _pose(x: float, y: float, yaw: float) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    pose[:3, 3] = [x, y, 0.0]
+    return pose
+
+
+def throwaway_mapper(mapper: ConvBKIMapper, temperature: float | None = None) -> ConvBKIMapper:
+    """A mapper with ``mapper``'s kernel, classes, prior, update path and device on a small window,
+    free space and clamping on (so that their kernels are compiled whatever ``mapper`` uses)."""
+    kernel = copy.deepcopy(mapper.kernel)
+    kernel.temperature = temperature
+    half = np.asarray(HALF_EXTENT) * mapper.resolution / 0.2
+    ignored = tuple(sorted({FREE_CLASS, *mapper.ignore_classes}))
+    return ConvBKIMapper(kernel, local_bounds=(tuple(-half), tuple(half)), prior=mapper.prior,
+                         device=str(mapper.device), frame_id=mapper.frame_id, ignore_classes=ignored,
+                         update_path=mapper.update_path, track_changes=True, free_space=True,
+                         max_concentration=1.0)
+
+
+def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bool, folder: Path) -> None:
+    """Everything a node or an offline run calls on a mapper, once."""
+    resolution, classes = mapper.resolution, mapper.num_classes
+    palette = packed_palette(np.zeros((classes, 3), np.uint8))
+    step = 6 * resolution  # a window move of six slabs
+    for number, (x, y, yaw) in enumerate([(0.0, 0.0, 0.0), (step, 0.0, 0.3), (step, step, -0.2), (0.0, 0.0, 0.1)]):
+        points = _scene(rng, resolution, shift=-0.4 * (number % 2))
+        values = _probabilities(rng, len(points), classes) if probabilities else \
+            _labels(rng, len(points), classes, mapper.ignore_classes)
+        mapper.integrate(points.astype(np.float32 if number % 2 else np.float64), values, _pose(x, y, yaw))
+    probe = _scene(rng, resolution, shift=0.0)
+    mapper.labels_at(probe)
+    mapper.labels_at(probe + step * 40, within_window=False)
+    changes = mapper.take_changes()
+    shown = ShownMap()
+    records = change_records(changes.removed, changes.indices, changes.alpha, resolution, palette, 0.01)
+    shown.apply(np.concatenate([changes.removed, changes.indices]), records)
+    shown.records()
+    window = mapper.window_records(palette)
+    view_records(window, np.zeros(3), 2.0, max(1, len(window) // 2))
+    mapper.voxels()
+    mapper.local_voxels()
+    half = 2 * resolution
+    forgotten = mapper.forget_box((-half, -half, -half), (half, half, half))
+    changes = mapper.take_changes(everything=True)
+    change_records(forgotten, changes.indices, changes.alpha, resolution, palette)
+    path = folder / "map.npz"
+    mapper.save(path)
+    read_map(path)
+    mapper.load(path)
+    mapper.take_changes()
+    mapper.export_ply(folder / "map.ply")
+    mapper.reset()
+
+
+def warm_up(mapper: ConvBKIMapper | None = None) -> WarmUpReport:
+    """Compile (or load from the cache) every kernel ``mapper`` and its outputs will run;
+    with no mapper, those of the shipped configuration (compound kernel, free space)."""
+    started = time.perf_counter()
+    if mapper is None:
+        from convbki_core.paths import kernel_path
+
+        mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=((-1, -1, -1), (1, 1, 1)),
+                               device="cpu", free_space=True)
+    rng = np.random.default_rng(0)
+    with tempfile.TemporaryDirectory(prefix="convbki_warm_up_") as folder:
+        for temperature, probabilities in ((None, False), (None, True), (0.5, True)):
+            _exercise(throwaway_mapper(mapper, temperature), rng, probabilities, Path(folder))
+    return WarmUpReport(time.perf_counter() - started, kernel_cache(), threading_layer())

@@ -1,0 +1,182 @@
+"""Compiled kernels on any install: the warm-up compiles everything mapping runs, and the
+package imports and starts where neither its own folder nor the home folder can be written."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+# In a fresh interpreter: warm up a mapper set up as the node sets it up, count every compiled
+# signature of every kernel, then map scans the way the node does (PointCloud2 in, decoded,
+# labels and probabilities, window moves, outputs, a save) and count again.
+NOTHING_NEW = r"""
+import json, sys, tempfile
+import numpy as np
+import numba
+from convbki_core.datasets.labels import load_label_map
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.paths import kernel_path
+from convbki_core.records import change_records, packed_palette, view_records
+from convbki_core.shown_map import ShownMap
+from convbki_core.warm_up import warm_up
+from convbki_ros.cloud_encoding import encode_cloud
+from convbki_ros.pointcloud import decode_cloud
+
+def signatures():
+    found = {}
+    for name, module in list(sys.modules.items()):
+        if name.startswith("convbki_core") and not name.startswith("convbki_core.synth"):
+            for attribute, value in vars(module).items():
+                if isinstance(value, numba.core.dispatcher.Dispatcher):
+                    found[f"{name}.{attribute}"] = len(value.signatures)
+    return found
+
+labels = load_label_map("semantic_kitti")
+mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=((-20, -20, -2.6), (20, 20, 2.6)),
+                       device="cpu", ignore_classes=labels.ignore_classes, track_changes=True, free_space=True,
+                       max_concentration=300.0)
+report = warm_up(mapper)
+before = signatures()
+rng = np.random.default_rng(1)
+palette = packed_palette(labels.colors)
+shown = ShownMap()
+for scan in range(6):
+    points = rng.uniform([-15, -15, -2], [15, 15, 1], (3000, 3)).astype(np.float32)
+    columns = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], "intensity": np.ones(3000, np.float32)}
+    if scan % 2:
+        columns["label"] = labels.to_raw(rng.integers(1, 20, 3000)).astype(np.uint32)
+    else:
+        rows = rng.uniform(0, 1, (3000, 20)).astype(np.float32)
+        columns.update({f"prob_{c}": rows[:, c] for c in range(20)})
+    cloud = decode_cloud(encode_cloud(scan, "velo_link", columns), 20)
+    values = cloud.probabilities if cloud.probabilities is not None else labels.to_learning(cloud.labels)
+    pose = np.eye(4)
+    pose[:3, 3] = [1.7 * scan, 0.4 * scan, 0.1]
+    mapper.integrate(cloud.points, values, pose)
+    changes = mapper.take_changes()
+    records = change_records(changes.removed, changes.indices, changes.alpha, mapper.resolution, palette, 0.0)
+    shown.apply(np.concatenate([changes.removed, changes.indices]), records)
+    view_records(mapper.window_records(palette), pose[:3, 3], 30.0, 600000)
+mapper.labels_at(points)
+mapper.forget_box((-1, -1, -1), (1, 1, 1))
+with tempfile.TemporaryDirectory() as folder:
+    mapper.snapshot().write(folder + "/map.npz")
+    mapper.load(folder + "/map.npz")
+    mapper.take_changes()
+after = signatures()
+print(json.dumps({"seconds": report.seconds, "kernels": len(before),
+                  "new": {name: after[name] - before.get(name, 0) for name in after
+                          if after[name] != before.get(name, 0)}}))
+"""
+
+
+def test_after_the_warm_up_mapping_like_the_node_compiles_nothing():
+    result = subprocess.run([sys.executable, "-c", NOTHING_NEW], capture_output=True, text=True, cwd=REPO,
+                            stdin=subprocess.DEVNULL, timeout=600)
+    assert result.returncode == 0, result.stderr
+    outcome = json.loads(result.stdout.strip().splitlines()[-1])
+    assert outcome["kernels"] >= 20, outcome  # every module with kernels was imported
+    assert outcome["new"] == {}, f"compiled after the warm-up: {outcome['new']}"
+
+
+READ_ONLY_CHECK = r"""
+import json
+from convbki_core.native import kernel_cache
+from convbki_core.statistics import dirichlet_statistics
+import numpy as np
+stats = dirichlet_statistics(np.array([[1.0, 3.0], [2.0, 1.0]], np.float32))  # a compiled kernel runs
+cache = kernel_cache()
+print(json.dumps({"folder": cache.folder, "note": cache.note, "label": stats.label.tolist()}))
+"""
+
+
+def _read_only_copy(folder: Path) -> Path:
+    """The two packages as an install would lay them out, every file and folder read-only."""
+    site = folder / "site-packages"
+    for package in ("convbki_core", "convbki_ros"):
+        shutil.copytree(REPO / package, site / package, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(REPO / "config", site / "config")  # what the packages find beside a source tree
+    _make_read_only(site)
+    return site
+
+
+def _make_read_only(folder: Path, writable: bool = False) -> None:
+    for path in [folder, *folder.rglob("*")]:
+        path.chmod((0o755 if path.is_dir() else 0o644) if writable else (0o555 if path.is_dir() else 0o444))
+
+
+# Root writes into read-only folders through two capabilities; without them (still uid 0) the
+# checks meet read-only files as any user would.
+WITHOUT_PERMISSION_OVERRIDE = ("setpriv", "--bounding-set", "-dac_override,-dac_read_search")
+NEEDS_SETPRIV = pytest.mark.skipif(os.geteuid() == 0 and not shutil.which("setpriv"),
+                                   reason="root writes into read-only folders, and setpriv is not here to stop that")
+
+
+def _environment(site: Path, home: Path, **extra: str) -> dict:
+    return {"PATH": os.environ["PATH"], "HOME": str(home), "PYTHONPATH": str(site), "PYTHONDONTWRITEBYTECODE": "1",
+            **extra}
+
+
+def _prefix() -> tuple[str, ...]:
+    return WITHOUT_PERMISSION_OVERRIDE if os.geteuid() == 0 else ()
+
+
+@NEEDS_SETPRIV
+def test_import_and_help_on_a_read_only_install_with_no_writable_home(tmp_path):
+    site = _read_only_copy(tmp_path)
+    home = tmp_path / "home"
+    home.mkdir(mode=0o555)
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    env = _environment(site, home, TMPDIR=str(temporary))
+    try:
+        help_run = subprocess.run([*_prefix(), sys.executable, "-m", "convbki_ros.mapper", "--help"], cwd=site,
+                                  env=env, capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=300)
+        assert help_run.returncode == 0 and "ROS 2 node convbki_mapper" in help_run.stdout, help_run.stderr
+        assert help_run.stderr == "", help_run.stderr
+        check = subprocess.run([*_prefix(), sys.executable, "-c", READ_ONLY_CHECK], cwd=site, env=env,
+                               capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=300)
+        assert check.returncode == 0, check.stderr
+        outcome = json.loads(check.stdout)
+        fallback = temporary / f"convbki_ros-kernels-{os.geteuid()}"
+        assert outcome["label"] == [1, 0] and outcome["folder"] == str(fallback), outcome
+        assert f"cached in {fallback}" in outcome["note"] and "set NUMBA_CACHE_DIR" in outcome["note"], outcome
+        assert any(fallback.rglob("*.nbi")), "nothing was cached there"
+        assert not any(site.rglob("__pycache__")) and not any(home.iterdir())
+    finally:
+        _make_read_only(site, writable=True)
+        home.chmod(0o755)
+
+
+@NEEDS_SETPRIV
+@pytest.mark.skipif(not shutil.which("unshare"), reason="unshare is needed to hide every temporary folder")
+def test_with_nowhere_to_cache_the_kernels_compile_and_say_so(tmp_path):
+    """No writable package folder, home or temporary folder: kernels compile at every start."""
+    shared = Path("/dev/shm") / f"convbki_read_only_{os.getpid()}"  # outside the temporary folders hidden below
+    try:
+        site = _read_only_copy(shared)
+        home = shared / "home"
+        shared.chmod(0o755)
+        home.mkdir(mode=0o555)
+        shared.chmod(0o555)
+        # A private mount namespace where /tmp and /var/tmp are read-only: no temporary folder at all.
+        hide = 'mount -t tmpfs -o ro tmpfs /tmp && mount -t tmpfs -o ro tmpfs /var/tmp && exec "$@"'
+        run = subprocess.run(["unshare", "--mount", "sh", "-c", hide, "sh", *_prefix(), sys.executable, "-c",
+                              READ_ONLY_CHECK], cwd=site, env=_environment(site, home), capture_output=True,
+                             text=True, stdin=subprocess.DEVNULL, timeout=300)
+        if run.returncode != 0 and "mount" in run.stderr and "Traceback" not in run.stderr:
+            pytest.skip(f"cannot make a private mount namespace here: {run.stderr.strip()}")
+        assert run.returncode == 0, run.stderr
+        outcome = json.loads(run.stdout)
+        assert outcome["label"] == [1, 0] and outcome["folder"] is None, outcome
+        assert "every start compiles the kernels again" in outcome["note"], outcome
+    finally:
+        if shared.exists():
+            _make_read_only(shared, writable=True)
+            shutil.rmtree(shared)
