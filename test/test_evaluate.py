@@ -46,7 +46,8 @@ def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys
 
     def watched_integrate(self, *args):
         result = integrate(self, *args)
-        seen.append(dict(result.timing_ms))
+        if self.geometry.bounds_max[0] == 20:  # the evaluated mapper, not the warm-up's throwaway ones
+            seen.append(dict(result.timing_ms))
         return result
 
     def slow_label(*args):
