@@ -9,7 +9,9 @@ mapping and its outputs call: scans with labels and with probabilities (float32 
 float64 points, tempered and not), window moves (slabs out to the store and back), free
 space with clamping, a forgotten box, the map's changes, statistics and point records,
 the shown map, queries inside and outside the window, a save to a temporary file, its
-load and a PLY export. The mapper itself is not touched.
+load and a PLY export. The mapper itself is not touched; ``warm_up(settings)`` takes the
+mapper's constructor arguments instead, so that it can run while that mapper allocates its
+window (a third of a gigabyte at the paper's grid, which numpy fills without holding the GIL).
 
 On a GPU the same run also loads the device's kernels, as nvblox warms CUDA up before it
 builds its node.
@@ -17,7 +19,6 @@ builds its node.
 
 from __future__ import annotations
 
-import copy
 import tempfile
 import time
 from dataclasses import dataclass
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from convbki_core.free_space import FREE_CLASS
+from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.native import KernelCache, kernel_cache, threading_layer
@@ -77,17 +79,26 @@ def _pose(x: float, y: float, yaw: float) -> np.ndarray:
     return pose
 
 
-def throwaway_mapper(mapper: ConvBKIMapper, temperature: float | None = None) -> ConvBKIMapper:
-    """A mapper with ``mapper``'s kernel, classes, prior, update path and device on a small window,
-    free space and clamping on (so that their kernels are compiled whatever ``mapper`` uses)."""
-    kernel = copy.deepcopy(mapper.kernel)
-    kernel.temperature = temperature
-    half = np.asarray(HALF_EXTENT) * mapper.resolution / 0.2
-    ignored = tuple(sorted({FREE_CLASS, *mapper.ignore_classes}))
-    return ConvBKIMapper(kernel, local_bounds=(tuple(-half), tuple(half)), prior=mapper.prior,
-                         device=str(mapper.device), frame_id=mapper.frame_id, ignore_classes=ignored,
-                         update_path=mapper.update_path, track_changes=True, free_space=True,
-                         max_concentration=1.0)
+def settings_of(mapper: ConvBKIMapper) -> dict:
+    """Constructor arguments of a mapper like ``mapper`` (its kernel, grid, prior, device, path)."""
+    return {"kernel": mapper.kernel, "prior": mapper.prior, "device": str(mapper.device), "frame_id": mapper.frame_id,
+            "ignore_classes": mapper.ignore_classes, "update_path": mapper.update_path}
+
+
+def throwaway_mapper(settings: dict, temperature: float | None = None) -> ConvBKIMapper:
+    """A mapper made with ``settings`` (``ConvBKIMapper``'s arguments) on a small window, with free
+    space and clamping on, so that their kernels are compiled whatever the settings say."""
+    kernel = settings["kernel"]
+    if isinstance(kernel, (str, Path)):
+        kernel = load_kernel_file(kernel)
+    resolution = settings.get("resolution") or kernel.resolution
+    half = np.asarray(HALF_EXTENT) * resolution / 0.2
+    ignored = tuple(sorted({FREE_CLASS, *settings.get("ignore_classes", (FREE_CLASS,))}))
+    mapper = ConvBKIMapper(**{**settings, "kernel": kernel, "local_bounds": (tuple(-half), tuple(half)),
+                              "ignore_classes": ignored, "track_changes": True, "free_space": True,
+                              "max_concentration": 1.0})
+    mapper.kernel.temperature = temperature
+    return mapper
 
 
 def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bool, folder: Path) -> None:
@@ -125,17 +136,19 @@ def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bo
     mapper.reset()
 
 
-def warm_up(mapper: ConvBKIMapper | None = None) -> WarmUpReport:
-    """Compile (or load from the cache) every kernel ``mapper`` and its outputs will run;
-    with no mapper, those of the shipped configuration (compound kernel, free space)."""
+def warm_up(mapper: ConvBKIMapper | dict | None = None) -> WarmUpReport:
+    """Compile (or load from the cache) every kernel a mapper and its outputs will run: the
+    mapper given, or one made with the given constructor arguments, or (none) the shipped
+    configuration (compound kernel, free space)."""
     started = time.perf_counter()
-    if mapper is None:
+    if isinstance(mapper, ConvBKIMapper):
+        settings = settings_of(mapper)
+    else:
         from convbki_core.paths import kernel_path
 
-        mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=((-1, -1, -1), (1, 1, 1)),
-                               device="cpu", free_space=True)
+        settings = mapper or {"kernel": kernel_path("semantic_kitti_compound"), "device": "cpu"}
     rng = np.random.default_rng(0)
     with tempfile.TemporaryDirectory(prefix="convbki_warm_up_") as folder:
         for temperature, probabilities in ((None, False), (None, True), (0.5, True)):
-            _exercise(throwaway_mapper(mapper, temperature), rng, probabilities, Path(folder))
+            _exercise(throwaway_mapper(settings, temperature), rng, probabilities, Path(folder))
     return WarmUpReport(time.perf_counter() - started, kernel_cache(), threading_layer())

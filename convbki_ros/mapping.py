@@ -11,6 +11,7 @@ counted and warned about once per problem (throttled).
 from __future__ import annotations
 
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -18,6 +19,7 @@ from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import MapFileError, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
+from convbki_core.warm_up import WarmUpReport, warm_up
 from convbki_ros.params import (
     KERNEL_DECIDES,
     SPECS,
@@ -49,6 +51,7 @@ class MappingCore:
 
     def __init__(self, node, status, warnings, label_map):
         self.node, self.status, self.warnings, self.label_map = node, status, warnings, label_map
+        self.warm_up_report: WarmUpReport | None = None  # set with the mapper
         self.mapper = self._make_mapper()
         self.mount = SensorMount(check_mount(optional(node, "base_to_sensor")))
         self.tf_mount = self.mount.attach_tf(node)
@@ -92,13 +95,18 @@ class MappingCore:
                                       f"{', '.join(overridden)}; the kernel's lengths were trained for its grid")
         check_choice("label_space", node.param("label_space"))
         check_choice("update_path", node.param("update_path"))
-        return ConvBKIMapper(config, local_bounds=check_local_bounds(node.param("local_bounds")),
-                             prior=node.param("prior"), resolution=node.param("resolution"),
-                             filter_size=node.param("filter_size"), device=node.param("device"),
-                             frame_id=node.param("map_frame") or "map", update_path=node.param("update_path"),
-                             ignore_classes=self.label_map.ignore_classes, track_changes=True,
-                             free_space=node.param("free_space"),
-                             max_concentration=node.param("max_concentration"))
+        settings = {"kernel": config, "local_bounds": check_local_bounds(node.param("local_bounds")),
+                    "prior": node.param("prior"), "resolution": node.param("resolution"),
+                    "filter_size": node.param("filter_size"), "device": node.param("device"),
+                    "frame_id": node.param("map_frame") or "map", "update_path": node.param("update_path"),
+                    "ignore_classes": self.label_map.ignore_classes, "track_changes": True,
+                    "free_space": node.param("free_space"), "max_concentration": node.param("max_concentration")}
+        # Every kernel is compiled (or loaded) while the map's window is allocated and filled.
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            warming = pool.submit(warm_up, settings)
+            mapper = ConvBKIMapper(**settings)
+            self.warm_up_report = warming.result()
+        return mapper
 
     def mount_text(self) -> str:
         if self.mount.fixed is not None:

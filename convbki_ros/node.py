@@ -38,12 +38,19 @@ from std_srvs.srv import Trigger
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.native import kernel_cache
 from convbki_core.records import packed_palette
-from convbki_core.warm_up import warm_up
 from convbki_ros.cloud_encoding import encode_cloud
 from convbki_ros.map_files import MapFiles
 from convbki_ros.mapping import MappingCore
 from convbki_ros.outputs import MapOutputs
-from convbki_ros.params import NODE_NAME, NOT_SET, PARAMETERS, SPECS, check_box, check_choice, declare, optional
+from convbki_ros.params import (
+    NODE_NAME,
+    PARAMETERS,
+    check_box,
+    check_choice,
+    declare,
+    integers_as_doubles,
+    optional,
+)
 from convbki_ros.pointcloud import decode_cloud
 from convbki_ros.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
 
@@ -102,7 +109,8 @@ class MapperNode(Node):
                                  "diagnostics_period": (self._publish_diagnostics, "housekeeping")}
         for name in self._timer_callbacks:
             self._restart_timer(name)
-        self.add_pre_set_parameters_callback(self._integers_as_doubles)
+        # Integers for number parameters at run time, as at start.
+        self.add_pre_set_parameters_callback(lambda parameters: [integers_as_doubles(p) for p in parameters])
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._on_parameters_changed)
 
@@ -122,9 +130,8 @@ class MapperNode(Node):
         return self.get_parameter(name).value
 
     def _warm_up(self) -> None:
-        """Compile every kernel mapping and its outputs run (the node's own cloud decoder too)
-        before the node subscribes and says ready."""
-        report = warm_up(self.core.mapper)
+        """Every kernel mapping and its outputs run was compiled with the mapper; the node's own
+        cloud decoder too, before the node subscribes and says ready."""
         points = np.zeros((4, 3), np.float32)
         for fields in ({"label": np.zeros(4, np.uint32)},
                        {f"prob_{c}": np.full(4, 1.0, np.float32) for c in range(self.core.mapper.num_classes)}):
@@ -133,7 +140,7 @@ class MapperNode(Node):
         note = kernel_cache().note
         if note:
             self.get_logger().warning(note)
-        self.get_logger().info(report.line())
+        self.get_logger().info(self.core.warm_up_report.line())
 
     # -- set-up and run-time parameters ---------------------------------------------------
     def declare_all(self, kernel_values: dict[str, object]) -> None:
@@ -159,22 +166,6 @@ class MapperNode(Node):
         if period > 0:
             self._period_timers[name] = self.create_timer(period, callback, clock=self._steady,
                                                    callback_group=self._groups[group])
-
-    def _integers_as_doubles(self, parameters):
-        """``ros2 param set ... publish_period 2`` sends an integer; a number parameter takes it as
-        2.0, as it does at start (rclpy would refuse the type)."""
-        from rclpy.parameter import Parameter
-
-        converted = []
-        for parameter in parameters:
-            spec = SPECS.get(parameter.name)
-            if spec is not None and parameter.type_ == Parameter.Type.INTEGER and isinstance(spec.default, float):
-                parameter = Parameter(parameter.name, Parameter.Type.DOUBLE, float(parameter.value))
-            elif (spec is not None and parameter.type_ == Parameter.Type.INTEGER_ARRAY
-                  and (spec.default is NOT_SET or isinstance(spec.default, list))):
-                parameter = Parameter(parameter.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in parameter.value])
-            converted.append(parameter)
-        return converted
 
     def _check_parameters(self, parameters) -> SetParametersResult:
         """Values that pass their type and range but cannot be used are refused with the reason."""

@@ -189,21 +189,30 @@ def _type_name(parameter) -> str:
             Parameter.Type.BOOL: "a boolean"}.get(parameter.type_, f"of type {parameter.type_.name.lower()}")
 
 
-def _integers_as_doubles(node, spec: Spec):
-    """The value given for ``spec`` (None when none), with integers given for a double made
-    doubles: ``-p publish_period:=2`` means 2.0, while rcl types a bare integer as INTEGER and
-    rclpy then refuses it for a double parameter, a surprise to every ROS user."""
+def integers_as_doubles(parameter):
+    """``parameter`` (an rclpy Parameter), with integers given for a number (list) parameter made
+    doubles: ``-p publish_period:=2`` and ``ros2 param set ... publish_period 2`` mean 2.0, while
+    rcl types a bare integer as INTEGER and rclpy then refuses it for a double parameter, a
+    surprise to every ROS user."""
     from rclpy.parameter import Parameter
 
+    spec = SPECS.get(parameter.name)
+    if spec is None:
+        return parameter
+    if isinstance(spec.default, float) and parameter.type_ == Parameter.Type.INTEGER:
+        return Parameter(parameter.name, Parameter.Type.DOUBLE, float(parameter.value))
+    if (isinstance(spec.default, list) or spec.default is NOT_SET) and parameter.type_ == Parameter.Type.INTEGER_ARRAY:
+        return Parameter(parameter.name, Parameter.Type.DOUBLE_ARRAY, [float(v) for v in parameter.value])
+    return parameter
+
+
+def _integers_as_doubles(node, spec: Spec):
+    """The value given for ``spec`` at start (None when none), integers made doubles
+    (``integers_as_doubles``)."""
     overrides = getattr(node, "_parameter_overrides", None) or {}
     given = overrides.get(spec.name)
-    if given is None:
-        return None
-    if isinstance(spec.default, float) and given.type_ == Parameter.Type.INTEGER:
-        given = overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE, float(given.value))
-    elif (isinstance(spec.default, list) or spec.default is NOT_SET) and given.type_ == Parameter.Type.INTEGER_ARRAY:
-        given = overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE_ARRAY,
-                                                 [float(v) for v in given.value])
+    if given is not None:
+        given = overrides[spec.name] = integers_as_doubles(given)
     return given
 
 
