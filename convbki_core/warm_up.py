@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -101,8 +103,9 @@ def throwaway_mapper(settings: dict, temperature: float | None = None) -> ConvBK
     return mapper
 
 
-def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bool, folder: Path) -> None:
-    """Everything a node or an offline run calls on a mapper, once."""
+def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bool, folder: Path | None) -> None:
+    """Everything a node or an offline run calls on a mapper, once (files in ``folder``; none:
+    no temporary folder can be written, so saving and loading compile at their first use)."""
     resolution, classes = mapper.resolution, mapper.num_classes
     palette = packed_palette(np.zeros((classes, 3), np.uint8))
     step = 6 * resolution  # a window move of six slabs
@@ -127,12 +130,13 @@ def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bo
     forgotten = mapper.forget_box((-half, -half, -half), (half, half, half))
     changes = mapper.take_changes(everything=True)
     change_records(forgotten, changes.indices, changes.alpha, resolution, palette)
-    path = folder / "map.npz"
-    mapper.save(path)
-    read_map(path)
-    mapper.load(path)
-    mapper.take_changes()
-    mapper.export_ply(folder / "map.ply")
+    if folder is not None:
+        path = folder / "map.npz"
+        mapper.save(path)
+        read_map(path)
+        mapper.load(path)
+        mapper.take_changes()
+        mapper.export_ply(folder / "map.ply")
     mapper.reset()
 
 
@@ -148,7 +152,19 @@ def warm_up(mapper: ConvBKIMapper | dict | None = None) -> WarmUpReport:
 
         settings = mapper or {"kernel": kernel_path("semantic_kitti_compound"), "device": "cpu"}
     rng = np.random.default_rng(0)
-    with tempfile.TemporaryDirectory(prefix="convbki_warm_up_") as folder:
+    with _scratch_folder() as folder:
         for temperature, probabilities in ((None, False), (None, True), (0.5, True)):
-            _exercise(throwaway_mapper(settings, temperature), rng, probabilities, Path(folder))
+            _exercise(throwaway_mapper(settings, temperature), rng, probabilities, folder)
     return WarmUpReport(time.perf_counter() - started, kernel_cache(), threading_layer())
+
+
+@contextmanager
+def _scratch_folder() -> Iterator[Path | None]:
+    """A temporary folder for the warm-up's files; None where none can be made (a read-only system)."""
+    try:
+        scratch = tempfile.TemporaryDirectory(prefix="convbki_warm_up_")
+    except OSError:
+        yield None
+        return
+    with scratch as folder:
+        yield Path(folder)

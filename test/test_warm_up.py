@@ -94,21 +94,8 @@ stats = dirichlet_statistics(np.array([[1.0, 3.0], [2.0, 1.0]], np.float32))  # 
 cache = kernel_cache()
 print(json.dumps({"folder": cache.folder, "note": cache.note, "label": stats.label.tolist()}))
 """
-
-
-def _read_only_copy(folder: Path) -> Path:
-    """The two packages as an install would lay them out, every file and folder read-only."""
-    site = folder / "site-packages"
-    for package in ("convbki_core", "convbki_ros"):
-        shutil.copytree(REPO / package, site / package, ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copytree(REPO / "config", site / "config")  # what the packages find beside a source tree
-    _make_read_only(site)
-    return site
-
-
-def _make_read_only(folder: Path, writable: bool = False) -> None:
-    for path in [folder, *folder.rglob("*")]:
-        path.chmod((0o755 if path.is_dir() else 0o644) if writable else (0o555 if path.is_dir() else 0o444))
+# Where even a temporary folder cannot be written, the whole warm-up (files left out) still runs.
+NOWHERE_CHECK = READ_ONLY_CHECK.replace("stats = ", "from convbki_core.warm_up import warm_up\nwarm_up()\nstats = ")
 
 
 # Root writes into read-only folders through two capabilities; without them (still uid 0) the
@@ -118,61 +105,68 @@ NEEDS_SETPRIV = pytest.mark.skipif(os.geteuid() == 0 and not shutil.which("setpr
                                    reason="root writes into read-only folders, and setpriv is not here to stop that")
 
 
-def _environment(site: Path, home: Path, **extra: str) -> dict:
-    return {"PATH": os.environ["PATH"], "HOME": str(home), "PYTHONPATH": str(site), "PYTHONDONTWRITEBYTECODE": "1",
-            **extra}
+def _set_modes(folder: Path, writable: bool) -> None:
+    for path in [folder, *folder.rglob("*")]:
+        path.chmod((0o755 if path.is_dir() else 0o644) if writable else (0o555 if path.is_dir() else 0o444))
 
 
-def _prefix() -> tuple[str, ...]:
-    return WITHOUT_PERMISSION_OVERRIDE if os.geteuid() == 0 else ()
+@pytest.fixture
+def read_only_install(tmp_path):
+    """(site, home): the two packages as an install lays them out and a home folder, all read-only."""
+    site = tmp_path / "site-packages"
+    for package in ("convbki_core", "convbki_ros"):
+        shutil.copytree(REPO / package, site / package, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(REPO / "config", site / "config")  # what the packages find beside a source tree
+    home = tmp_path / "home"
+    home.mkdir()
+    for folder in (site, home):
+        _set_modes(folder, writable=False)
+    yield site, home
+    for folder in (site, home):
+        _set_modes(folder, writable=True)
+
+
+def _run(site: Path, home: Path, *command: str, **environment: str) -> subprocess.CompletedProcess:
+    """``python command`` without the right to write where the files say it may not."""
+    prefix = WITHOUT_PERMISSION_OVERRIDE if os.geteuid() == 0 else ()
+    env = {"PATH": os.environ["PATH"], "HOME": str(home), "PYTHONPATH": str(site), "PYTHONDONTWRITEBYTECODE": "1",
+           **environment}
+    return subprocess.run([*prefix, sys.executable, *command], cwd=site, env=env, capture_output=True, text=True,
+                          stdin=subprocess.DEVNULL, timeout=300)
 
 
 @NEEDS_SETPRIV
-def test_import_and_help_on_a_read_only_install_with_no_writable_home(tmp_path):
-    site = _read_only_copy(tmp_path)
-    home = tmp_path / "home"
-    home.mkdir(mode=0o555)
+def test_import_and_help_on_a_read_only_install_with_no_writable_home(tmp_path, read_only_install):
+    site, home = read_only_install
     temporary = tmp_path / "tmp"
     temporary.mkdir()
-    env = _environment(site, home, TMPDIR=str(temporary))
-    try:
-        help_run = subprocess.run([*_prefix(), sys.executable, "-m", "convbki_ros.mapper", "--help"], cwd=site,
-                                  env=env, capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=300)
-        assert help_run.returncode == 0 and "ROS 2 node convbki_mapper" in help_run.stdout, help_run.stderr
-        assert help_run.stderr == "", help_run.stderr
-        check = subprocess.run([*_prefix(), sys.executable, "-c", READ_ONLY_CHECK], cwd=site, env=env,
-                               capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=300)
-        assert check.returncode == 0, check.stderr
-        outcome = json.loads(check.stdout)
-        fallback = temporary / f"convbki_ros-kernels-{os.geteuid()}"
-        assert outcome["label"] == [1, 0] and outcome["folder"] == str(fallback), outcome
-        assert f"cached in {fallback}" in outcome["note"] and "set NUMBA_CACHE_DIR" in outcome["note"], outcome
-        assert any(fallback.rglob("*.nbi")), "nothing was cached there"
-        assert not any(site.rglob("__pycache__")) and not any(home.iterdir())
-    finally:
-        _make_read_only(site, writable=True)
-        home.chmod(0o755)
+    help_run = _run(site, home, "-m", "convbki_ros.mapper", "--help", TMPDIR=str(temporary))
+    assert help_run.returncode == 0 and "ROS 2 node convbki_mapper" in help_run.stdout, help_run.stderr
+    assert help_run.stderr == "", help_run.stderr
+    check = _run(site, home, "-c", READ_ONLY_CHECK, TMPDIR=str(temporary))
+    assert check.returncode == 0, check.stderr
+    outcome = json.loads(check.stdout)
+    fallback = temporary / f"convbki_ros-kernels-{os.geteuid()}"
+    assert outcome["label"] == [1, 0] and outcome["folder"] == str(fallback), outcome
+    assert f"cached in {fallback}" in outcome["note"] and "set NUMBA_CACHE_DIR" in outcome["note"], outcome
+    assert any(fallback.rglob("*.nbi")), "nothing was cached there"
+    assert not any(site.rglob("__pycache__")) and not any(home.iterdir())
 
 
 @NEEDS_SETPRIV
-def test_with_nowhere_to_cache_the_kernels_compile_and_say_so(tmp_path):
+def test_with_nowhere_to_cache_the_kernels_compile_and_say_so(tmp_path, read_only_install):
     """No writable package folder, home or temporary folder: the kernels compile at every start."""
-    site = _read_only_copy(tmp_path)
-    home = tmp_path / "home"
-    home.mkdir(mode=0o555)
+    site, home = read_only_install
     read_only_temporary = tmp_path / "tmp"
     read_only_temporary.mkdir(mode=0o555)
     # The temporary folder Python would use, set before the package is imported: read-only too.
-    check = f"import tempfile\ntempfile.tempdir = {str(read_only_temporary)!r}\n" + READ_ONLY_CHECK
+    check = f"import tempfile\ntempfile.tempdir = {str(read_only_temporary)!r}\n" + NOWHERE_CHECK
     try:
-        run = subprocess.run([*_prefix(), sys.executable, "-c", check], cwd=site, env=_environment(site, home),
-                             capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=300)
+        run = _run(site, home, "-c", check)
         assert run.returncode == 0, run.stderr
         outcome = json.loads(run.stdout)
         assert outcome["label"] == [1, 0] and outcome["folder"] is None, outcome
         assert "every start compiles the kernels again" in outcome["note"], outcome
         assert not any(read_only_temporary.iterdir()) and not any(site.rglob("__pycache__"))
     finally:
-        _make_read_only(site, writable=True)
-        home.chmod(0o755)
         read_only_temporary.chmod(0o755)
