@@ -171,6 +171,11 @@ def test_ament_index_finds_installed_package(
     assert displays["Whole map"]["Topic"]["Value"] == "/semantic_map" and displays["Whole map"]["Enabled"] is False
     assert displays["Variance"]["Topic"]["Value"] == "/semantic_map/variance"
     assert rviz["Visualization Manager"]["Global Options"]["Fixed Frame"] == "map"
+    # colcon's install step compiled the installed copy's kernels into its cache: a node started
+    # from this install is ready at once.
+    site = Path(ros_env["PYTHONPATH"].split(os.pathsep)[0])
+    cached = {path.name.split(".")[0] for path in (site / "convbki_core" / "__pycache__").glob("*.nbi")}
+    assert {"update", "volume", "free_space", "window", "store", "records", "statistics"} <= cached, cached
 
     # With the install sourced, the installed copy of the code is what imports.
     where = subprocess.run(

@@ -94,8 +94,7 @@ stats = dirichlet_statistics(np.array([[1.0, 3.0], [2.0, 1.0]], np.float32))  # 
 cache = kernel_cache()
 print(json.dumps({"folder": cache.folder, "note": cache.note, "label": stats.label.tolist()}))
 """
-# Where even a temporary folder cannot be written, the whole warm-up (files left out) still runs.
-NOWHERE_CHECK = READ_ONLY_CHECK.replace("stats = ", "from convbki_core.warm_up import warm_up\nwarm_up()\nstats = ")
+
 
 
 # Root writes into read-only folders through two capabilities; without them (still uid 0) the
@@ -160,7 +159,7 @@ def test_with_nowhere_to_cache_the_kernels_compile_and_say_so(tmp_path, read_onl
     read_only_temporary = tmp_path / "tmp"
     read_only_temporary.mkdir(mode=0o555)
     # The temporary folder Python would use, set before the package is imported: read-only too.
-    check = f"import tempfile\ntempfile.tempdir = {str(read_only_temporary)!r}\n" + NOWHERE_CHECK
+    check = f"import tempfile\ntempfile.tempdir = {str(read_only_temporary)!r}\n" + READ_ONLY_CHECK
     try:
         run = _run(site, home, "-c", check)
         assert run.returncode == 0, run.stderr
@@ -170,3 +169,20 @@ def test_with_nowhere_to_cache_the_kernels_compile_and_say_so(tmp_path, read_onl
         assert not any(read_only_temporary.iterdir()) and not any(site.rglob("__pycache__"))
     finally:
         read_only_temporary.chmod(0o755)
+
+
+def test_the_warm_up_runs_where_no_temporary_folder_can_be_made(monkeypatch):
+    """A read-only system: the warm-up leaves out its file steps (they compile at the first save)."""
+    import tempfile
+
+    from convbki_core import warm_up as module
+
+    def no_folder(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    made = []
+    monkeypatch.setattr(tempfile, "TemporaryDirectory", no_folder)
+    exercise = module._exercise
+    monkeypatch.setattr(module, "_exercise", lambda *args: made.append(args[-1]) or exercise(*args))
+    report = module.warm_up()
+    assert made == [None, None, None] and report.seconds > 0
