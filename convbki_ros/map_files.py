@@ -15,8 +15,9 @@ Nothing a user saved is lost:
   error line and a non-zero exit code.
 
 Every write copies the map under the lock (a fraction of the time a write takes) and writes
-the copy without it, so updates go on while a large map is written. The service and autosave
-callbacks run in their own callback group, off the thread that takes clouds and odometry.
+the copy without it, so updates go on while a large map is written. Saves, loads and exports
+run one after the other on the node's file thread: the service callbacks await it, so the
+executor goes on taking clouds and odometry while a large file is written or read.
 """
 
 from __future__ import annotations
@@ -24,7 +25,10 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+
+from rclpy.task import Future
 
 from convbki_core.io.atomic import previous_path
 from convbki_core.io.map_file import MapFileError
@@ -67,6 +71,27 @@ class MapFiles:
         self.unreadable_map_file: str | None = None  # moved aside before the first save overwrites it
         self.save_error: str | None = None  # the last failed save, until a save succeeds
         self.last_save: str | None = None  # what the last save (or attempt) said
+        self._file_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="convbki_files")
+
+    async def _on_file_thread(self, job, *args):
+        """``job(*args)`` on the file thread; the executor runs other callbacks while it works."""
+        done = Future()
+
+        def run() -> None:
+            try:
+                done.set_result(job(*args))
+            except BaseException as error:  # handed to the awaiting callback
+                done.set_exception(error)
+            executor = self.node.executor
+            if executor is not None:
+                executor.wake()
+
+        self._file_thread.submit(run)
+        return await done
+
+    def close(self) -> None:
+        """Let the file job in progress finish (a save is never cut short), take no more."""
+        self._file_thread.shutdown(wait=True, cancel_futures=True)
 
     @property
     def path(self) -> str:
@@ -170,13 +195,18 @@ class MapFiles:
             return WARN, f"this map is not saved automatically: {self.path} is kept as it is, as {self.kept_reason()}"
         return None
 
-    def on_save_map(self, request, response):
-        response.success, response.message = self.save_map(requested=True)
+    async def on_save_map(self, request, response):
+        response.success, response.message = await self._on_file_thread(self.save_map, True)
         self._log_outcome(response.success, response.message)
         return response
 
     def autosave(self) -> None:
+        """(Timer) queue a save of a changed map on the file thread."""
         if self.path and self.core.map_version != self.saved_version and not self.file_may_hold_more():
+            self._file_thread.submit(self._autosave)
+
+    def _autosave(self) -> None:
+        if self.core.map_version != self.saved_version:  # a save queued before it may have done it
             ok, message = self.save_map(requested=False)
             self._log_outcome(ok, f"autosave: {message}")
 
@@ -201,24 +231,30 @@ class MapFiles:
         self.unreadable_map_file = None
 
     # -- loading at run time -------------------------------------------------------------------------
-    def on_load_map(self, request, response):
-        path = self.path
-        if not path:
-            response.success, response.message = False, "map_file parameter is empty: nothing to load"
-        else:
-            try:
-                count, replaced = self.core.load_map(path)
-            except MapFileError as error:
-                response.success, response.message = False, f"{error}; the map is unchanged"
-            else:
-                self._file_holds_the_map()
-                response.success, response.message = True, f"loaded {count} voxels from {path} (replacing {replaced})"
-                self.node.outputs.map_replaced()
+    async def on_load_map(self, request, response):
+        response.success, response.message = await self._on_file_thread(self._load_map)
         self._log_outcome(response.success, response.message)
         return response
 
+    def _load_map(self) -> tuple[bool, str]:
+        path = self.path
+        if not path:
+            return False, "map_file parameter is empty: nothing to load"
+        try:
+            count, replaced = self.core.load_map(path)
+        except MapFileError as error:
+            return False, f"{error}; the map is unchanged"
+        self._file_holds_the_map()
+        self.node.outputs.map_replaced()
+        return True, f"loaded {count} voxels from {path} (replacing {replaced})"
+
     # -- PLY -----------------------------------------------------------------------------------
-    def on_export_ply(self, request, response):
+    async def on_export_ply(self, request, response):
+        response.success, response.message = await self._on_file_thread(self._export_ply)
+        self._log_outcome(response.success, response.message)
+        return response
+
+    def _export_ply(self) -> tuple[bool, str]:
         path = self.node.param("ply_file")
         if not path:
             map_file = self.path
@@ -228,11 +264,9 @@ class MapFiles:
                 indices, alpha = self.core.mapper.items()
             voxels = self.core.mapper.voxel_set(indices, alpha)
             count = write_voxels_ply(voxels, path, max_variance=self.node.param("max_variance") or None)
-            response.success, response.message = True, f"wrote {count} voxels to {path}"
         except OSError as error:
-            response.success, response.message = False, f"could not write {path}: {error.strerror or error}"
-        self._log_outcome(response.success, response.message)
-        return response
+            return False, f"could not write {path}: {error.strerror or error}"
+        return True, f"wrote {count} voxels to {path}"
 
     def _log_outcome(self, ok: bool, message: str) -> None:
         # Two call sites on purpose: rclpy remembers the severity of each logging call site

@@ -3,9 +3,9 @@
 Threads, so that no input waits on a slow output:
 
 * the executor's: clouds and odometry arrive (cheap checks only, then the queue), services
-  and timers run. Saves and exports are in their own callback group, so with a
-  multi-threaded executor (what ``main`` uses) a large file being written never holds up
-  the inputs;
+  and timers run;
+* the file thread: saves, loads and exports, one after the other; their services await it,
+  so a large file being written never holds up the inputs;
 * the update thread: takes the next cloud whose pose is known, decodes it and integrates
   it into the map (``ConvBKIMapper``);
 * the publishing thread: encodes and sends the map topics; the map is locked only while it
@@ -15,8 +15,9 @@ Before it subscribes to anything and says "ready", the node compiles (or loads f
 cache) every kernel it will run (``convbki_core.warm_up``), so its first scan integrates as
 fast as its tenth.
 
-The node can be added to any executor (``executor.add_node(MapperNode())``); with a
-single-threaded one, saves block the inputs while they write.
+The node can be added to any executor (``executor.add_node(MapperNode())``); ``main`` uses
+a single-threaded one (rclpy's multi-threaded executor holds the GIL in its dispatch loop
+much of the time, which slowed the update thread's scans tenfold at times).
 """
 
 from __future__ import annotations
@@ -257,6 +258,7 @@ class MapperNode(Node):
         self.core.stop()
         self.outputs.stop()
         self.update_thread.join(timeout=1.5)
+        self.files.close()
         saved, message = self.files.save_on_shutdown()
         if message:
             what = "on shutdown" if saved else "error on shutdown"

@@ -10,6 +10,12 @@ the installed message type's (the normal case); otherwise (or with ``--deseriali
 deserialised with a rosbags typestore built from the bag's own definitions and converted
 field by field into the installed rclpy class. Topics whose type has no installed Python
 package (e.g. tf2_msgs with the PyPI wheels) are skipped with one line.
+
+Bulky messages (point clouds, images) go out from a DDS participant of their own, the rest
+(odometry, transforms, /clock) from another: Fast DDS drops now and then a small reliable
+message that one participant sends while it is sending a multi-megabyte one, and repairs it
+only at the writer's next heartbeat, seconds later. Sent from one participant, a bag's
+odometry reached its subscribers in bursts up to 3 s late; from its own, on time.
 """
 
 from __future__ import annotations
@@ -31,6 +37,9 @@ PROG = "play_bag"
 NODE_NAME = "play_bag"
 CLOCK_TOPIC = "/clock"
 DEPTH = 100
+# Message types sent from the bulk participant (see the module's docstring).
+BULK_TYPES = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/PointCloud", "sensor_msgs/msg/Image",
+              "sensor_msgs/msg/CompressedImage")
 
 
 def rate_arg(text: str) -> float:
@@ -120,12 +129,14 @@ def _priority(msgtype: str) -> int:
 
 
 class BagPlayer:
-    """Publishes one open bag through ``node``."""
+    """Publishes one open bag through ``node``, its bulky messages through ``bulk_node`` (a node
+    of another rclpy context, so another DDS participant; default: ``node``)."""
 
-    def __init__(self, node: Any, reader: Any, args: argparse.Namespace):
+    def __init__(self, node: Any, reader: Any, args: argparse.Namespace, bulk_node: Any = None):
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
         self.node = node
+        self.bulk_node = bulk_node or node
         self.reader = reader
         self.args = args
         reliability = ReliabilityPolicy.RELIABLE if args.qos == "reliable" else ReliabilityPolicy.BEST_EFFORT
@@ -158,24 +169,26 @@ class BagPlayer:
             self.node.get_logger().info(f"skipping {connection.topic}: {channel.skipped}")
             return channel
         key = (topic, connection.msgtype)
+        owner = self.bulk_node if connection.msgtype in BULK_TYPES else self.node
         if key not in self.publishers:
-            self.publishers[key] = self.node.create_publisher(channel.cls, topic, self.qos)
+            self.publishers[key] = owner.create_publisher(channel.cls, topic, self.qos)
         channel.publisher = self.publishers[key]
-        channel.raw = not self.args.deserialize and self._same_type(channel.publisher, connection.digest)
+        channel.raw = not self.args.deserialize and self._same_type(owner, channel.publisher, connection.digest)
         if not channel.raw:
             self._ensure_typestore()
         return channel
 
-    def _same_type(self, publisher: Any, digest: str | None) -> bool:
+    @staticmethod
+    def _same_type(node: Any, publisher: Any, digest: str | None) -> bool:
         """Whether the installed type's hash equals the bag's (then its CDR bytes are ours)."""
         if not digest:
             return False
         try:
-            infos = self.node.get_publishers_info_by_topic(publisher.topic_name)
+            infos = node.get_publishers_info_by_topic(publisher.topic_name)
         except Exception:  # any graph error: fall back to converting
             return False
         hashes = {str(getattr(info, "topic_type_hash", "")) for info in infos
-                  if info.node_name == self.node.get_name() and info.node_namespace == self.node.get_namespace()}
+                  if info.node_name == node.get_name() and info.node_namespace == node.get_namespace()}
         return digest in hashes
 
     def _ensure_typestore(self) -> None:
@@ -201,19 +214,23 @@ class BagPlayer:
                           for c in self.reader.connections}
 
     def wait_for_subscribers(self, timeout: float) -> None:
-        """Block until every publisher has a subscriber, 1 s after the first match, or ``timeout``."""
+        """Block until every publisher has a subscriber, or ``timeout``. Topics nobody subscribes
+        to are given up 1 s after the first match; one whose subscriber either participant has
+        already discovered is waited for (the other participant is still matching it)."""
         publishers = [*self.publishers.values(), *([self.clock_publisher] if self.clock_publisher else [])]
         if not publishers or timeout <= 0:
             return
         deadline = time.monotonic() + timeout
         first_match = None
         while time.monotonic() < deadline:
-            matched = [p.get_subscription_count() > 0 for p in publishers]
-            if all(matched):
+            pending = [p for p in publishers if p.get_subscription_count() == 0]
+            if not pending:
                 return
-            if any(matched) and first_match is None:
+            if len(pending) < len(publishers) and first_match is None:
                 first_match = time.monotonic()
-            if first_match is not None and time.monotonic() - first_match > 1.0:
+            discovered = [p for p in pending if any(node.count_subscribers(p.topic_name)
+                                                    for node in {self.node, self.bulk_node})]
+            if not discovered and first_match is not None and time.monotonic() - first_match > 1.0:
                 break
             time.sleep(0.02)
         missing = [p.topic_name for p in publishers if p.get_subscription_count() == 0]
@@ -311,16 +328,19 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
         import rclpy
         from rclpy.executors import ExternalShutdownException
 
+        bulk_context = rclpy.Context()
         try:
             use_large_data_profile()
             rclpy.init(args=ros_argv)
+            rclpy.init(args=ros_argv, context=bulk_context)
         except Exception as error:  # rclpy's errors for bad --ros-args have no common public base
             raise UserError(f"cannot start ROS 2 ({str(error).strip().splitlines()[0]})") from None
-        node = player = None
+        node = bulk_node = player = None
         started = time.monotonic()
         try:
             node = rclpy.create_node(NODE_NAME)
-            player = BagPlayer(node, reader, args)
+            bulk_node = rclpy.create_node(f"{NODE_NAME}_bulk", context=bulk_context)
+            player = BagPlayer(node, reader, args, bulk_node)
             player.wait_for_subscribers(args.wait_subscribers)
             if args.start_delay > 0 and not _sleep_until(time.monotonic() + args.start_delay, rclpy.ok):
                 return 0
@@ -337,9 +357,11 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
             sent = player.sent if player is not None else 0
             print(f"{PROG}: interrupted after {sent} messages in {time.monotonic() - started:.2f} s", file=sys.stderr)
         finally:
-            if node is not None:
-                node.destroy_node()
+            for each in (node, bulk_node):
+                if each is not None:
+                    each.destroy_node()
             rclpy.try_shutdown()
+            bulk_context.try_shutdown()
     finally:
         reader.close()
     return 0
