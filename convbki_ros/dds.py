@@ -18,16 +18,22 @@ from convbki_core.paths import config_dir
 PROFILE_VARIABLE = "FASTDDS_DEFAULT_PROFILES_FILE"
 
 
-def large_data_profile() -> Path:
-    return config_dir() / "dds" / "fastdds_large_data.xml"
+def large_data_profile(player: bool = False) -> Path:
+    """The shipped profile; ``player``: the one for a source that may be paused (``play_bag``)."""
+    return config_dir() / "dds" / ("fastdds_player.xml" if player else "fastdds_large_data.xml")
 
 
-def use_large_data_profile() -> str | None:
-    """Point Fast DDS at the shipped profile (before rclpy.init); returns the profile used, if any."""
+def use_large_data_profile(player: bool = False) -> str | None:
+    """Point Fast DDS at the shipped profile (before rclpy.init); returns the profile used, if any.
+
+    ``player``: the profile of ``play_bag``, whose participants announce a lease of 5 minutes
+    instead of Fast DDS's 20 s, so that subscribers do not forget a player stopped for a while
+    (SIGSTOP, Ctrl-Z, a stalled machine) and lose what it sends when it resumes.
+    """
     if os.environ.get(PROFILE_VARIABLE):
         return None
     middleware = os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
-    profile = large_data_profile()
+    profile = large_data_profile(player)
     if not middleware.startswith("rmw_fastrtps") or not profile.is_file():
         return None
     os.environ[PROFILE_VARIABLE] = str(profile)

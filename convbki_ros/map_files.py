@@ -58,6 +58,21 @@ def check_map_folder(path: str) -> str | None:
     return None
 
 
+def next_segment_path(path: str, taken: set[str] = frozenset()) -> str:
+    """The first ``<stem>.segment-N<suffix>`` beside ``path`` (N from 2) that neither exists nor
+    is ``taken``; a path that is a segment already counts on from its own N."""
+    target = Path(path)
+    stem, number = target.stem, 2
+    head, sep, tail = stem.rpartition(".segment-")
+    if sep and tail.isdigit():
+        stem, number = head, int(tail) + 1
+    while True:
+        candidate = str(target.with_name(f"{stem}.segment-{number}{target.suffix}"))
+        if candidate not in taken and not os.path.lexists(candidate):
+            return candidate
+        number += 1
+
+
 class MapFiles:
     """Load, save and export for ``MapperNode`` (whose ``core`` holds the map and its lock)."""
 
@@ -218,6 +233,44 @@ class MapFiles:
         if self.core.map_version == self.saved_version:
             return True, f"the map is unchanged since it was last saved to (or loaded from) {path}"
         return self.save_map(requested=False)
+
+    # -- a new map file for a new segment (on_pose_jump new_file) --------------------------------------
+    def start_new_segment(self, where: str, before_reset) -> str | None:
+        """(Executor thread) The map so far is written to map_file on the file thread, and a new,
+        empty map starts whose saves go to the next free ``<stem>.segment-N<suffix>``; what was done,
+        in words, or None when map_file is empty (the map is then kept). ``before_reset()`` runs
+        just before the reset (the odometry before the jump is forgotten).
+
+        When map_file may hold evidence this map lacks, the map so far goes to a segment file too,
+        so that nothing saved is overwritten."""
+        path = self.path
+        if not path:
+            return None
+        old = path if not self.file_may_hold_more() else next_segment_path(path)
+        new = next_segment_path(path, taken={old})
+        before_reset()
+        _, snapshot = self.core.take_and_reset(f"a new segment at {where}", keep=True)
+        self._file_thread.submit(self._write_segment, snapshot, old)
+        # Through the parameter (its checks and callbacks), so ros2 param get shows the file in use.
+        from rclpy.parameter import Parameter
+
+        result = self.node.set_parameters([Parameter("map_file", Parameter.Type.STRING, new)])[0]
+        if not result.successful:
+            return (f"the map so far ({len(snapshot)} voxels) is being saved to {old}; a new map starts, but "
+                    f"map_file stays {path} ({result.reason})")
+        return f"the map so far ({len(snapshot)} voxels) is being saved to {old}; a new map starts for the new " \
+               f"segment, saved to {new} (map_file is now {new})"
+
+    def _write_segment(self, snapshot, path: str) -> None:
+        try:
+            snapshot.write(path)
+        except (OSError, ValueError) as error:
+            self.save_error = self.last_save = f"could not save the segment to {path}: " \
+                                               f"{getattr(error, 'strerror', None) or error}"
+            self._log_outcome(False, self.save_error)
+            return
+        self.last_save = f"saved the segment before the jump, {len(snapshot)} voxels, to {path}"
+        self._log_outcome(True, self.last_save)
 
     # -- map_file at run time ----------------------------------------------------------------------
     def check_new_path(self, path: str) -> str | None:

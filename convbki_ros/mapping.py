@@ -22,6 +22,7 @@ from convbki_core.paths import kernel_path
 from convbki_core.warm_up import WarmUpReport, warm_up
 from convbki_ros.params import (
     KERNEL_DECIDES,
+    REPLACED,
     SPECS,
     StartupError,
     check_choice,
@@ -43,7 +44,9 @@ NO_POSE_REASONS = {
     PoseStatus.EMPTY: "no odometry received yet",
     PoseStatus.TOO_OLD: "the cloud is older than the odometry kept",
     PoseStatus.JUMP: "the odometry jumped between the poses around its stamp",
+    PoseStatus.OUTAGE: "it was taken during an outage of the odometry",
 }
+DROP_REASONS = {PoseStatus.JUMP: "pose jump", PoseStatus.OUTAGE: "odometry outage"}
 
 
 class MappingCore:
@@ -81,6 +84,9 @@ class MappingCore:
         from_kernel = kernel_defaults(config)
         node.declare_all(from_kernel)
         unknown = unknown_parameters(node)
+        for name in [name for name in unknown if name in REPLACED]:
+            node.get_logger().warning(f"parameter {name} is no longer read: set {REPLACED[name]}")
+            unknown.remove(name)
         if unknown:
             node.get_logger().warning(f"unknown parameters ignored (misspelt?): {', '.join(unknown)}; the node "
                                       f"declares: {', '.join(sorted(SPECS))}")
@@ -95,6 +101,7 @@ class MappingCore:
                                       f"{', '.join(overridden)}; the kernel's lengths were trained for its grid")
         check_choice("label_space", node.param("label_space"))
         check_choice("update_path", node.param("update_path"))
+        check_choice("on_pose_jump", node.param("on_pose_jump"))
         settings = {"kernel": config, "local_bounds": check_local_bounds(node.param("local_bounds")),
                     "prior": node.param("prior"), "resolution": node.param("resolution"),
                     "filter_size": node.param("filter_size"), "device": node.param("device"),
@@ -139,12 +146,27 @@ class MappingCore:
                                f"(width {msg.width} x height {msg.height})")
             return
         queue_limit = int(self.node.param("cloud_queue_size"))
-        dropped = self.queue.push(msg, queue_limit)
+        megabytes = self.node.param("cloud_queue_megabytes")
+        evicted = self.queue.push(msg, queue_limit, int(megabytes * 1e6), self.clock_ns())
         self.status.queued(len(self.queue))
-        if dropped:
-            self.status.drop("queue full", dropped)
-            self.warnings.warn("queue", f"update queue full ({queue_limit} clouds waiting): dropping the oldest "
-                               "cloud; the map update is slower than the input rate")
+        if not evicted:
+            return
+        full = f"update queue full ({len(self.queue)} clouds, {self.queue.bytes / 1e6:.0f} MB; cloud_queue_size " \
+               f"{queue_limit}, cloud_queue_megabytes {megabytes:g})"
+        if evicted.waiting_for_pose:
+            self.status.drop("no pose", evicted.waiting_for_pose)
+            latest = self.queue.poses.latest_stamp
+            self.warnings.warn("queue no pose", f"{full}: dropping the oldest cloud, still waiting for odometry "
+                               "covering its stamp (latest odometry "
+                               f"{'none' if latest is None else f'{latest / 1e9:.3f} s'})")
+        if evicted.ready:
+            self.status.drop("queue full", evicted.ready)
+            self.warnings.warn("queue", f"{full}: dropping the oldest cloud; the map update is slower than the "
+                               "input rate")
+
+    def clock_ns(self) -> int:
+        """The node's clock (ROS time: the data's time under use_sim_time), in nanoseconds."""
+        return self.node.get_clock().now().nanoseconds
 
     def on_odometry(self, msg) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -157,21 +179,49 @@ class MappingCore:
             self.warnings.warn("odometry " + problem_key(problem),
                                f"ignoring odometry stamped {stamp / 1e9:.3f} s: {problem}")
             return
+        self.status.odometry_delay(self.clock_ns() - stamp)
         self._note_odometry_frame(msg.header.frame_id)
         self._check_time_going_backwards(stamp)
-        jump, previous = self.queue.add_odometry(stamp, pose_from_translation_quaternion(translation, quaternion),
-                                                 msg.child_frame_id)
-        if jump is None:
+        found, previous = self.queue.add_odometry(stamp, pose_from_translation_quaternion(translation, quaternion),
+                                                  msg.child_frame_id)
+        if found is None:
             return
-        after = f"after {previous / 1e9:.3f} s" if previous is not None and previous < stamp else "out of order"
-        if self.node.param("reset_on_pose_jump"):
-            self.queue.forget_odometry(before=stamp)
-            action = "map reset (reset_on_pose_jump): a new map starts at the new pose"
-            self.reset_map(f"a reset on the pose jump at {stamp / 1e9:.3f} s")
-        else:
-            action = "map kept; clouds stamped inside the jump are dropped"
-        self.warnings.warn("jump", f"odometry jumped {jump:.2f} m at {stamp / 1e9:.3f} s ({after}; "
-                           f"max_pose_jump = {self.node.param('max_pose_jump')} m): {action}")
+        limit = f"max_pose_jump = {self.node.param('max_pose_jump')} m"
+        after = "out of order" if previous is None or previous > stamp else f"after {previous / 1e9:.3f} s"
+        if found.outage:
+            # Odometry that stopped and resumed is the same odometry: the robot moved on meanwhile.
+            self.warnings.warn("outage", f"odometry outage of {found.gap_s:.1f} s (none stamped between "
+                               f"{(stamp - found.gap_s * 1e9) / 1e9:.3f} s and {stamp / 1e9:.3f} s); the pose after "
+                               f"it is {found.distance:.2f} m away ({limit}): map kept; clouds stamped in the "
+                               "outage are dropped")
+            return
+        action = self.on_pose_jump(stamp)
+        text = f"odometry jumped {found.distance:.2f} m in {found.gap_s:.2f} s at {stamp / 1e9:.3f} s ({after}; " \
+               f"{limit}): {action}"
+        if self.node.param("on_pose_jump") == "keep":
+            self.warnings.warn("jump", text)
+        else:  # the map was reset or a file started: every one is said
+            self.node.get_logger().warning(text)
+
+    def on_pose_jump(self, stamp: int) -> str:
+        """Apply parameter on_pose_jump to a jump at ``stamp``; what was done, in words."""
+        choice = self.node.param("on_pose_jump")
+        where = f"the pose jump at {stamp / 1e9:.3f} s"
+        if choice == "new_file":
+            done = self.node.files.start_new_segment(where, self._forget_odometry_before(stamp))
+            if done:
+                return f"{done} (on_pose_jump new_file)"
+            return "map kept, as map_file is empty (on_pose_jump new_file needs it); clouds stamped inside the " \
+                   "jump are dropped"
+        if choice == "reset":
+            self._forget_odometry_before(stamp)()
+            self.reset_map(f"a reset on {where}")
+            return "map reset (on_pose_jump reset): a new map starts at the new pose"
+        return "map kept (on_pose_jump keep): the scans after it are added where the odometry now says; clouds " \
+               "stamped inside the jump are dropped"
+
+    def _forget_odometry_before(self, stamp: int):
+        return lambda: self.queue.forget_odometry(before=stamp)
 
     def _note_odometry_frame(self, frame: str) -> None:
         """The map is built in the odometry's frame; a different map_frame cannot be honoured
@@ -234,12 +284,18 @@ class MappingCore:
     def reset_map(self, why: str) -> int:
         """Clear the map; clouds received before now are stale (their poses may be too). Returns
         how many voxels it forgot; ``why`` says what asked for it (for the user)."""
+        return self.take_and_reset(why)[0]
+
+    def take_and_reset(self, why: str, keep: bool = False):
+        """``reset_map``, returning (voxels forgotten, a snapshot of the map before, when ``keep``):
+        both under one hold of the lock, so no scan falls between the two."""
         self.queue.new_generation()
         with self.map_lock:
             forgotten = len(self.mapper)
+            snapshot = self.mapper.snapshot() if keep else None
             self.mapper.reset()
             self._lost_evidence(why)
-        return forgotten
+        return forgotten, snapshot
 
     def clear_box(self, box_min, box_max) -> int:
         """Forget the voxels whose centres lie in the box (map frame, m); returns how many."""
@@ -280,7 +336,7 @@ class MappingCore:
     def run(self) -> None:
         """Integrate queued clouds as their poses become known, until ``stop()``."""
         while True:
-            decision = self.queue.next(self.node.param("pose_wait_timeout"))
+            decision = self.queue.next(self.node.param("pose_wait_timeout"), self.clock_ns)
             if decision is None:
                 return
             try:
@@ -340,8 +396,8 @@ class MappingCore:
 
     def _no_pose(self, msg, status: PoseStatus) -> None:
         reason = NO_POSE_REASONS.get(status) or \
-            f"no odometry covered its stamp within {self.node.param('pose_wait_timeout')} s"
-        self.status.drop("pose jump" if status is PoseStatus.JUMP else "no pose")
+            f"no odometry covered its stamp within pose_wait_timeout = {self.node.param('pose_wait_timeout')} s"
+        self.status.drop(DROP_REASONS.get(status, "no pose"))
         latest = self.queue.poses.latest_stamp
         latest_text = f"; latest odometry {latest / 1e9:.3f} s" if latest is not None else ""
         self.warnings.warn(f"pose {status.value}", f"dropping cloud stamped {stamp_to_ns(msg.header.stamp) / 1e9:.3f}"

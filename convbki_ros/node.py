@@ -46,8 +46,10 @@ from convbki_ros.outputs import MapOutputs
 from convbki_ros.params import (
     NODE_NAME,
     PARAMETERS,
+    SPECS,
     check_box,
     check_choice,
+    choice_problem,
     declare,
     integers_as_doubles,
     optional,
@@ -175,6 +177,8 @@ class MapperNode(Node):
                 problem = self.files.check_new_path(parameter.value)
             elif parameter.name in ("clear_box_min", "clear_box_max"):
                 problem = check_box(parameter.name, parameter.value)
+            elif parameter.name in SPECS and SPECS[parameter.name].choices:
+                problem = choice_problem(parameter.name, parameter.value)
             else:
                 continue
             if problem:
@@ -213,6 +217,7 @@ class MapperNode(Node):
                                   message=message, hardware_id=self.core.frame,
                                   values=[KeyValue(key=k, value=v) for k, v in diagnostic_values(snapshot)])
         status.values.append(KeyValue(key="last_save", value=self.files.last_save or ""))
+        status.values.append(KeyValue(key="queue_limit", value=str(self.param("cloud_queue_size"))))
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_publisher.publish(array)

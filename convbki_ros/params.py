@@ -113,10 +113,13 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("local_period", 0.5, "shortest time between two semantic_map/local messages: after updates, the "
          "newest window is sent at most this often; seconds; 0.0 = after every update", 0.0, 3600.0,
          run_time=True),
-    Spec("cloud_queue_size", 100, "clouds waiting to be integrated (10 s at 10 Hz); when full the oldest is "
-         "dropped; count", 1, 10000, run_time=True),
-    Spec("pose_wait_timeout", 10.0, "how long a cloud waits for odometry covering its stamp before it is "
-         "dropped; seconds", 0.0, 600.0, run_time=True),
+    Spec("cloud_queue_size", 100, "clouds waiting to be integrated or for their odometry (10 s at 10 Hz); when "
+         "full the oldest is dropped; count", 1, 10000, run_time=True),
+    Spec("cloud_queue_megabytes", 1024.0, "bytes of cloud data the queue may hold; when full the oldest cloud is "
+         "dropped; megabytes (1e6 bytes); 0.0 = no limit but cloud_queue_size", 0.0, 1e6, run_time=True),
+    Spec("pose_wait_timeout", 0.0, "how long a cloud waits for odometry covering its stamp before it is dropped, "
+         "in the node's clock (the data's time under use_sim_time); seconds; 0.0 = as long as the queue has "
+         "room for it", 0.0, 3600.0, run_time=True),
     Spec("stats_period", 10.0, "period of the counters line in the log (scans in, integrated, dropped); "
          "seconds", 0.1, 3600.0, run_time=True),
     Spec("diagnostics_period", 1.0, "period of the /diagnostics report (counters, queue, timings, health); "
@@ -125,11 +128,16 @@ PARAMETERS: tuple[Spec, ...] = (
          "clouds with more points (width * height) are dropped on arrival with a warning, before any decoding, "
          "so that a runaway source cannot exhaust memory; count; 0 = no limit", 0, 1_000_000_000, run_time=True),
     Spec("max_pose_jump", 10.0,
-         "two consecutive odometry poses further apart than this are a jump: warned, and clouds stamped between "
-         "them are dropped rather than placed half way; metres; 0.0 = no check", 0.0, 1e6, run_time=True),
-    Spec("reset_on_pose_jump", False,
-         "on a pose jump, also clear the map and the odometry before the jump (a new map starts there); bool",
+         "two consecutive odometry poses further apart than this are a break: warned, and clouds stamped between "
+         "them are dropped rather than placed half way; after a gap in the odometry (over 10 of its periods and "
+         "1 s) the break is an outage, else a jump (see on_pose_jump); metres; 0.0 = no check", 0.0, 1e6,
          run_time=True),
+    Spec("on_pose_jump", "keep",
+         "what a pose jump within continuous odometry does to the map: keep it (the scans after the jump are "
+         "added where the odometry now says), reset it (a new map starts at the new pose), or new_file (the map "
+         "so far is saved to map_file, and a new map starts that is saved to the next <map_file "
+         "stem>.segment-N file); an outage (odometry that stopped, then resumed far away) keeps the map",
+         choices=("keep", "reset", "new_file"), run_time=True),
     Spec("stamp_backwards_tolerance", 1.0,
          "odometry stamped more than this before the newest odometry means time went backwards (a restarted "
          "bag): the odometry history and the waiting clouds are dropped; seconds", 0.0, 1e6, run_time=True),
@@ -221,6 +229,12 @@ def explicitly_set(node) -> set[str]:
     return set(getattr(node, "_parameter_overrides", {}) or {})
 
 
+# Parameters that were replaced: what to set instead, said when an old name is given.
+REPLACED = {
+    "reset_on_pose_jump": "on_pose_jump (keep, reset or new_file; reset_on_pose_jump true = on_pose_jump reset)",
+}
+
+
 def unknown_parameters(node) -> list[str]:
     """Names given for this node that it does not declare (a misspelt name, a removed option)."""
     declared = set(SPECS) | set(ROS_OWN)
@@ -233,10 +247,16 @@ def kernel_defaults(config: KernelConfig) -> dict[str, object]:
             "filter_size": int(config.filter_size)}
 
 
-def check_choice(name: str, value: str) -> str:
+def choice_problem(name: str, value: str) -> str | None:
+    """Why ``value`` is not one of parameter ``name``'s choices (None when it is)."""
     choices = SPECS[name].choices
-    if value not in choices:
-        raise StartupError(f"parameter {name}: {value!r} is not one of {', '.join(choices)}")
+    return None if value in choices else f"parameter {name}: {value!r} is not one of {', '.join(choices)}"
+
+
+def check_choice(name: str, value: str) -> str:
+    problem = choice_problem(name, value)
+    if problem:
+        raise StartupError(problem)
     return value
 
 

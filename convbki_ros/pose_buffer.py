@@ -7,9 +7,17 @@ for more; a cloud older than everything kept cannot be placed and is dropped.
 
 Odometry is checked before it is kept (``pose_problem``): a non-finite position or a
 quaternion that is not a rotation would place a whole scan in the wrong spot. Two
-consecutive poses further apart than ``max_jump`` metres are a jump (a relocalisation, a
-reset odometry): the buffer keeps both, but never interpolates across the gap, since a
-pose half way through a jump is a pose the sensor never had.
+consecutive poses further apart than ``max_jump`` metres are a break: the buffer keeps both,
+but never interpolates across it, since a pose half way through is a pose the sensor never
+had. A break is one of two things, and the user must be told which:
+
+* an outage: the two poses are far apart in time as well (no odometry came for a while, the
+  robot moved on meanwhile); the stamps between them are ``PoseStatus.OUTAGE``;
+* a jump: consecutive odometry that moved further than the robot can (a relocalisation, an
+  odometry that restarted at its origin); ``PoseStatus.JUMP``.
+
+The gap that makes an outage is measured against the odometry's own rate: more than
+``OUTAGE_PERIODS`` of its usual periods, and at least ``OUTAGE_MIN_S``.
 """
 
 from __future__ import annotations
@@ -26,6 +34,12 @@ from convbki_ros.transforms import interpolate_pose
 # 1e-7) and bag conversions keep that; a norm off by a per cent is a broken message (a
 # zero or default quaternion, swapped fields), not round-off.
 QUATERNION_NORM_TOLERANCE = 1e-2
+# A gap in the stamps longer than this many of the odometry's usual periods (the median of the
+# recent ones), and than OUTAGE_MIN_S, is an outage rather than a step: a 10 Hz odometry that
+# skips a message or two is still continuous, one silent for a second is not.
+OUTAGE_PERIODS = 10
+OUTAGE_MIN_S = 1.0
+RATE_HISTORY = 50  # recent stamp gaps the usual period is taken from
 
 
 class PoseStatus(Enum):
@@ -34,6 +48,16 @@ class PoseStatus(Enum):
     TOO_OLD = "too_old"  # the stamp is older than the oldest odometry kept
     EMPTY = "empty"  # no odometry yet
     JUMP = "jump"  # the stamp falls between two poses that are a jump apart
+    OUTAGE = "outage"  # the stamp falls in an outage of the odometry that ended far away
+
+
+@dataclass
+class PoseBreak:
+    """Two consecutive poses too far apart to interpolate between (see the module's docstring)."""
+
+    distance: float  # metres between them
+    gap_s: float  # seconds between their stamps
+    outage: bool  # the gap is an outage of the odometry, not a step of continuous odometry
 
 
 @dataclass
@@ -72,7 +96,7 @@ class OdometryBuffer:
     ``tolerance_ns``: a cloud up to this much newer than the latest odometry uses the latest
     pose rather than waiting (sensor and odometry clocks are rarely within a nanosecond).
     ``max_jump``: metres between two consecutive poses beyond which they are a jump and
-    stamps between them get ``PoseStatus.JUMP``; 0 = never.
+    stamps between them get ``PoseStatus.JUMP`` or ``PoseStatus.OUTAGE``; 0 = never.
     """
 
     def __init__(self, history_ns: int = 30_000_000_000, tolerance_ns: int = 1_000_000, max_jump: float = 0.0):
@@ -82,7 +106,7 @@ class OdometryBuffer:
         self._stamps: list[int] = []
         self._poses: list[np.ndarray] = []
         self._frames: list[str] = []
-        self._jump_before: list[bool] = []  # True: entry i is a jump away from entry i - 1
+        self._jump_before: list[bool] = []  # True: entry i is a break away from entry i - 1
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -103,11 +127,26 @@ class OdometryBuffer:
     def _is_jump(self, position: int) -> bool:
         return position > 0 and self.max_jump > 0 and self._distance(position - 1, position) > self.max_jump
 
-    def add(self, stamp_ns: int, pose: np.ndarray, child_frame_id: str = "") -> float | None:
+    def usual_period_ns(self) -> int | None:
+        """The median gap between the recent stamps, None with fewer than three poses."""
+        stamps = self._stamps[-RATE_HISTORY - 1:]
+        if len(stamps) < 3:
+            return None
+        return int(np.median(np.diff(stamps)))
+
+    def outage_gap_ns(self) -> int:
+        """A stamp gap longer than this is an outage (see the module's docstring)."""
+        period = self.usual_period_ns() or 0
+        return max(int(OUTAGE_MIN_S * 1e9), OUTAGE_PERIODS * period)
+
+    def _is_outage(self, position: int) -> bool:
+        return self._stamps[position] - self._stamps[position - 1] > self.outage_gap_ns()
+
+    def add(self, stamp_ns: int, pose: np.ndarray, child_frame_id: str = "") -> PoseBreak | None:
         """Insert one odometry pose; out-of-order stamps are placed in order, duplicates replace.
 
-        Returns the distance (m) from the pose before it when that is a jump (see
-        ``max_jump``), else None.
+        Returns the break between it and the pose before it when they are further apart than
+        ``max_jump`` (an outage or a jump), else None.
         """
         position = bisect.bisect_left(self._stamps, stamp_ns)
         if position < len(self._stamps) and self._stamps[position] == stamp_ns:
@@ -122,9 +161,12 @@ class OdometryBuffer:
         for gap in (position, position + 1):
             if gap < len(self._stamps):
                 self._jump_before[gap] = self._is_jump(gap)
-        jump = self._distance(position - 1, position) if self._jump_before[position] else None
+        found = None
+        if self._jump_before[position]:
+            gap = self._stamps[position] - self._stamps[position - 1]
+            found = PoseBreak(self._distance(position - 1, position), gap / 1e9, self._is_outage(position))
         self.drop_before(self._stamps[-1] - self.history_ns)
-        return jump
+        return found
 
     def drop_before(self, stamp_ns: int) -> None:
         """Forget the poses stamped before ``stamp_ns``."""
@@ -149,7 +191,7 @@ class OdometryBuffer:
         if self._stamps[position] == stamp_ns:
             return PoseLookup(PoseStatus.FOUND, self._poses[position], self._frames[position])
         if self._jump_before[position]:
-            return PoseLookup(PoseStatus.JUMP)
+            return PoseLookup(PoseStatus.OUTAGE if self._is_outage(position) else PoseStatus.JUMP)
         before, after = self._stamps[position - 1], self._stamps[position]
         fraction = (stamp_ns - before) / (after - before)
         pose = interpolate_pose(self._poses[position - 1], self._poses[position], fraction)

@@ -13,6 +13,7 @@ about once a second), whose level says whether the node is healthy:
 
 from __future__ import annotations
 
+import itertools
 import re
 import statistics
 import threading
@@ -22,6 +23,7 @@ from dataclasses import dataclass, field
 
 OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
 TIMING_HISTORY = 100  # update and publish times kept for the medians
+PLAUSIBLE_DELAY_MS = 3_600_000.0  # odometry "delayed" by more than an hour is stamped in another clock
 
 
 def problem_key(message: str) -> str:
@@ -72,6 +74,9 @@ class Snapshot:
     maps_published: int
     median_cycle_ms: float
     map_version: int  # bumped by every change of the map (an update, a load, a reset)
+    odometry_delay_ms_median: float = 0.0
+    odometry_delay_ms_max: float = 0.0
+    odometry_gap_ms_max: float = 0.0
 
     @property
     def dropped_total(self) -> int:
@@ -84,7 +89,15 @@ class Snapshot:
                 f"{f' ({reasons})' if reasons else ''}, odometry in {self.odometry_in} "
                 f"(rejected {self.odometry_rejected}), queue {self.queue}, map voxels {self.map_voxels}, "
                 f"last update {self.last_update_ms:.0f} ms, last map publish {self.last_publish_ms:.0f} ms, "
-                f"queue peak {self.queue_peak}, cycle median {self.median_cycle_ms:.0f} ms")
+                f"queue peak {self.queue_peak}, cycle median {self.median_cycle_ms:.0f} ms, {self.odometry_text()}")
+
+    def odometry_text(self) -> str:
+        """How the odometry arrives, for the counters line."""
+        gap = f"longest gap between arrivals {self.odometry_gap_ms_max:.0f} ms"
+        if abs(self.odometry_delay_ms_median) > PLAUSIBLE_DELAY_MS:
+            return f"odometry stamps not in the node's clock (a bag without /clock and use_sim_time?), {gap}"
+        return (f"odometry delay median {self.odometry_delay_ms_median:.0f} ms "
+                f"(max {self.odometry_delay_ms_max:.0f}), {gap}")
 
 
 @dataclass
@@ -101,6 +114,12 @@ class MapperStatus:
     update_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))
     publish_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))  # the whole map
     cycle_ms: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))  # updates and view
+    # Per usable odometry message: its arrival in the node's clock minus its stamp (the delivery
+    # delay, where the source's stamps and the node's clock agree: a live robot, or a bag played
+    # with /clock to a node on use_sim_time), and its arrival in steady time (the longest gap
+    # between two arrivals shows odometry held back and delivered in a burst, whatever the clocks).
+    odometry_delay_ns: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))
+    odometry_arrival_ns: deque = field(default_factory=lambda: deque(maxlen=TIMING_HISTORY))
     last_cloud_received: float | None = None  # time.monotonic()
     last_odometry_received: float | None = None
     started: float = field(default_factory=time.monotonic)  # reset when the node is ready
@@ -124,6 +143,12 @@ class MapperStatus:
                 self.last_odometry_received = time.monotonic()
             else:
                 self.odometry_rejected += 1
+
+    def odometry_delay(self, delay_ns: int) -> None:
+        """A usable odometry message arrived ``delay_ns`` after its stamp (in the node's clock)."""
+        with self._lock:
+            self.odometry_delay_ns.append(delay_ns)
+            self.odometry_arrival_ns.append(time.monotonic_ns())
 
     def drop(self, reason: str, count: int = 1) -> None:
         if count:
@@ -157,7 +182,16 @@ class MapperStatus:
                 statistics.median(self.update_ms) if self.update_ms else 0.0,
                 self.publish_ms[-1] if self.publish_ms else 0.0,
                 statistics.median(self.publish_ms) if self.publish_ms else 0.0,
-                self.maps_published, statistics.median(self.cycle_ms) if self.cycle_ms else 0.0, map_version)
+                self.maps_published, statistics.median(self.cycle_ms) if self.cycle_ms else 0.0, map_version,
+                *self._odometry_delays())
+
+    def _odometry_delays(self) -> tuple[float, float, float]:
+        """(median delay, largest delay, longest arrival gap) of the recent odometry, in ms (lock held)."""
+        if not self.odometry_delay_ns:
+            return 0.0, 0.0, 0.0
+        arrivals = list(self.odometry_arrival_ns)
+        gap = max((b - a for a, b in itertools.pairwise(arrivals)), default=0)
+        return statistics.median(self.odometry_delay_ns) / 1e6, max(self.odometry_delay_ns) / 1e6, gap / 1e6
 
     def odometry_missing(self, timeout: float) -> tuple[str, float] | None:
         """(what is missing, for how many seconds) while clouds arrive and no usable odometry has
@@ -201,5 +235,8 @@ def diagnostic_values(snapshot: Snapshot) -> list[tuple[str, str]]:
         ("publish_ms_median", f"{snapshot.median_publish_ms:.1f}"),
         ("maps_published", snapshot.maps_published), ("map_version", snapshot.map_version),
         ("cycle_ms_median", f"{snapshot.median_cycle_ms:.1f}"),
+        ("odometry_delay_ms_median", f"{snapshot.odometry_delay_ms_median:.1f}"),
+        ("odometry_delay_ms_max", f"{snapshot.odometry_delay_ms_max:.1f}"),
+        ("odometry_gap_ms_max", f"{snapshot.odometry_gap_ms_max:.1f}"),
     ]
     return [(key, str(value)) for key, value in values]

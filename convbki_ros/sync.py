@@ -17,7 +17,7 @@ from enum import Enum
 
 import numpy as np
 
-from convbki_ros.pose_buffer import OdometryBuffer, PoseLookup, PoseStatus
+from convbki_ros.pose_buffer import OdometryBuffer, PoseBreak, PoseLookup, PoseStatus
 from convbki_ros.transforms import stamp_to_ns, transform_to_pose
 
 
@@ -28,6 +28,11 @@ class PendingCloud:
     msg: object
     received: float  # time.monotonic() at reception
     generation: int = 0  # the map generation it was received in; a reset makes it stale
+    received_clock_ns: int = 0  # the node's clock at reception (the data's time under use_sim_time)
+
+    @property
+    def nbytes(self) -> int:
+        return len(self.msg.data)
 
 
 class Verdict(Enum):
@@ -43,31 +48,54 @@ class Decision:
     lookup: PoseLookup | None = None
 
 
+@dataclass
+class Evicted:
+    """Clouds pushed out of a full queue: those still waiting for odometry, and those not."""
+
+    waiting_for_pose: int = 0
+    ready: int = 0
+
+    def __bool__(self) -> bool:
+        return bool(self.waiting_for_pose or self.ready)
+
+
 class CloudQueue:
-    """Clouds waiting to be integrated, oldest first, at most ``limit``; the odometry history.
+    """Clouds waiting to be integrated, oldest first, at most ``limit`` clouds and ``byte_limit``
+    bytes; the odometry history.
 
     One condition guards both: a cloud becomes ready when odometry arrives. A cloud whose
     odometry has not arrived does not hold up the clouds behind it: the update is a sum, so
-    the order of integration does not change the map.
+    the order of integration does not change the map. How long a cloud may wait for its
+    odometry is bounded by the queue (room for the clouds behind it), and optionally by a time
+    in the node's clock, so a source that pauses (and the odometry with it) loses nothing.
     """
 
     def __init__(self, max_pose_jump: float):
         self.changed = threading.Condition()
         self.clouds: deque[PendingCloud] = deque()
+        self.bytes = 0
         self.poses = OdometryBuffer(max_jump=max_pose_jump)
         self.generation = 0  # bumped by every map reset
         self.stopping = False
 
-    def push(self, msg, limit: int) -> int:
-        """Queue ``msg``; returns how many of the oldest clouds were dropped to make room."""
+    def push(self, msg, limit: int, byte_limit: int = 0, clock_ns: int = 0) -> Evicted:
+        """Queue ``msg`` (``clock_ns``: the node's clock now); the oldest clouds are pushed out
+        until it fits in ``limit`` clouds and ``byte_limit`` bytes (0: no byte limit)."""
+        pending = PendingCloud(msg, time.monotonic(), self.generation, clock_ns)
         with self.changed:
-            dropped = 0
-            while len(self.clouds) >= max(1, limit):
-                self.clouds.popleft()
-                dropped += 1
-            self.clouds.append(PendingCloud(msg, time.monotonic(), self.generation))
+            evicted = Evicted()
+            while self.clouds and (len(self.clouds) >= max(1, limit) or
+                                   (byte_limit and self.bytes + pending.nbytes > byte_limit)):
+                oldest = self.clouds.popleft()
+                self.bytes -= oldest.nbytes
+                if self._lookup(oldest).status in (PoseStatus.WAIT, PoseStatus.EMPTY):
+                    evicted.waiting_for_pose += 1
+                else:
+                    evicted.ready += 1
+            self.clouds.append(pending)
+            self.bytes += pending.nbytes
             self.changed.notify_all()
-            return dropped
+            return evicted
 
     def __len__(self) -> int:
         with self.changed:
@@ -82,39 +110,45 @@ class CloudQueue:
     def _lookup(self, pending: PendingCloud) -> PoseLookup:
         return self.poses.lookup(stamp_to_ns(pending.msg.header.stamp))
 
-    def next(self, pose_wait_timeout: float) -> Decision | None:
-        """Block until a cloud can be decided (or ``stop()``); None when stopping."""
+    def next(self, pose_wait_timeout: float, clock_ns=lambda: 0) -> Decision | None:
+        """Block until a cloud can be decided (or ``stop()``); None when stopping.
+
+        ``pose_wait_timeout``: seconds of the node's clock (``clock_ns()``) a cloud may wait for
+        its odometry; 0 = as long as the queue has room for it.
+        """
         with self.changed:
             while not self.stopping:
-                decision = self._decide(pose_wait_timeout)
+                decision = self._decide(pose_wait_timeout, clock_ns)
                 if decision is not None:
                     return decision
                 # Nothing queued: sleep until something arrives. Clouds waiting for odometry:
                 # wake up in time for the first one's timeout too.
-                self.changed.wait(0.5 if not self.clouds else 0.02)
+                self.changed.wait(0.5 if not self.clouds or not pose_wait_timeout else 0.02)
             return None
 
-    def _decide(self, timeout: float) -> Decision | None:
-        now = time.monotonic()
+    def _decide(self, timeout: float, clock_ns) -> Decision | None:
+        now = clock_ns() if timeout else 0
         for position, pending in enumerate(self.clouds):
             if pending.generation != self.generation:
                 del self.clouds[position]
+                self.bytes -= pending.nbytes
                 return Decision(pending, Verdict.STALE)
             lookup = self._lookup(pending)
             waiting = lookup.status in (PoseStatus.WAIT, PoseStatus.EMPTY)
-            if not waiting or now - pending.received >= timeout:
+            if not waiting or (timeout and now - pending.received_clock_ns >= timeout * 1e9):
                 del self.clouds[position]
+                self.bytes -= pending.nbytes
                 return Decision(pending, Verdict.PLACE if lookup.status is PoseStatus.FOUND else Verdict.NO_POSE,
                                 lookup)
         return None
 
-    def add_odometry(self, stamp: int, pose: np.ndarray, child_frame: str) -> tuple[float | None, int | None]:
-        """Keep one odometry pose; returns (jump distance or None, the previous newest stamp)."""
+    def add_odometry(self, stamp: int, pose: np.ndarray, child_frame: str) -> tuple[PoseBreak | None, int | None]:
+        """Keep one odometry pose; returns (the break before it or None, the previous newest stamp)."""
         with self.changed:
             previous = self.poses.latest_stamp
-            jump = self.poses.add(stamp, pose, child_frame)
+            found = self.poses.add(stamp, pose, child_frame)
             self.changed.notify_all()
-            return jump, previous
+            return found, previous
 
     def forget_odometry(self, before: int | None = None) -> int:
         """Forget the odometry (all of it, or that stamped before ``before``). Forgetting all of
@@ -126,6 +160,7 @@ class CloudQueue:
             self.poses.clear()
             stale = len(self.clouds)
             self.clouds.clear()
+            self.bytes = 0
             return stale
 
     def new_generation(self) -> None:

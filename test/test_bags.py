@@ -335,3 +335,77 @@ def test_play_bag_bad_input_is_one_line(tmp_path: Path) -> None:
     assert result.returncode == 2
     assert result.stderr.strip().splitlines() == [
         f"play_bag: error: {not_a_bag}: no such bag (a rosbag2 folder with metadata.yaml, or a .mcap/.db3 file)"]
+
+
+def test_play_bag_says_so_when_a_subscriber_goes_away(dataset, tmp_path: Path) -> None:
+    """A subscriber that leaves during the replay did not get the rest: exit 1, the topic and the count."""
+    root, _, _ = dataset
+    bag = tmp_path / "bag"
+    assert convert("--dataset", root, "--sequence", "8", "--out", bag) == 0
+    domain = domain_id()
+    listener = Listener(domain, "/kitti/velo/pointcloud", "/kitti/odom")
+    try:
+        # rate 0.1: the 4 stamps are 1 s apart, time enough to see the subscription go.
+        process = _play(bag, domain, "--rate", "0.1", "--wait-subscribers", "20")
+        try:
+            listener.spin_until(lambda: len(listener.clouds) >= 1, timeout=40)
+            assert listener.clouds, "the first cloud never arrived"
+            for subscription in list(listener.node.subscriptions):
+                if subscription.topic_name == "/kitti/velo/pointcloud":
+                    listener.node.destroy_subscription(subscription)
+            _, stderr = process.communicate(timeout=60)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+    finally:
+        listener.close()
+    assert process.returncode == play_bag.NOT_DELIVERED, stderr
+    assert "Traceback" not in stderr
+    gone = re.search(r"play_bag: error: /kitti/velo/pointcloud: 1 subscriber\(s\) went away after message (\d) "
+                     r"of 4: what they had not acknowledged was not delivered", stderr)
+    assert gone and 1 <= int(gone.group(1)) <= 2, stderr
+    assert "/kitti/odom: " not in stderr.split("published", 1)[1]  # the odometry's subscriber stayed
+
+
+def test_a_paced_replay_and_a_paused_player_lose_nothing(dataset, tmp_path: Path) -> None:
+    """The mapper node, then play_bag --wait-for-node at full speed, then play_bag stopped (SIGSTOP)
+    for longer than Fast DDS's default participant lease (20 s) and resumed: every cloud integrated."""
+    import signal
+
+    from mapper_rig import Rig
+
+    root, _, _ = dataset
+    bag = tmp_path / "bag"
+    assert convert("--dataset", root, "--sequence", "8", "--out", bag) == 0
+    remaps = ["--remap", "/kitti/velo/pointcloud:=/cloud_in", "--remap", "/kitti/odom:=/odom"]
+    rig = Rig(tmp_path, "-p", "pose_wait_timeout:=0.0", "-p", "save_on_shutdown:=false",
+              "-p", "stamp_backwards_tolerance:=1000000.0", watch_map=False)
+    try:
+        process = _play(bag, rig.domain, "--wait-for-node", *remaps)
+        _, stderr = process.communicate(timeout=120)
+        assert process.returncode == 0, stderr
+        assert "play_bag: /convbki_mapper received 4 of 4 clouds, integrated 4, dropped 0 in " in stderr, stderr
+        assert rig.wait_stats(lambda s: s.integrated == 4).dropped == 0
+
+        # The same bag again (its stamps are taken as a second pass, not as time going back),
+        # stopped after its first cloud for 21 s.
+        process = _play(bag, rig.domain, "--rate", "0.1", *remaps)
+        try:
+            rig.wait_stats(lambda s: s.scans_in >= 5)
+            process.send_signal(signal.SIGSTOP)
+            stopped = time.monotonic()
+            rig.probe.spin_until(lambda: False, 21.0)  # the pause under test, not a synchronisation
+            assert time.monotonic() - stopped >= 21.0
+            process.send_signal(signal.SIGCONT)
+            _, stderr = process.communicate(timeout=60)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+        assert process.returncode == 0, stderr
+        assert re.search(r"resumed 1 time\(s\) after falling behind the bag's pace .* the longest 2\d\.\d s", stderr)
+        stats = rig.wait_stats(lambda s: s.integrated == 8)
+        assert stats.scans_in == 8 and stats.dropped == 0, stats
+    finally:
+        rig.close()

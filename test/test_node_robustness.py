@@ -234,8 +234,9 @@ def test_a_pose_jump_is_warned_and_clouds_inside_it_are_dropped(rig):
     rig.publish(odometry(rig.next_stamp()))
     jumped = rig.next_stamp()
     rig.publish(odometry(jumped, translation=TRANSLATION + [50.0, 0.0, 0.0]))
-    rig.wait_log(r"\[WARN\].*odometry jumped 50.00 m at [\d.]+ s \(after [\d.]+ s; max_pose_jump = 10.0 m\): "
-                 r"map kept; clouds stamped inside the jump are dropped", mark)
+    rig.wait_log(r"\[WARN\].*odometry jumped 50.00 m in 1.00 s at [\d.]+ s \(after [\d.]+ s; max_pose_jump = 10.0 m\): "
+                 r"map kept \(on_pose_jump keep\): the scans after it are added where the odometry now says; clouds "
+                 r"stamped inside the jump are dropped", mark)
     now = rig.stats()
     assert now.odometry_in == before.odometry_in + 2 and now.odometry_rejected == before.odometry_rejected
     baseline.expect_untouched(now)
@@ -399,20 +400,17 @@ def test_a_save_into_a_read_only_folder_answers_why(rig):
 
 
 def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp_path):
-    rig = Rig(tmp_path, "-p", "reset_on_pose_jump:=true", "-p", "reset_on_stamp_backwards:=true",
+    rig = Rig(tmp_path, "-p", "on_pose_jump:=reset", "-p", "reset_on_stamp_backwards:=true",
               "-p", "odometry_timeout:=1.0", "-p", "autosave_period:=1.0")
     try:
         # Clouds and no odometry at all: a warning every odometry_timeout, and nothing mapped.
         mark = rig.log.mark()
-        for _ in range(3):
-            rig.publish(cloud(rig.next_stamp(0.1)))
         warning = r"\[WARN\].*no odometry at all on /odom for [\d.]+ s while clouds arrive on /cloud_in"
-        rig.wait_log(warning, mark)
-        for _ in range(int(WAIT / 0.2)):  # clouds keep coming until the warning came back
+        for _ in range(int(WAIT / 0.2)):  # clouds keep coming until the warning came twice
             if len(rig.log.find(warning, mark)) >= 2:
                 break
             rig.publish(cloud(rig.next_stamp(0.1)))
-            rig.probe.spin_until(lambda: False, 0.2)
+            rig.probe.spin_until(lambda: False, 0.2)  # the pace of the clouds
         assert len(rig.log.find(warning, mark)) == 2, rig.log.text(mark)
         assert rig.wait_stats(lambda s: s.level == 2).integrated == 0  # ERROR on /diagnostics
         stats = rig.wait_stats(lambda s: s.dropped == s.scans_in)
@@ -432,10 +430,21 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
         mark = rig.log.mark()
         far = TRANSLATION + [0.0, 80.0, 0.0]
         rig.publish(odometry(rig.next_stamp(), translation=far))
-        rig.wait_log(r"\[WARN\].*odometry jumped 80.00 m .*map reset \(reset_on_pose_jump\)", mark)
+        rig.wait_log(r"\[WARN\].*odometry jumped 80.00 m in 1.00 s .*map reset \(on_pose_jump reset\)", mark)
         assert rig.wait_stats(lambda s: s.voxels == 0).integrated == stats.integrated
         rig.map_message(0)
         assert rig.integrate_good_cloud(translation=far).voxels > 0
+
+        # An outage (no odometry for 30 s, then a pose 80 m on) is named so, and keeps the map.
+        mark = rig.log.mark()
+        for _ in range(3):  # odometry at its usual pace first (one a second here)
+            rig.integrate_good_cloud(translation=far)
+        rig.next_stamp(29.0)
+        on = far + [0.0, 80.0, 0.0]
+        after_outage = rig.integrate_good_cloud(translation=on)
+        rig.wait_log(r"\[WARN\].*odometry outage of 30.0 s \(none stamped between [\d.]+ s and [\d.]+ s\); the pose "
+                     r"after it is 80.00 m away \(max_pose_jump = 10.0 m\): map kept", mark)
+        assert after_outage.voxels > 0 and "jumped" not in rig.log.text(mark)
 
         # Time going backwards resets the map too.
         mark = rig.log.mark()
@@ -454,15 +463,27 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
         assert "a reset when time went back" in unsaved.message, unsaved
         assert rig.map_file.read_bytes() == autosaved
 
-        # SIGINT: the file is kept as it was, and the log says how to save this map.
+        # on_pose_jump new_file: the map so far goes to a segment file (a new one, as map_file holds
+        # evidence this map lacks), and the new segment's map will be saved to the next.
+        assert all(result.successful for result in rig.set_parameters(on_pose_jump="new_file"))
+        assert not rig.set_parameters(on_pose_jump="split")[0].successful
+        mark = rig.log.mark()
+        rig.publish(odometry(rig.next_stamp(), translation=TRANSLATION + [0.0, -80.0, 0.0]))
+        segment, following = (rig.map_file.with_name(f"map.segment-{n}.npz") for n in (2, 3))
+        rig.wait_log(rf"\[WARN\].*odometry jumped 80.00 m in 1.00 s .*the map so far \({final.voxels} voxels\) is "
+                     rf"being saved to {re.escape(str(segment))}; a new map starts for the new segment, saved to "
+                     rf"{re.escape(str(following))} \(map_file is now .*\(on_pose_jump new_file\)", mark)
+        rig.wait_log(rf"saved the segment before the jump, {final.voxels} voxels, to {re.escape(str(segment))}", mark)
+        expect_file_holds(segment, offline_map(2))
+        assert rig.parameter("map_file") == str(following)
+        assert rig.wait_stats(lambda s: s.voxels == 0).integrated == final.integrated + 1
+
         rig.process.send_signal(signal.SIGINT)
         assert rig.process.wait(timeout=WAIT) == 0
     finally:
         output = rig.close()
-    assert re.search(rf"on shutdown: kept {re.escape(str(rig.map_file))} as it is: it holds evidence this map no "
-                     r"longer has \(a reset when time went back at [\d.]+ s\); call ~/save_map", output), output
     assert "Traceback" not in output, output
-    assert rig.map_file.read_bytes() == autosaved
+    assert rig.map_file.read_bytes() == autosaved  # the file saved before the resets was never overwritten
     expect_file_holds(rig.map_file, offline_map(1))
 
 

@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from convbki_ros.pose_buffer import OdometryBuffer, PoseStatus, pose_problem
+from convbki_ros.pose_buffer import OUTAGE_MIN_S, OdometryBuffer, PoseStatus, pose_problem
 from convbki_ros.transforms import pose_from_translation_quaternion
 
 
@@ -61,7 +61,7 @@ def test_no_interpolation_across_a_jump():
     assert buffer.add(0, yaw_pose(0.0, 0.0)) is None
     assert buffer.add(100, yaw_pose(0.0, 1.0)) is None  # 2.2 m: an ordinary step
     jump = buffer.add(200, yaw_pose(0.0, 21.0))  # (1, 2) -> (21, 42): 44.7 m
-    assert jump is not None and abs(jump - np.hypot(20.0, 40.0)) < 1e-9
+    assert jump is not None and abs(jump.distance - np.hypot(20.0, 40.0)) < 1e-9 and not jump.outage
     assert buffer.lookup(50).status is PoseStatus.FOUND
     assert buffer.lookup(150).status is PoseStatus.JUMP
     for exact in (100, 200):  # the poses themselves stay usable
@@ -81,3 +81,51 @@ def test_max_jump_zero_never_reports_a_jump():
     buffer.add(0, yaw_pose(0.0, 0.0))
     assert buffer.add(100, yaw_pose(0.0, 1000.0)) is None
     assert buffer.lookup(50).status is PoseStatus.FOUND
+
+
+SECOND = 1_000_000_000
+PERIOD = SECOND // 10  # a 10 Hz odometry
+
+
+def odometry_at_10_hz(buffer, seconds, speed=15.0, start=0.0):
+    """Poses of a car at ``speed`` m/s along the diagonal, one every 0.1 s for ``seconds``."""
+    for step in range(int(seconds * 10)):
+        stamp = int(start * SECOND) + step * PERIOD
+        buffer.add(stamp, yaw_pose(0.0, speed * stamp / SECOND / np.sqrt(5.0)))
+    return buffer.latest_stamp
+
+
+def test_an_outage_then_a_far_pose_is_an_outage_not_a_jump():
+    buffer = OdometryBuffer(history_ns=60 * SECOND, tolerance_ns=0, max_jump=10.0)
+    last = odometry_at_10_hz(buffer, 5.0)
+    # No odometry for 10 s while the car goes on at 15 m/s: 150 m further on.
+    resumed = last + 10 * SECOND
+    found = buffer.add(resumed, yaw_pose(0.0, 15.0 * resumed / SECOND / np.sqrt(5.0)))
+    assert found is not None and found.outage
+    assert abs(found.gap_s - 10.0) < 1e-9 and abs(found.distance - 150.0) < 1e-6
+    assert buffer.lookup(last + 5 * SECOND).status is PoseStatus.OUTAGE
+    # The odometry goes on at its rate after the outage, and so does the mapping.
+    assert buffer.add(resumed + PERIOD, yaw_pose(0.0, 15.0 * (resumed + PERIOD) / SECOND / np.sqrt(5.0))) is None
+    assert buffer.lookup(resumed + PERIOD // 2).status is PoseStatus.FOUND
+
+
+def test_a_jump_within_continuous_odometry_is_a_jump():
+    buffer = OdometryBuffer(history_ns=60 * SECOND, tolerance_ns=0, max_jump=10.0)
+    last = odometry_at_10_hz(buffer, 5.0)
+    found = buffer.add(last + PERIOD, yaw_pose(0.0, 100.0))  # the next message, ~150 m away
+    assert found is not None and not found.outage and abs(found.gap_s - 0.1) < 1e-9
+    assert buffer.lookup(last + PERIOD // 2).status is PoseStatus.JUMP
+    # A few lost messages are not an outage either: the gap is short against the odometry's rate.
+    buffer = OdometryBuffer(history_ns=60 * SECOND, tolerance_ns=0, max_jump=10.0)
+    last = odometry_at_10_hz(buffer, 5.0)
+    found = buffer.add(last + 5 * PERIOD, yaw_pose(0.0, 100.0))
+    assert found is not None and not found.outage
+
+
+def test_the_outage_gap_follows_the_odometry_rate():
+    slow = OdometryBuffer(history_ns=600 * SECOND, tolerance_ns=0, max_jump=10.0)
+    for step in range(20):  # 1 Hz odometry (a GPS): a 5 s gap is five missed fixes, not an outage
+        slow.add(step * SECOND, yaw_pose(0.0, 0.0))
+    assert slow.outage_gap_ns() == 10 * SECOND
+    assert not slow.add(24 * SECOND, yaw_pose(0.0, 100.0)).outage
+    assert OdometryBuffer().outage_gap_ns() == OUTAGE_MIN_S * SECOND  # too few poses to know a rate

@@ -4,6 +4,17 @@ Messages go out at ``--rate`` x the pace of their bag timestamps, timed against 
 monotonic start instant (no drift accumulates). Messages sharing a timestamp go out
 together, transforms and odometry before the clouds that need them. With ``--clock``,
 /clock (rosgraph_msgs/Clock) carries each timestamp just before the messages stamped with it.
+When the player falls far behind that pace (it was stopped, or the machine stalled), the replay
+resumes from where it is at its pace instead of sending the backlog at once, which would
+overflow the writers' and readers' histories.
+
+With ``--wait-for-node NODE`` the clouds go out as fast as that node keeps up: the player
+reads the node's ``/diagnostics`` (clouds received and queued) and keeps at most half of its
+queue in flight, so a bag is mapped faster than real time with none dropped.
+
+The player tells the truth about delivery: at the end it waits for every subscriber to
+acknowledge every reliable message, and exits 1, naming the topic and the count, when some
+were not acknowledged or a subscriber went away during the replay.
 
 A message is published as the bag's CDR bytes, unchanged, when the bag's type hash equals
 the installed message type's (the normal case); otherwise (or with ``--deserialize``) it is
@@ -37,6 +48,14 @@ PROG = "play_bag"
 NODE_NAME = "play_bag"
 CLOCK_TOPIC = "/clock"
 DEPTH = 100
+NOT_DELIVERED = 1  # exit code: some messages were not acknowledged by a subscriber
+BEHIND_S = 1.0  # this far behind the bag's pace (in wall seconds), the replay resumes from where it is
+FLUSH_TIMEOUT_S = 10.0  # how long the end waits for acknowledgements
+SETTLE_S = 1.0  # after a pause: how long to watch for subscribers that DDS expires on resuming
+REDISCOVERY_S = 10.0  # after a pause: how long to wait for them to be found again
+DEFAULT_NODE = "/convbki_mapper"
+NODE_SILENT_S = 15.0  # with --wait-for-node: the node sent no /diagnostics for this long: it is gone
+NODE_START_TIMEOUT_S = 120.0  # a node on a fresh install compiles its kernels before it reports
 # Message types sent from the bulk participant (see the module's docstring).
 BULK_TYPES = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/PointCloud", "sensor_msgs/msg/Image",
               "sensor_msgs/msg/CompressedImage")
@@ -78,12 +97,18 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG,
         description="Publish the messages of a rosbag2 (mcap or sqlite3) on their topics "
         "in stamp order, paced by the stamps. ROS arguments (--ros-args -r ... ) are passed "
-        "to the node. Exits 0 when every message is out (or on Ctrl-C).",
+        "to the node. Exits 0 when every message is out and acknowledged by its subscribers (or on "
+        "Ctrl-C), 1 when some were not (the topic and the count are named) or, with --wait-for-node, "
+        "when the node did not receive or dropped clouds.",
     )
     p.add_argument("bag", metavar="BAG", help="bag directory (or its .mcap/.db3 file)")
-    p.add_argument("--rate", default=1.0, type=rate_arg, metavar="R",
+    p.add_argument("--rate", default=None, type=rate_arg, metavar="R",
                    help="playback speed factor: 1 = real time, 2 = twice as fast "
-                   "(default: %(default)s)")
+                   "(default: 1, or as fast as the node keeps up with --wait-for-node)")
+    p.add_argument("--wait-for-node", nargs="?", const=DEFAULT_NODE, default=None, metavar="NODE",
+                   help="pace the clouds to the progress of NODE (fully qualified, default "
+                   f"{DEFAULT_NODE}) as its /diagnostics report it: at most half of its cloud queue in flight, "
+                   "none dropped; at the end, wait until it has taken every cloud and print what it did")
     p.add_argument("--clock", action="store_true",
                    help="also publish /clock (rosgraph_msgs/Clock) from the bag stamps, "
                    "for nodes run with use_sim_time:=true")
@@ -118,6 +143,8 @@ class Channel:
     priority: int = 1  # order among messages sharing a timestamp: lower first
     skipped: str = ""
     count: int = field(default=0)
+    subscribers: int = 0  # matched subscriptions when last looked
+    left: list = field(default_factory=list)  # (subscribers gone, messages sent by then), per departure
 
 
 def _priority(msgtype: str) -> int:
@@ -128,14 +155,144 @@ def _priority(msgtype: str) -> int:
     return 1
 
 
+def _count(values: dict[str, str], key: str, default: int = 0) -> int:
+    """A diagnostic value as a count (``default`` when missing or not a number)."""
+    try:
+        return int(values.get(key, default))
+    except ValueError:
+        return default
+
+
+class NodeGone(Exception):
+    """The node the replay is paced to stopped reporting."""
+
+
+@dataclass
+class NodeProgress:
+    """What one /diagnostics report of the paced node says."""
+
+    scans_in: int
+    integrated: int
+    dropped: int
+    queue: int
+    queue_limit: int
+    reasons: dict[str, int]
+
+
+class NodePacer:
+    """Paces the clouds to a mapper's progress as its /diagnostics report it (``--wait-for-node``).
+
+    Clouds in flight are those sent that the node has not yet reported received, plus those in
+    its queue; at most half of the node's queue (and of the writers' history) is let in flight,
+    so neither the DDS histories nor the node's queue can overflow, whatever its speed.
+    """
+
+    def __init__(self, node: Any, target: str):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.target = target
+        self.latest: NodeProgress | None = None
+        self.heard = time.monotonic()
+        self.baseline: NodeProgress | None = None
+        self.published = 0
+        self.dropped = self.missing = 0  # set by finish()
+        self.first_sent: float | None = None
+        self.executor = SingleThreadedExecutor(context=node.context)
+        self.executor.add_node(node)
+        node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
+
+    def _on_diagnostics(self, array: Any) -> None:
+        for status in array.status:
+            if status.name.split(":")[0] != self.target:
+                continue
+            values = {item.key: item.value for item in status.values}
+            reasons = {key[len("dropped."):]: _count(values, key) for key in values if key.startswith("dropped.")}
+            self.latest = NodeProgress(_count(values, "scans_in"), _count(values, "integrated"),
+                                       _count(values, "dropped"), _count(values, "queue"),
+                                       _count(values, "queue_limit", 40), reasons)
+            self.heard = time.monotonic()
+
+    def _spin(self, seconds: float) -> None:
+        self.executor.spin_once(timeout_sec=seconds)
+
+    def wait_for_node(self, timeout: float, ok: Callable[[], bool]) -> bool:
+        """Block until the node has reported once; False when ``ok()`` turned False."""
+        deadline = time.monotonic() + timeout
+        while self.latest is None:
+            if not ok():
+                return False
+            if time.monotonic() > deadline:
+                raise UserError(f"no /diagnostics from {self.target} within {timeout:g} s (is it running? "
+                                "--wait-for-node takes its fully qualified name, e.g. /convbki_mapper)")
+            self._spin(0.1)
+        self.baseline = self.latest
+        return True
+
+    @property
+    def window(self) -> int:
+        assert self.latest is not None
+        return max(1, min(DEPTH, self.latest.queue_limit) // 2)
+
+    def in_flight(self) -> int:
+        assert self.latest is not None and self.baseline is not None
+        received = self.latest.scans_in - self.baseline.scans_in
+        return max(0, self.published - received) + self.latest.queue
+
+    def _check_alive(self) -> None:
+        silent = time.monotonic() - self.heard
+        if silent > NODE_SILENT_S:
+            raise NodeGone(f"{self.target} sent no /diagnostics for {silent:.0f} s after {self.published} clouds")
+
+    def wait_for_room(self, clouds: int, ok: Callable[[], bool]) -> bool:
+        """Block until ``clouds`` more fit in flight; False when ``ok()`` turned False."""
+        self._spin(0.0)
+        while self.in_flight() + clouds > self.window:
+            if not ok():
+                return False
+            self._check_alive()
+            self._spin(0.05)
+        return True
+
+    def sent(self, clouds: int) -> None:
+        if self.first_sent is None:
+            self.first_sent = time.monotonic()
+        self.published += clouds
+
+    def finish(self, ok: Callable[[], bool]) -> str:
+        """Wait until the node has received every cloud sent and emptied its queue (or stops
+        reporting); what it did with them, in one line."""
+        while ok():
+            latest = self.latest
+            received = latest.scans_in - self.baseline.scans_in
+            if received >= self.published and latest.integrated + latest.dropped >= latest.scans_in:
+                break  # every cloud sent arrived, and every cloud that arrived was integrated or dropped
+            self._check_alive()
+            self._spin(0.1)
+        latest, baseline = self.latest, self.baseline
+        dropped = latest.dropped - baseline.dropped
+        reasons = ", ".join(f"{reason} {count - baseline.reasons.get(reason, 0)}"
+                            for reason, count in sorted(latest.reasons.items())
+                            if count > baseline.reasons.get(reason, 0))
+        self.dropped = dropped
+        self.missing = self.published - (latest.scans_in - baseline.scans_in)
+        took = f" in {time.monotonic() - self.first_sent:.2f} s from the first" if self.first_sent else ""
+        return (f"{self.target} received {latest.scans_in - baseline.scans_in} of {self.published} clouds, "
+                f"integrated {latest.integrated - baseline.integrated}, dropped {dropped}"
+                f"{f' ({reasons})' if reasons else ''}{took}")
+
+
 class BagPlayer:
     """Publishes one open bag through ``node``, its bulky messages through ``bulk_node`` (a node
     of another rclpy context, so another DDS participant; default: ``node``)."""
 
-    def __init__(self, node: Any, reader: Any, args: argparse.Namespace, bulk_node: Any = None):
+    def __init__(self, node: Any, reader: Any, args: argparse.Namespace, bulk_node: Any = None,
+                 pacer: NodePacer | None = None):
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
         self.node = node
+        self.pacer = pacer
+        self.pauses: list[float] = []  # seconds the player was behind the bag's pace, each time it resumed
         self.bulk_node = bulk_node or node
         self.reader = reader
         self.args = args
@@ -260,6 +417,7 @@ class BagPlayer:
             return 0
         total = sum(c.msgcount for c in wanted)
         bar = _progress_bar(total)
+        rate = self.args.rate or (float("inf") if self.pacer else 1.0)
         start_wall = None
         first_stamp = None
         previous = None
@@ -269,14 +427,28 @@ class BagPlayer:
                 if start_wall is None:
                     start_wall, first_stamp = time.monotonic(), timestamp
                 if previous is None or timestamp >= previous:
-                    target = start_wall + (timestamp - first_stamp) / 1e9 / self.args.rate
+                    target = start_wall + (timestamp - first_stamp) / 1e9 / rate
                     if not _sleep_until(target, ok):
                         break
+                    behind = time.monotonic() - target  # the player was stopped, or the machine stalled
+                    if behind > BEHIND_S:  # resume at the bag's pace from here, not with the backlog at once
+                        self.pauses.append(behind)
+                        self._rediscover(ok)
+                        start_wall += time.monotonic() - target
                     previous = timestamp
                 # else: out of order in the bag (split files): publish at once, keep the clock monotonic
+                clouds = sum(self.channels[c.id].msgtype in BULK_TYPES for c, _ in group)
+                if clouds and self.pacer is not None:
+                    waited = time.monotonic()
+                    if not self.pacer.wait_for_room(clouds, ok):
+                        break
+                    start_wall += time.monotonic() - waited  # waiting for the node is not falling behind
                 self._publish_clock(max(timestamp, previous))
                 for connection, data in sorted(group, key=lambda item: self.channels[item[0].id].priority):
                     self._publish(self.channels[connection.id], data, timestamp)
+                if self.pacer is not None:
+                    self.pacer.sent(clouds)
+                self._watch_subscribers()
                 if bar is not None:
                     bar.update(len(group))
         finally:
@@ -289,17 +461,59 @@ class BagPlayer:
         """Messages published so far (the clock excluded)."""
         return sum(channel.count for channel in self.channels.values())
 
-    def flush(self, timeout: float = 5.0) -> None:
-        """Wait (bounded) until reliable subscribers acknowledged everything published."""
+    def _rediscover(self, ok: Callable[[], bool]) -> None:
+        """After a pause: give DDS the time to find the subscribers again before sending more.
+
+        A stopped process hears nothing; when it resumes, its participant may first expire the
+        subscribers' participants (their announcements are read after its lease timer ran) and
+        then find them again, a second or so later. What is published in between reaches no one.
+        """
+        before = {id(c): c.subscribers for c in self.channels.values() if c.publisher is not None}
+        deadline = time.monotonic() + REDISCOVERY_S
+        settle = time.monotonic() + SETTLE_S
+        while ok() and time.monotonic() < deadline:
+            back = all(c.publisher.get_subscription_count() >= before[id(c)]
+                       for c in self.channels.values() if c.publisher is not None)
+            if back and time.monotonic() > settle:
+                return
+            time.sleep(0.05)
+
+    def _watch_subscribers(self) -> None:
+        """Notice a subscriber that goes away during the replay: what it had not yet acknowledged
+        is lost to it, and DDS forgets that once it is gone."""
+        for channel in self.channels.values():
+            if channel.publisher is None:
+                continue
+            count = channel.publisher.get_subscription_count()
+            if count < channel.subscribers:
+                channel.left.append((channel.subscribers - count, channel.count))
+            channel.subscribers = count
+
+    def flush(self, timeout: float = FLUSH_TIMEOUT_S) -> list[str]:
+        """Wait (bounded) until reliable subscribers acknowledged everything published; what was
+        not delivered, a line per topic (empty when everything was)."""
         from rclpy.duration import Duration
 
+        self._watch_subscribers()
+        problems = []
         deadline = time.monotonic() + timeout
-        for publisher in [*self.publishers.values(), self.clock_publisher]:
-            if publisher is None:
-                continue
+        for channel in {id(c.publisher): c for c in self.channels.values() if c.publisher is not None}.values():
             left = max(0.0, deadline - time.monotonic())
-            with contextlib.suppress(Exception):  # best effort publishers, or an rmw without acks
-                publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+            try:
+                acked = channel.publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+            except Exception:  # an rmw without acknowledgements: nothing to learn
+                acked = True
+            sent = sum(c.count for c in self.channels.values() if c.publisher is channel.publisher)
+            if not acked:
+                problems.append(f"{channel.topic}: not every subscriber acknowledged the {sent} messages published "
+                                f"(waited {timeout:g} s; a subscriber that stopped reading or fell behind)")
+            for gone, after in channel.left:
+                problems.append(f"{channel.topic}: {gone} subscriber(s) went away after message {after} of {sent}: "
+                                "what they had not acknowledged was not delivered")
+        if self.clock_publisher is not None:
+            with contextlib.suppress(Exception):  # the clock's last ticks matter to nobody after the end
+                self.clock_publisher.wait_for_all_acked(Duration(nanoseconds=int(1e9)))
+        return problems
 
 
 def _sleep_until(target: float, ok: Callable[[], bool]) -> bool:
@@ -330,17 +544,21 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
 
         bulk_context = rclpy.Context()
         try:
-            use_large_data_profile()
+            use_large_data_profile(player=True)
             rclpy.init(args=ros_argv)
             rclpy.init(args=ros_argv, context=bulk_context)
         except Exception as error:  # rclpy's errors for bad --ros-args have no common public base
             raise UserError(f"cannot start ROS 2 ({str(error).strip().splitlines()[0]})") from None
         node = bulk_node = player = None
         started = time.monotonic()
+        code = 0
         try:
             node = rclpy.create_node(NODE_NAME)
             bulk_node = rclpy.create_node(f"{NODE_NAME}_bulk", context=bulk_context)
-            player = BagPlayer(node, reader, args, bulk_node)
+            pacer = NodePacer(node, args.wait_for_node) if args.wait_for_node else None
+            if pacer is not None and not pacer.wait_for_node(NODE_START_TIMEOUT_S, rclpy.ok):
+                return 0
+            player = BagPlayer(node, reader, args, bulk_node, pacer)
             player.wait_for_subscribers(args.wait_subscribers)
             if args.start_delay > 0 and not _sleep_until(time.monotonic() + args.start_delay, rclpy.ok):
                 return 0
@@ -348,11 +566,27 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
             sent = player.play(rclpy.ok)
             elapsed = time.monotonic() - started
             finished = rclpy.ok()
-            if finished:
-                player.flush()
+            problems = player.flush() if finished else []
             counts = ", ".join(f"{c.topic} {c.count}" for c in player.channels.values() if not c.skipped)
             what = "published" if finished else "interrupted after"
             print(f"{PROG}: {what} {sent} messages in {elapsed:.2f} s ({counts})", file=sys.stderr)
+            if player.pauses:
+                print(f"{PROG}: resumed {len(player.pauses)} time(s) after falling behind the bag's pace (stopped "
+                      f"or stalled), the longest {max(player.pauses):.1f} s; the replay went on at its pace from "
+                      "there", file=sys.stderr)
+            if finished and pacer is not None:
+                print(f"{PROG}: {pacer.finish(rclpy.ok)}", file=sys.stderr)
+                if pacer.missing:
+                    problems.append(f"{pacer.target} did not receive {pacer.missing} of the {pacer.published} "
+                                    "clouds")
+                if pacer.dropped:
+                    problems.append(f"{pacer.target} dropped {pacer.dropped} clouds")
+            for problem in problems:
+                print(f"{PROG}: error: {problem}", file=sys.stderr)
+            code = NOT_DELIVERED if problems else 0
+        except NodeGone as gone:
+            print(f"{PROG}: error: {gone}; stopping the replay", file=sys.stderr)
+            code = NOT_DELIVERED
         except (KeyboardInterrupt, ExternalShutdownException):
             sent = player.sent if player is not None else 0
             print(f"{PROG}: interrupted after {sent} messages in {time.monotonic() - started:.2f} s", file=sys.stderr)
@@ -364,7 +598,7 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
             bulk_context.try_shutdown()
     finally:
         reader.close()
-    return 0
+    return code
 
 
 def main(argv: Sequence[str] | None = None) -> int:
