@@ -235,20 +235,16 @@ class MapFiles:
         return self.save_map(requested=False)
 
     # -- a new map file for a new segment (on_pose_jump new_file) --------------------------------------
-    def start_new_segment(self, where: str, before_reset) -> str | None:
-        """(Executor thread) The map so far is written to map_file on the file thread, and a new,
-        empty map starts whose saves go to the next free ``<stem>.segment-N<suffix>``; what was done,
-        in words, or None when map_file is empty (the map is then kept). ``before_reset()`` runs
-        just before the reset (the odometry before the jump is forgotten).
+    def start_new_segment(self, where: str) -> str:
+        """(Executor thread; map_file is set) The map so far is written to map_file on the file
+        thread, and a new, empty map starts whose saves go to the next free
+        ``<stem>.segment-N<suffix>``; what was done, in words.
 
         When map_file may hold evidence this map lacks, the map so far goes to a segment file too,
         so that nothing saved is overwritten."""
         path = self.path
-        if not path:
-            return None
         old = path if not self.file_may_hold_more() else next_segment_path(path)
         new = next_segment_path(path, taken={old})
-        before_reset()
         _, snapshot = self.core.take_and_reset(f"a new segment at {where}", keep=True)
         self._file_thread.submit(self._write_segment, snapshot, old)
         # Through the parameter (its checks and callbacks), so ros2 param get shows the file in use.

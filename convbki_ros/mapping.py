@@ -207,21 +207,17 @@ class MappingCore:
         """Apply parameter on_pose_jump to a jump at ``stamp``; what was done, in words."""
         choice = self.node.param("on_pose_jump")
         where = f"the pose jump at {stamp / 1e9:.3f} s"
-        if choice == "new_file":
-            done = self.node.files.start_new_segment(where, self._forget_odometry_before(stamp))
-            if done:
-                return f"{done} (on_pose_jump new_file)"
+        if choice == "new_file" and not self.node.files.path:
             return "map kept, as map_file is empty (on_pose_jump new_file needs it); clouds stamped inside the " \
                    "jump are dropped"
-        if choice == "reset":
-            self._forget_odometry_before(stamp)()
-            self.reset_map(f"a reset on {where}")
-            return "map reset (on_pose_jump reset): a new map starts at the new pose"
-        return "map kept (on_pose_jump keep): the scans after it are added where the odometry now says; clouds " \
-               "stamped inside the jump are dropped"
-
-    def _forget_odometry_before(self, stamp: int):
-        return lambda: self.queue.forget_odometry(before=stamp)
+        if choice == "keep":
+            return "map kept (on_pose_jump keep): the scans after it are added where the odometry now says; " \
+                   "clouds stamped inside the jump are dropped"
+        self.queue.forget_odometry(before=stamp)  # the new map starts at the new pose
+        if choice == "new_file":
+            return f"{self.node.files.start_new_segment(where)} (on_pose_jump new_file)"
+        self.reset_map(f"a reset on {where}")
+        return "map reset (on_pose_jump reset): a new map starts at the new pose"
 
     def _note_odometry_frame(self, frame: str) -> None:
         """The map is built in the odometry's frame; a different map_frame cannot be honoured

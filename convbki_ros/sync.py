@@ -10,7 +10,6 @@ parameter, or from TF (``/tf_static``) where tf2_ros is installed.
 from __future__ import annotations
 
 import threading
-import time
 from collections import deque
 from dataclasses import dataclass
 from enum import Enum
@@ -26,7 +25,6 @@ class PendingCloud:
     """A received cloud on its way to the map."""
 
     msg: object
-    received: float  # time.monotonic() at reception
     generation: int = 0  # the map generation it was received in; a reset makes it stale
     received_clock_ns: int = 0  # the node's clock at reception (the data's time under use_sim_time)
 
@@ -81,14 +79,12 @@ class CloudQueue:
     def push(self, msg, limit: int, byte_limit: int = 0, clock_ns: int = 0) -> Evicted:
         """Queue ``msg`` (``clock_ns``: the node's clock now); the oldest clouds are pushed out
         until it fits in ``limit`` clouds and ``byte_limit`` bytes (0: no byte limit)."""
-        pending = PendingCloud(msg, time.monotonic(), self.generation, clock_ns)
+        pending = PendingCloud(msg, self.generation, clock_ns)
         with self.changed:
             evicted = Evicted()
             while self.clouds and (len(self.clouds) >= max(1, limit) or
                                    (byte_limit and self.bytes + pending.nbytes > byte_limit)):
-                oldest = self.clouds.popleft()
-                self.bytes -= oldest.nbytes
-                if self._lookup(oldest).status in (PoseStatus.WAIT, PoseStatus.EMPTY):
+                if self._waiting(self._take(0)):
                     evicted.waiting_for_pose += 1
                 else:
                     evicted.ready += 1
@@ -104,11 +100,21 @@ class CloudQueue:
     def waiting_for_pose(self) -> int:
         """Queued clouds whose odometry has not come yet."""
         with self.changed:
-            return sum(self._lookup(pending).status in (PoseStatus.WAIT, PoseStatus.EMPTY)
-                       for pending in self.clouds)
+            return sum(self._waiting(pending) for pending in self.clouds)
 
     def _lookup(self, pending: PendingCloud) -> PoseLookup:
         return self.poses.lookup(stamp_to_ns(pending.msg.header.stamp))
+
+    def _waiting(self, pending: PendingCloud, lookup: PoseLookup | None = None) -> bool:
+        """Whether the odometry covering ``pending``'s stamp may still come."""
+        return (lookup or self._lookup(pending)).status in (PoseStatus.WAIT, PoseStatus.EMPTY)
+
+    def _take(self, position: int) -> PendingCloud:
+        """Remove the cloud at ``position`` from the queue (lock held)."""
+        pending = self.clouds[position]
+        del self.clouds[position]
+        self.bytes -= pending.nbytes
+        return pending
 
     def next(self, pose_wait_timeout: float, clock_ns=lambda: 0) -> Decision | None:
         """Block until a cloud can be decided (or ``stop()``); None when stopping.
@@ -130,14 +136,10 @@ class CloudQueue:
         now = clock_ns() if timeout else 0
         for position, pending in enumerate(self.clouds):
             if pending.generation != self.generation:
-                del self.clouds[position]
-                self.bytes -= pending.nbytes
-                return Decision(pending, Verdict.STALE)
+                return Decision(self._take(position), Verdict.STALE)
             lookup = self._lookup(pending)
-            waiting = lookup.status in (PoseStatus.WAIT, PoseStatus.EMPTY)
-            if not waiting or (timeout and now - pending.received_clock_ns >= timeout * 1e9):
-                del self.clouds[position]
-                self.bytes -= pending.nbytes
+            if not self._waiting(pending, lookup) or (timeout and now - pending.received_clock_ns >= timeout * 1e9):
+                self._take(position)
                 return Decision(pending, Verdict.PLACE if lookup.status is PoseStatus.FOUND else Verdict.NO_POSE,
                                 lookup)
         return None

@@ -3,6 +3,7 @@ received by an rclpy subscriber in this process while play_bag runs as a subproc
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import subprocess
@@ -254,6 +255,18 @@ def _play(bag: Path, domain: int, *args: str) -> subprocess.Popen:
                             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@contextlib.contextmanager
+def _playing(bag: Path, domain: int, *args: str):
+    """``_play``, and a player still running when the block ends (a failed test) is killed."""
+    process = _play(bag, domain, *args)
+    try:
+        yield process
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+
+
 @pytest.mark.parametrize("mode", ["raw", "deserialize"])
 def test_play_bag_publishes_everything_in_order(dataset, tmp_path: Path, monkeypatch, mode: str) -> None:
     root, frames, _ = dataset
@@ -270,15 +283,10 @@ def test_play_bag_publishes_everything_in_order(dataset, tmp_path: Path, monkeyp
                  "--ros-args", "-r", "/kitti/velo/pointcloud:=/cloud_in"]
     listener = Listener(domain, cloud_topic, odom_topic)
     try:
-        process = _play(bag, domain, "--wait-subscribers", "20", *extra)
-        try:
+        with _playing(bag, domain, "--wait-subscribers", "20", *extra) as process:
             listener.spin_until(lambda: len(listener.clouds) == 4 and len(listener.odoms) == 4
                                 and len(listener.clocks) >= 4, timeout=40)
             _, stderr = process.communicate(timeout=30)
-        finally:
-            if process.poll() is None:
-                process.kill()
-                process.communicate()
     finally:
         listener.close()
     assert process.returncode == 0, stderr
@@ -307,16 +315,13 @@ def test_play_bag_paces_by_stamps_and_stops_on_ctrl_c(dataset, tmp_path: Path) -
     domain = domain_id()
     probe = Probe(domain)
     clouds = probe.subscribe(PointCloud2, "/kitti/velo/pointcloud")
-    process = _play(bag, domain, "--rate", "0.01", "--wait-subscribers", "30")
     try:
-        assert probe.spin_until(lambda: bool(clouds), 60), "the first cloud never arrived"
-        process.send_signal(signal.SIGINT)
-        _, stderr = process.communicate(timeout=30)  # a bound for a hung player, not a measurement
+        with _playing(bag, domain, "--rate", "0.01", "--wait-subscribers", "30") as process:
+            assert probe.spin_until(lambda: bool(clouds), 60), "the first cloud never arrived"
+            process.send_signal(signal.SIGINT)
+            _, stderr = process.communicate(timeout=30)  # a bound for a hung player, not a measurement
     finally:
         probe.close()
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
     assert process.returncode == 0
     # Only the first timestamp's messages (odometry + cloud) were due: pacing by the stamps. Ctrl-C
     # may land while that stamp's messages are still going out (the cloud can arrive before its
@@ -346,18 +351,13 @@ def test_play_bag_says_so_when_a_subscriber_goes_away(dataset, tmp_path: Path) -
     listener = Listener(domain, "/kitti/velo/pointcloud", "/kitti/odom")
     try:
         # rate 0.1: the 4 stamps are 1 s apart, time enough to see the subscription go.
-        process = _play(bag, domain, "--rate", "0.1", "--wait-subscribers", "20")
-        try:
+        with _playing(bag, domain, "--rate", "0.1", "--wait-subscribers", "20") as process:
             listener.spin_until(lambda: len(listener.clouds) >= 1, timeout=40)
             assert listener.clouds, "the first cloud never arrived"
             for subscription in list(listener.node.subscriptions):
                 if subscription.topic_name == "/kitti/velo/pointcloud":
                     listener.node.destroy_subscription(subscription)
             _, stderr = process.communicate(timeout=60)
-        finally:
-            if process.poll() is None:
-                process.kill()
-                process.communicate()
     finally:
         listener.close()
     assert process.returncode == play_bag.NOT_DELIVERED, stderr
@@ -382,16 +382,15 @@ def test_a_paced_replay_and_a_paused_player_lose_nothing(dataset, tmp_path: Path
     rig = Rig(tmp_path, "-p", "pose_wait_timeout:=0.0", "-p", "save_on_shutdown:=false",
               "-p", "stamp_backwards_tolerance:=1000000.0", watch_map=False)
     try:
-        process = _play(bag, rig.domain, "--wait-for-node", *remaps)
-        _, stderr = process.communicate(timeout=120)
+        with _playing(bag, rig.domain, "--wait-for-node", *remaps) as process:
+            _, stderr = process.communicate(timeout=120)
         assert process.returncode == 0, stderr
         assert "play_bag: /convbki_mapper received 4 of 4 clouds, integrated 4, dropped 0 in " in stderr, stderr
         assert rig.wait_stats(lambda s: s.integrated == 4).dropped == 0
 
         # The same bag again (its stamps are taken as a second pass, not as time going back),
         # stopped after its first cloud for 21 s.
-        process = _play(bag, rig.domain, "--rate", "0.1", *remaps)
-        try:
+        with _playing(bag, rig.domain, "--rate", "0.1", *remaps) as process:
             rig.wait_stats(lambda s: s.scans_in >= 5)
             process.send_signal(signal.SIGSTOP)
             stopped = time.monotonic()
@@ -399,10 +398,6 @@ def test_a_paced_replay_and_a_paused_player_lose_nothing(dataset, tmp_path: Path
             assert time.monotonic() - stopped >= 21.0
             process.send_signal(signal.SIGCONT)
             _, stderr = process.communicate(timeout=60)
-        finally:
-            if process.poll() is None:
-                process.kill()
-                process.communicate()
         assert process.returncode == 0, stderr
         assert re.search(r"resumed 1 time\(s\) after falling behind the bag's pace .* the longest 2\d\.\d s", stderr)
         stats = rig.wait_stats(lambda s: s.integrated == 8)

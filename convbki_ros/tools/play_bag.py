@@ -143,8 +143,6 @@ class Channel:
     priority: int = 1  # order among messages sharing a timestamp: lower first
     skipped: str = ""
     count: int = field(default=0)
-    subscribers: int = 0  # matched subscriptions when last looked
-    left: list = field(default_factory=list)  # (subscribers gone, messages sent by then), per departure
 
 
 def _priority(msgtype: str) -> int:
@@ -302,6 +300,9 @@ class BagPlayer:
         self.remaps = dict(args.remap)
         self.channels: dict[int, Channel] = {}
         self.publishers: dict[tuple[str, str], Any] = {}
+        self.subscribers: dict[tuple[str, str], int] = {}  # per publisher: matched subscriptions when last looked
+        # per publisher: (subscribers gone, messages it had sent by then), one per departure
+        self.departures: dict[tuple[str, str], list[tuple[int, int]]] = {}
         self.typestore = None
         self.clock_publisher = None
         self.clock_class = None
@@ -461,6 +462,11 @@ class BagPlayer:
         """Messages published so far (the clock excluded)."""
         return sum(channel.count for channel in self.channels.values())
 
+    def _sent_on(self, key: tuple[str, str]) -> int:
+        """Messages published so far through the publisher of ``key`` (topic, type): the bag may
+        hold several connections of one topic."""
+        return sum(c.count for c in self.channels.values() if c.publisher is self.publishers[key])
+
     def _rediscover(self, ok: Callable[[], bool]) -> None:
         """After a pause: give DDS the time to find the subscribers again before sending more.
 
@@ -468,12 +474,11 @@ class BagPlayer:
         subscribers' participants (their announcements are read after its lease timer ran) and
         then find them again, a second or so later. What is published in between reaches no one.
         """
-        before = {id(c): c.subscribers for c in self.channels.values() if c.publisher is not None}
         deadline = time.monotonic() + REDISCOVERY_S
         settle = time.monotonic() + SETTLE_S
         while ok() and time.monotonic() < deadline:
-            back = all(c.publisher.get_subscription_count() >= before[id(c)]
-                       for c in self.channels.values() if c.publisher is not None)
+            back = all(publisher.get_subscription_count() >= self.subscribers.get(key, 0)
+                       for key, publisher in self.publishers.items())
             if back and time.monotonic() > settle:
                 return
             time.sleep(0.05)
@@ -481,13 +486,11 @@ class BagPlayer:
     def _watch_subscribers(self) -> None:
         """Notice a subscriber that goes away during the replay: what it had not yet acknowledged
         is lost to it, and DDS forgets that once it is gone."""
-        for channel in self.channels.values():
-            if channel.publisher is None:
-                continue
-            count = channel.publisher.get_subscription_count()
-            if count < channel.subscribers:
-                channel.left.append((channel.subscribers - count, channel.count))
-            channel.subscribers = count
+        for key, publisher in self.publishers.items():
+            count, before = publisher.get_subscription_count(), self.subscribers.get(key, 0)
+            if count < before:
+                self.departures.setdefault(key, []).append((before - count, self._sent_on(key)))
+            self.subscribers[key] = count
 
     def flush(self, timeout: float = FLUSH_TIMEOUT_S) -> list[str]:
         """Wait (bounded) until reliable subscribers acknowledged everything published; what was
@@ -497,18 +500,18 @@ class BagPlayer:
         self._watch_subscribers()
         problems = []
         deadline = time.monotonic() + timeout
-        for channel in {id(c.publisher): c for c in self.channels.values() if c.publisher is not None}.values():
+        for key, publisher in self.publishers.items():
+            topic, sent = key[0], self._sent_on(key)
             left = max(0.0, deadline - time.monotonic())
             try:
-                acked = channel.publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+                acked = publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
             except Exception:  # an rmw without acknowledgements: nothing to learn
                 acked = True
-            sent = sum(c.count for c in self.channels.values() if c.publisher is channel.publisher)
             if not acked:
-                problems.append(f"{channel.topic}: not every subscriber acknowledged the {sent} messages published "
+                problems.append(f"{topic}: not every subscriber acknowledged the {sent} messages published "
                                 f"(waited {timeout:g} s; a subscriber that stopped reading or fell behind)")
-            for gone, after in channel.left:
-                problems.append(f"{channel.topic}: {gone} subscriber(s) went away after message {after} of {sent}: "
+            for gone, after in self.departures.get(key, []):
+                problems.append(f"{topic}: {gone} subscriber(s) went away after message {after} of {sent}: "
                                 "what they had not acknowledged was not delivered")
         if self.clock_publisher is not None:
             with contextlib.suppress(Exception):  # the clock's last ticks matter to nobody after the end
