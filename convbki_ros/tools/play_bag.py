@@ -53,6 +53,7 @@ BEHIND_S = 1.0  # this far behind the bag's pace (in wall seconds), the replay r
 FLUSH_TIMEOUT_S = 10.0  # how long the end waits for acknowledgements
 SETTLE_S = 1.0  # after a pause: how long to watch for subscribers that DDS expires on resuming
 REDISCOVERY_S = 10.0  # after a pause: how long to wait for them to be found again
+MATCHING_S = 10.0  # at the start: how much longer to wait for a subscriber already discovered to match
 DEFAULT_NODE = "/convbki_mapper"
 NODE_SILENT_S = 15.0  # with --wait-for-node: the node sent no /diagnostics for this long: it is gone
 NODE_START_TIMEOUT_S = 120.0  # a node on a fresh install compiles its kernels before it reports
@@ -374,13 +375,15 @@ class BagPlayer:
     def wait_for_subscribers(self, timeout: float) -> None:
         """Block until every publisher has a subscriber, or ``timeout``. Topics nobody subscribes
         to are given up 1 s after the first match; one whose subscriber either participant has
-        already discovered is waited for (the other participant is still matching it)."""
+        already discovered is waited for (the other participant is still matching it), up to
+        ``MATCHING_S`` past ``timeout``: on a loaded machine the second participant can take
+        seconds to match, and what it sends before that reaches no one."""
         publishers = [*self.publishers.values(), *([self.clock_publisher] if self.clock_publisher else [])]
         if not publishers or timeout <= 0:
             return
-        deadline = time.monotonic() + timeout
+        started = time.monotonic()
         first_match = None
-        while time.monotonic() < deadline:
+        while time.monotonic() < started + timeout + MATCHING_S:
             pending = [p for p in publishers if p.get_subscription_count() == 0]
             if not pending:
                 return
@@ -388,7 +391,8 @@ class BagPlayer:
                 first_match = time.monotonic()
             discovered = [p for p in pending if any(node.count_subscribers(p.topic_name)
                                                     for node in {self.node, self.bulk_node})]
-            if not discovered and first_match is not None and time.monotonic() - first_match > 1.0:
+            if not discovered and (time.monotonic() > started + timeout or
+                                   (first_match is not None and time.monotonic() - first_match > 1.0)):
                 break
             time.sleep(0.02)
         missing = [p.topic_name for p in publishers if p.get_subscription_count() == 0]
