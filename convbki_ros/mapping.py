@@ -37,7 +37,8 @@ from convbki_ros.params import (
 from convbki_ros.pointcloud import CloudError, decode_cloud
 from convbki_ros.pose_buffer import PoseStatus, pose_problem
 from convbki_ros.status import problem_key
-from convbki_ros.sync import CloudQueue, Decision, SensorMount, Verdict
+from convbki_ros.sync import CloudQueue, Decision, PendingCloud, SensorFrames, Verdict
+from convbki_ros.tf_buffer import make_tf_lookup
 from convbki_ros.transforms import pose_from_translation_quaternion, seconds_to_ns, stamp_to_ns
 
 NO_POSE_REASONS = {
@@ -47,6 +48,7 @@ NO_POSE_REASONS = {
     PoseStatus.OUTAGE: "it was taken during an outage of the odometry",
 }
 DROP_REASONS = {PoseStatus.JUMP: "pose jump", PoseStatus.OUTAGE: "odometry outage"}
+TF_CACHE_S = 60.0  # seconds of TF kept: clouds may wait in the queue that long behind the newest
 
 
 class MappingCore:
@@ -56,9 +58,19 @@ class MappingCore:
         self.node, self.status, self.warnings, self.label_map = node, status, warnings, label_map
         self.warm_up_report: WarmUpReport | None = None  # set with the mapper
         self.mapper = self._make_mapper()
-        self.mount = SensorMount(check_mount(optional(node, "base_to_sensor")))
-        self.tf_mount = self.mount.attach_tf(node)
-        self.queue = CloudQueue(max_pose_jump=node.param("max_pose_jump"))
+        self.pose_source = check_choice("pose_source", node.param("pose_source"))
+        map_frame = node.param("map_frame")
+        if self.pose_source == "tf" and not map_frame:
+            raise StartupError("pose_source tf needs map_frame: the frame TF gives each cloud's pose in (e.g. map)")
+        # TF is read (tf2_ros where a ROS 2 install has it, else the package's own buffer) unless
+        # nothing can need it: the odometry's own frame and a fixed mount.
+        self.tf, self.tf_missing = make_tf_lookup(node, TF_CACHE_S)
+        self.frames = SensorFrames(check_mount(optional(node, "base_to_sensor")), self.tf, map_frame)
+        if self.tf is None and self.pose_source == "tf":
+            raise StartupError(f"pose_source tf needs TF, which cannot be read here: {self.tf_missing}")
+        self.queue = CloudQueue(max_pose_jump=node.param("max_pose_jump"), placer=self._place,
+                                locate=self._locate_by_tf if self.pose_source == "tf" else None)
+        self.queue.transform_timeout = node.param("transform_timeout")
         self.map_lock = threading.Lock()
         self.map_version = 0  # bumped by every change of the map
         # Bumped whenever the map loses evidence (a reset, a forgotten box) or is replaced by a load:
@@ -116,9 +128,24 @@ class MappingCore:
         return mapper
 
     def mount_text(self) -> str:
-        if self.mount.fixed is not None:
-            return "sensor mount from base_to_sensor"
-        return "sensor mount from TF" if self.tf_mount else "clouds in the odometry's child frame"
+        """The pose source, in words, for the start-up line."""
+        if self.pose_source == "tf":
+            return f"poses from TF ('{self.frames.map_frame}' -> each cloud's frame)"
+        if self.frames.fixed is not None:
+            mount = "sensor mount from base_to_sensor"
+        else:
+            mount = "sensor mount from TF" if self.tf is not None else "clouds in the odometry's child frame"
+        if self.frames.map_frame and self.tf is not None:
+            mount += f", map in '{self.frames.map_frame}' through TF where the odometry's frame differs"
+        return f"poses from odometry, {mount}"
+
+    def _place(self, pending: PendingCloud, lookup) -> tuple[np.ndarray | None, str | None]:
+        """The cloud frame's pose in the map, from its odometry (the queue asks, lock held)."""
+        return self.frames.place(self.odometry_frame or "", lookup, pending.msg.header.frame_id,
+                                 stamp_to_ns(pending.msg.header.stamp))
+
+    def _locate_by_tf(self, pending: PendingCloud):
+        return self.frames.locate(pending.msg.header.frame_id, stamp_to_ns(pending.msg.header.stamp))
 
     def set_max_pose_jump(self, metres: float) -> None:
         with self.queue.changed:
@@ -126,7 +153,10 @@ class MappingCore:
 
     @property
     def frame(self) -> str:
-        """The frame the map is built and published in: the odometry's, once known."""
+        """The frame the map is built and published in: map_frame where TF takes the clouds
+        into it, else the odometry's, once known."""
+        if self.frames.map_frame and (self.tf is not None or self.pose_source == "tf"):
+            return self.frames.map_frame
         return self.odometry_frame or self.mapper.frame_id
 
     # -- inputs (executor thread: cheap, no maths) -------------------------------------------
@@ -220,26 +250,32 @@ class MappingCore:
         return "map reset (on_pose_jump reset): a new map starts at the new pose"
 
     def _note_odometry_frame(self, frame: str) -> None:
-        """The map is built in the odometry's frame; a different map_frame cannot be honoured
-        without a transform between the two, so it is said once and not used."""
+        """The first odometry names its frame: the map's, unless map_frame names another that TF
+        connects it to. Without TF a different map_frame cannot be honoured, so it is said once
+        and not used."""
         if not frame or frame == self.odometry_frame:
             return
-        wanted = self.node.param("map_frame")
+        wanted = self.frames.map_frame
         if self.odometry_frame is not None:
             self.node.get_logger().warning(f"the odometry's frame changed from '{self.odometry_frame}' to "
-                                           f"'{frame}'; the map stays in '{self.odometry_frame}'")
+                                           f"'{frame}'; the map stays in '{self.frame}'")
             return
+        through_tf = bool(wanted) and wanted != frame and self.tf is not None
         self.odometry_frame = frame
         with self.map_lock:
             loaded_frame = self.mapper.frame_id if len(self.mapper) else None
-            self.mapper.frame_id = frame
-        if wanted and wanted != frame:
+            self.mapper.frame_id = self.frame
+        if through_tf:
+            self.node.get_logger().info(f"the odometry is in '{frame}', the map in map_frame '{wanted}': each cloud "
+                                        f"goes through TF '{wanted}' -> '{frame}' at its stamp")
+        elif wanted and wanted != frame:
             self.node.get_logger().warning(
                 f"map_frame is '{wanted}' but the odometry is in '{frame}': the map is built and published in "
-                f"'{frame}' (no transform between the two is applied); set map_frame to '' or '{frame}'")
-        if loaded_frame and loaded_frame != frame:
-            self.node.get_logger().warning(f"the map loaded at start was built in '{loaded_frame}'; the odometry "
-                                           f"is in '{frame}': the new scans are added as if they were the same")
+                f"'{frame}' (no transform between the two is applied: {self.tf_missing}); set map_frame to '' or "
+                f"'{frame}'")
+        if loaded_frame and loaded_frame != self.frame:
+            self.node.get_logger().warning(f"the map loaded at start was built in '{loaded_frame}'; this node maps "
+                                           f"in '{self.frame}': the new scans are added as if they were the same")
 
     def _check_time_going_backwards(self, stamp: int) -> None:
         """Notice time going backwards (a bag played again, a restarted source) on the odometry.
@@ -308,7 +344,7 @@ class MappingCore:
         metadata, indices, alpha = read_map(path)
         self.mapper.check_compatible(path, metadata)
         frame = metadata.get("frame_id") or None
-        known = self.odometry_frame or self.node.param("map_frame") or None
+        known = (self.frame if self.odometry_frame or self.frames.map_frame else None) or None
         if frame and known and frame != known:
             raise MapFileError(f"{path}: the map was built in frame '{frame}', this node maps in '{known}'")
         with self.map_lock:
@@ -332,7 +368,8 @@ class MappingCore:
     def run(self) -> None:
         """Integrate queued clouds as their poses become known, until ``stop()``."""
         while True:
-            decision = self.queue.next(self.node.param("pose_wait_timeout"), self.clock_ns)
+            timeout = self.node.param("transform_timeout" if self.pose_source == "tf" else "pose_wait_timeout")
+            decision = self.queue.next(timeout, self.clock_ns)
             if decision is None:
                 return
             try:
@@ -351,14 +388,16 @@ class MappingCore:
             self.warnings.warn("stale", "dropping a cloud received before the map was reset")
             return
         if decision.verdict is Verdict.NO_POSE:
-            self._no_pose(msg, lookup.status)
+            self._no_pose(msg, lookup)
             return
-        mount, why_not = self.mount.find(lookup.child_frame_id, msg.header.frame_id)
-        if mount is None:
-            self.status.drop("no mount")
-            self.warnings.warn("mount " + msg.header.frame_id, f"dropping cloud in frame '{msg.header.frame_id}': "
-                               f"{why_not}")
+        if decision.verdict is Verdict.NO_TRANSFORM:
+            self.status.drop("no transform")
+            self.warnings.warn("transform " + problem_key(decision.why),
+                               f"dropping cloud stamped {stamp_to_ns(msg.header.stamp) / 1e9:.3f} s in frame "
+                               f"'{msg.header.frame_id}' after waiting transform_timeout = "
+                               f"{self.queue.transform_timeout:g} s: {decision.why}")
             return
+        sensor_pose = decision.pose
         try:
             cloud = decode_cloud(msg, self.mapper.num_classes)
         except CloudError as error:
@@ -383,15 +422,16 @@ class MappingCore:
             if decision.pending.generation != self.queue.generation:  # a reset came while it was decoded
                 self.status.drop("map reset")
                 return
-            result = self.mapper.integrate(cloud.points, values, lookup.pose @ mount)
+            result = self.mapper.integrate(cloud.points, values, sensor_pose)
             self.map_version += 1
             self.last_stamp = msg.header.stamp
-            self.position = (lookup.pose @ mount)[:3, 3]
+            self.position = sensor_pose[:3, 3]
         self.status.integrated_one(result.timing_ms["total"])
         self.on_integrated()
 
-    def _no_pose(self, msg, status: PoseStatus) -> None:
-        reason = NO_POSE_REASONS.get(status) or \
+    def _no_pose(self, msg, lookup) -> None:
+        status = lookup.status
+        reason = lookup.reason or NO_POSE_REASONS.get(status) or \
             f"no odometry covered its stamp within pose_wait_timeout = {self.node.param('pose_wait_timeout')} s"
         self.status.drop(DROP_REASONS.get(status, "no pose"))
         latest = self.queue.poses.latest_stamp

@@ -89,8 +89,10 @@ class MapperNode(Node):
         # messages back, and a shorter history would drop the oldest of it.
         self.create_subscription(PointCloud2, "cloud_in", self.core.on_cloud,
                                  self._input_qos(self.param("cloud_queue_size")), callback_group=inputs)
-        self.create_subscription(Odometry, "odom", self.core.on_odometry, self._input_qos(ODOMETRY_DEPTH),
-                                 callback_group=odometry_group)
+        if self.core.pose_source == "odometry":  # with poses from TF alone there is no odometry to read
+            self.create_subscription(Odometry, "odom", self.core.on_odometry, self._input_qos(ODOMETRY_DEPTH),
+                                     callback_group=odometry_group)
+        self.status.uses_odometry = self.core.pose_source == "odometry"
         self.outputs = MapOutputs(self)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/save_map", self.files.on_save_map, callback_group=file_io)
@@ -126,8 +128,8 @@ class MapperNode(Node):
         self.get_logger().info(
             f"ConvBKI mapper ready: {mapper.kernel.kind} kernel, {mapper.resolution} m voxels, "
             f"f = {mapper.kernel.filter_size}, window {mapper.geometry.dims.tolist()} voxels, "
-            f"device {mapper.device}, {self.core.mount_text()}; inputs {self.resolve_topic_name('cloud_in')} + "
-            f"{self.resolve_topic_name('odom')}")
+            f"device {mapper.device}, {self.core.mount_text()}; inputs {self.resolve_topic_name('cloud_in')}"
+            + (f" + {self.resolve_topic_name('odom')}" if self.status.uses_odometry else " + TF"))
 
     def param(self, name: str):
         return self.get_parameter(name).value
@@ -191,6 +193,8 @@ class MapperNode(Node):
                 self._restart_timer(parameter.name)
             elif parameter.name == "max_pose_jump":
                 self.core.set_max_pose_jump(parameter.value)
+            elif parameter.name == "transform_timeout":
+                self.core.queue.transform_timeout = parameter.value
             elif parameter.name == "map_file":
                 self.files.path_changed()
             if parameter.name == "max_variance":  # the shown map changes as a whole

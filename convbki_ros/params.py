@@ -65,12 +65,19 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("label_space", "raw",
          "meaning of the input `label` field: raw (SemanticKITTI raw ids) or learning (0..num_classes-1)",
          choices=("raw", "learning")),
-    Spec("map_frame", "", "frame of the published map; \"\" = the odometry's frame (header.frame_id), the "
-         "only frame the map can be built in; a different value is warned about and not used"),
+    Spec("map_frame", "", "frame the map is built and published in; \"\" = the odometry's frame (header.frame_id); "
+         "another frame: each cloud is taken into it by TF at its stamp (map_frame -> odometry frame, e.g. a "
+         "SLAM's map -> odom), times the odometry; with pose_source tf it must be set"),
+    Spec("pose_source", "odometry", "where a cloud's pose comes from: odometry (the odom topic, interpolated at "
+         "the cloud's stamp, times the sensor's mount) or tf (TF alone: map_frame -> the cloud's frame at its "
+         "stamp, for robots that publish no Odometry)", choices=("odometry", "tf")),
+    Spec("transform_timeout", 1.0, "how long a cloud waits for the TF it needs (map_frame -> odometry frame, the "
+         "mount, or with pose_source tf its whole pose) before it is dropped with a warning, in the node's clock; "
+         "seconds; 0.0 = as long as the queue has room for it", 0.0, 3600.0, run_time=True),
     Spec("base_to_sensor", NOT_SET,
          "mount of the cloud's frame on the odometry's child frame, [x, y, z, qx, qy, qz, qw] (metres, unit "
          "quaternion): what a tf2 static transform child_frame_id -> cloud frame holds; used when a cloud's "
-         "frame is not the odometry's child frame; unset = from TF where tf2_ros exists"),
+         "frame is not the odometry's child frame; unset = from TF (/tf_static or /tf) at the cloud's stamp"),
     Spec("max_variance", 0.0,
          "leave out voxels whose variance of the expected class exceeds this; unitless; 0.0 = no filter",
          0.0, 0.25, run_time=True),

@@ -65,6 +65,7 @@ class PoseLookup:
     status: PoseStatus
     pose: np.ndarray | None = None
     child_frame_id: str = ""
+    reason: str = ""  # why not found, where the status alone does not say it (TF as the pose source)
 
 
 def _numbers(values: np.ndarray) -> str:

@@ -123,6 +123,7 @@ class MapperStatus:
     last_cloud_received: float | None = None  # time.monotonic()
     last_odometry_received: float | None = None
     started: float = field(default_factory=time.monotonic)  # reset when the node is ready
+    uses_odometry: bool = True  # False: poses come from TF alone (pose_source tf)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _dropped_at_last_report: int = 0
 
@@ -196,6 +197,8 @@ class MapperStatus:
     def odometry_missing(self, timeout: float) -> tuple[str, float] | None:
         """(what is missing, for how many seconds) while clouds arrive and no usable odometry has
         for ``timeout`` seconds; None otherwise (odometry flows, or no input at all)."""
+        if not self.uses_odometry:  # poses from TF alone: no odometry is expected
+            return None
         now = time.monotonic()
         with self._lock:
             if self.last_cloud_received is None or now - self.last_cloud_received > timeout:
@@ -215,7 +218,8 @@ class MapperStatus:
         if new_drops > 0:
             return WARN, f"dropped {new_drops} clouds since the last report"
         if snapshot.waiting_for_pose:
-            return WARN, f"{snapshot.waiting_for_pose} clouds wait for odometry covering their stamps"
+            source = "odometry" if self.uses_odometry else "TF"
+            return WARN, f"{snapshot.waiting_for_pose} clouds wait for {source} covering their stamps"
         if snapshot.integrated:
             return OK, "mapping"
         return OK, f"{snapshot.queue} clouds queued, none integrated yet" if snapshot.queue else "waiting for clouds"

@@ -4,20 +4,23 @@ A cloud is placed with the odometry interpolated at its stamp (``pose_buffer``).
 robot the odometry is the pose of ``base_link`` (its ``child_frame_id``) in ``odom`` while
 the LiDAR publishes in its own frame, mounted on the base by a static transform; the
 sensor's pose is then odometry x mount. The mount comes from the ``base_to_sensor``
-parameter, or from TF (``/tf_static``) where tf2_ros is installed.
+parameter, or from TF. A map in another frame than the odometry's (a SLAM's ``map`` over the
+robot's ``odom``) takes TF's ``map -> odom`` at the cloud's stamp in front; with TF as the
+pose source, the whole pose of the cloud's frame in the map comes from TF.
 """
 
 from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
 
 from convbki_ros.pose_buffer import OdometryBuffer, PoseBreak, PoseLookup, PoseStatus
-from convbki_ros.transforms import stamp_to_ns, transform_to_pose
+from convbki_ros.transforms import stamp_to_ns
 
 
 @dataclass
@@ -37,6 +40,7 @@ class Verdict(Enum):
     PLACE = "place"  # its pose is known
     STALE = "stale"  # received before a map reset
     NO_POSE = "no pose"  # waited pose_wait_timeout, or can never be placed
+    NO_TRANSFORM = "no transform"  # its odometry is known, the TF it needs did not come in time
 
 
 @dataclass
@@ -44,6 +48,12 @@ class Decision:
     pending: PendingCloud
     verdict: Verdict
     lookup: PoseLookup | None = None
+    pose: np.ndarray | None = None  # PLACE: the cloud frame's pose in the map frame
+    why: str = ""  # NO_TRANSFORM: what is missing
+
+
+# A cloud's pose in the map once its odometry is known: (pose, None), or (None, what is missing).
+Placer = Callable[[PendingCloud, PoseLookup], tuple[np.ndarray | None, str | None]]
 
 
 @dataclass
@@ -68,13 +78,21 @@ class CloudQueue:
     in the node's clock, so a source that pauses (and the odometry with it) loses nothing.
     """
 
-    def __init__(self, max_pose_jump: float):
+    def __init__(self, max_pose_jump: float, placer: Placer | None = None,
+                 locate: Callable[[PendingCloud], PoseLookup] | None = None):
+        """``placer``: the cloud's final pose from its odometry (the mount, TF in front), which may
+        have to wait for TF; default: the odometry's pose. ``locate``: the cloud's pose from
+        elsewhere than the odometry (TF as the pose source); default: the odometry history."""
+        self.placer = placer or (lambda pending, lookup: (lookup.pose, None))
+        self.locate = locate
+        self.transform_timeout = 1.0  # seconds of the node's clock a cloud may wait for the placer
         self.changed = threading.Condition()
         self.clouds: deque[PendingCloud] = deque()
         self.bytes = 0
         self.poses = OdometryBuffer(max_jump=max_pose_jump)
         self.generation = 0  # bumped by every map reset
         self.stopping = False
+        self.waiting_for_transform = False  # a cloud with its odometry waits for TF
 
     def push(self, msg, limit: int, byte_limit: int = 0, clock_ns: int = 0) -> Evicted:
         """Queue ``msg`` (``clock_ns``: the node's clock now); the oldest clouds are pushed out
@@ -103,6 +121,8 @@ class CloudQueue:
             return sum(self._waiting(pending) for pending in self.clouds)
 
     def _lookup(self, pending: PendingCloud) -> PoseLookup:
+        if self.locate is not None:
+            return self.locate(pending)
         return self.poses.lookup(stamp_to_ns(pending.msg.header.stamp))
 
     def _waiting(self, pending: PendingCloud, lookup: PoseLookup | None = None) -> bool:
@@ -128,20 +148,33 @@ class CloudQueue:
                 if decision is not None:
                     return decision
                 # Nothing queued: sleep until something arrives. Clouds waiting for odometry:
-                # wake up in time for the first one's timeout too.
-                self.changed.wait(0.5 if not self.clouds or not pose_wait_timeout else 0.02)
+                # wake up in time for the first one's timeout too; for TF, which may come
+                # through a listener that tells no one, look again soon.
+                polling = pose_wait_timeout or self.waiting_for_transform or self.locate is not None
+                self.changed.wait(0.5 if not self.clouds or not polling else 0.02)
             return None
 
     def _decide(self, timeout: float, clock_ns) -> Decision | None:
-        now = clock_ns() if timeout else 0
+        now = clock_ns()
+        self.waiting_for_transform = False
+
+        def expired(pending: PendingCloud, seconds: float) -> bool:
+            return bool(seconds) and now - pending.received_clock_ns >= seconds * 1e9
+
         for position, pending in enumerate(self.clouds):
             if pending.generation != self.generation:
                 return Decision(self._take(position), Verdict.STALE)
             lookup = self._lookup(pending)
-            if not self._waiting(pending, lookup) or (timeout and now - pending.received_clock_ns >= timeout * 1e9):
-                self._take(position)
-                return Decision(pending, Verdict.PLACE if lookup.status is PoseStatus.FOUND else Verdict.NO_POSE,
-                                lookup)
+            if self._waiting(pending, lookup) and not expired(pending, timeout):
+                continue
+            if lookup.status is not PoseStatus.FOUND:
+                return Decision(self._take(position), Verdict.NO_POSE, lookup)
+            pose, why = self.placer(pending, lookup)
+            if pose is not None:
+                return Decision(self._take(position), Verdict.PLACE, lookup, pose)
+            if expired(pending, self.transform_timeout):
+                return Decision(self._take(position), Verdict.NO_TRANSFORM, lookup, why=why or "")
+            self.waiting_for_transform = True
         return None
 
     def add_odometry(self, stamp: int, pose: np.ndarray, child_frame: str) -> tuple[PoseBreak | None, int | None]:
@@ -176,46 +209,68 @@ class CloudQueue:
             self.changed.notify_all()
 
 
-class SensorMount:
-    """The pose of a cloud's frame in the odometry's child frame.
+class SensorFrames:
+    """Where a cloud's frame is in the map frame, from its odometry, its mount and TF.
 
-    ``fixed``: the ``base_to_sensor`` parameter as a 4x4 pose (child <- cloud frame), used for
-    every cloud frame that is not the child frame. Without it, TF's static transforms are
-    asked when tf2_ros is importable (``attach_tf``). ``find`` returns (pose, None) or
-    (None, why not).
+    ``mount``: the ``base_to_sensor`` parameter as a 4x4 pose (odometry child <- cloud frame),
+    used for every cloud frame that is not the child frame; None: TF is asked (``tf``, an
+    object with ``lookup(target, source, stamp_ns)`` raising ``LookupError``, or None where no
+    TF can be read). ``map_frame``: the map's frame; "" or the odometry's frame needs no TF.
     """
 
-    def __init__(self, fixed: np.ndarray | None):
-        self.fixed = fixed
-        self.tf_buffer = None
-        self._listener = None
+    def __init__(self, mount: np.ndarray | None, tf=None, map_frame: str = ""):
+        self.fixed = mount
+        self.tf = tf
+        self.map_frame = map_frame
 
-    def attach_tf(self, node) -> bool:
-        """Listen to TF when tf2_ros exists (a ROS 2 install); False where it does not."""
-        if self.fixed is not None:
-            return False
+    def _tf(self, target: str, source: str, stamp: int) -> tuple[np.ndarray | None, str | None]:
+        if self.tf is None:
+            return None, "TF cannot be read here (no tf2_msgs for rclpy)"
         try:
-            from tf2_ros import Buffer, TransformListener
-        except ImportError:
-            return False
-        self.tf_buffer = Buffer()
-        self._listener = TransformListener(self.tf_buffer, node, spin_thread=False)
-        return True
+            return self.tf.lookup(target, source, stamp), None
+        except LookupError as error:
+            return None, str(error)
 
-    def find(self, child_frame: str, cloud_frame: str) -> tuple[np.ndarray | None, str | None]:
+    def mount(self, child_frame: str, cloud_frame: str, stamp: int) -> tuple[np.ndarray | None, str | None]:
+        """The pose of ``cloud_frame`` in the odometry's child frame at ``stamp``."""
         if not cloud_frame or not child_frame or cloud_frame == child_frame:
             return np.eye(4), None
         if self.fixed is not None:
             return self.fixed, None
-        if self.tf_buffer is None:
+        if self.tf is None:
             return None, (f"the cloud's frame '{cloud_frame}' is not the odometry's child frame '{child_frame}' "
                           "and no mount is known: set base_to_sensor [x, y, z, qx, qy, qz, qw] (the pose of "
                           f"'{cloud_frame}' in '{child_frame}')")
-        from rclpy.time import Time
+        pose, why = self._tf(child_frame, cloud_frame, stamp)
+        if pose is None:
+            return None, f"no mount in TF ({why}); publish it on /tf_static or set base_to_sensor"
+        return pose, None
 
-        try:
-            transform = self.tf_buffer.lookup_transform(child_frame, cloud_frame, Time())
-        except Exception as error:  # tf2's LookupException, ConnectivityException, ExtrapolationException
-            return None, (f"no transform from '{child_frame}' to the cloud's frame '{cloud_frame}' in TF "
-                          f"({error.__class__.__name__}); publish the mount on /tf_static or set base_to_sensor")
-        return transform_to_pose(transform), None
+    def map_from(self, odometry_frame: str, stamp: int) -> tuple[np.ndarray | None, str | None]:
+        """The pose of the odometry's frame in the map frame at ``stamp`` (identity when they are one)."""
+        if not self.map_frame or not odometry_frame or self.map_frame == odometry_frame:
+            return np.eye(4), None
+        pose, why = self._tf(self.map_frame, odometry_frame, stamp)
+        if pose is None:
+            return None, f"no transform from map_frame '{self.map_frame}' to the odometry's '{odometry_frame}' ({why})"
+        return pose, None
+
+    def place(self, odometry_frame: str, lookup: PoseLookup, cloud_frame: str,
+              stamp: int) -> tuple[np.ndarray | None, str | None]:
+        """The cloud frame's pose in the map: TF's map <- odometry frame, the odometry, the mount."""
+        mount, why = self.mount(lookup.child_frame_id, cloud_frame, stamp)
+        if mount is None:
+            return None, why
+        in_front, why = self.map_from(odometry_frame, stamp)
+        if in_front is None:
+            return None, why
+        return in_front @ lookup.pose @ mount, None
+
+    def locate(self, cloud_frame: str, stamp: int) -> PoseLookup:
+        """TF as the pose source: the pose of ``cloud_frame`` in the map frame at ``stamp``
+        (WAIT, with the reason, while TF does not have it)."""
+        pose, why = self._tf(self.map_frame, cloud_frame, stamp)
+        if pose is None:
+            return PoseLookup(PoseStatus.WAIT, reason=f"no transform from '{self.map_frame}' to the cloud's frame "
+                              f"'{cloud_frame}' ({why})")
+        return PoseLookup(PoseStatus.FOUND, pose, cloud_frame)

@@ -98,10 +98,11 @@ class Rig:
     """A running mapper node, a probe that publishes its inputs and reads its map, and its log."""
 
     def __init__(self, folder: Path, *parameters: str, prefix: tuple[str, ...] = (), namespace: str = "",
-                 watch_map: bool = True, map_file: Path | None = None):
+                 watch_map: bool = True, map_file: Path | None = None, odometry: bool = True):
         """``namespace``: run the node in it ("/robot1"); its topics and services move there.
         ``watch_map``: subscribe to ``semantic_map`` (into ``maps``); ``map_file``: the node's map file
-        (default ``folder/maps/map.npz``)."""
+        (default ``folder/maps/map.npz``); ``odometry``: whether the node reads odometry (not with
+        pose_source tf)."""
         from diagnostic_msgs.msg import DiagnosticArray
         from nav_msgs.msg import Odometry
         from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -127,8 +128,9 @@ class Rig:
         self.cloud_publisher = self.probe.node.create_publisher(PointCloud2, f"{namespace}/cloud_in", qos)
         self.odometry_publisher = self.probe.node.create_publisher(Odometry, f"{namespace}/odom", qos)
         self.stamp = START
+        self._tf_publishers: dict[str, object] = {}
         connected = self.probe.spin_until(lambda: self.cloud_publisher.get_subscription_count()
-                                          and self.odometry_publisher.get_subscription_count()
+                                          and (self.odometry_publisher.get_subscription_count() or not odometry)
                                           and self.log.find("mapper ready"), timeout=60)
         assert connected, self.log.text()
 
@@ -140,6 +142,21 @@ class Rig:
     def publish(self, *messages) -> None:
         for msg in messages:
             (self.cloud_publisher if hasattr(msg, "point_step") else self.odometry_publisher).publish(msg)
+
+    def publish_tf(self, *transforms, static: bool = False) -> None:
+        """geometry_msgs/TransformStamped on /tf (or /tf_static, transient local as tf2 sends it),
+        once the node subscribes."""
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from tf2_msgs.msg import TFMessage
+
+        topic = "/tf_static" if static else "/tf"
+        if topic not in self._tf_publishers:
+            durability = DurabilityPolicy.TRANSIENT_LOCAL if static else DurabilityPolicy.VOLATILE
+            publisher = self.probe.node.create_publisher(
+                TFMessage, topic, QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=durability))
+            assert self.probe.spin_until(lambda: publisher.get_subscription_count() > 0, WAIT), f"no one on {topic}"
+            self._tf_publishers[topic] = publisher
+        self._tf_publishers[topic].publish(TFMessage(transforms=list(transforms)))
 
     def integrate_good_cloud(self, translation=TRANSLATION) -> "Stats":
         """Odometry and the good cloud at a new stamp; waits until the node integrated it."""

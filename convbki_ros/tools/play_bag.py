@@ -41,7 +41,7 @@ from typing import Any
 
 from convbki_core.tools.cli import UserError, run
 from convbki_ros.dds import use_large_data_profile
-from convbki_ros.ros_args import strip_ros_args
+from convbki_ros.ros_args import only_ros_args, strip_ros_args
 from convbki_ros.tools.bag_reading import checked_messages, grouped, open_bag, rclpy_message_class, to_rclpy
 
 PROG = "play_bag"
@@ -611,7 +611,7 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     args = sys.argv[1:] if argv is None else list(argv)
-    return run(PROG, lambda parsed: play(parsed, [PROG, *args]), build_parser(), strip_ros_args(args))
+    return run(PROG, lambda parsed: play(parsed, [PROG, *only_ros_args(args)]), build_parser(), strip_ros_args(args))
 
 
 if __name__ == "__main__":

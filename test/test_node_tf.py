@@ -1,0 +1,89 @@
+"""A robot's TF over DDS: a SLAM's map -> odom, odometry of base_link in odom, the LiDAR's mount
+on /tf_static, and no base_to_sensor.
+
+Two nodes map the same drive side by side: one takes its poses from the odometry and puts
+them into ``map`` through TF, the other (pose_source tf) reads no odometry at all. Both maps
+must equal the map built offline from the composed poses, across a jump of map -> odom (a
+loop closure) half-way through the drive.
+"""
+
+import numpy as np
+from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds
+from test_node_frames import BOUNDS, MOUNT, assert_same_voxels, shown_voxels
+
+from convbki_core.datasets.labels import load_label_map
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.paths import kernel_path
+from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_odometry, pose_to_transform_stamped
+
+
+def yawed(x: float, y: float, yaw: float) -> np.ndarray:
+    return pose_from_translation_quaternion([x, y, 0.0], [0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+
+
+# base_link in odom: a drive with a turn.
+BASE_IN_ODOM = [yawed(1.5 * i, 0.3 * i, 0.08 * i) for i in range(4)]
+# The SLAM's correction: small, then after its loop closure a jump of 1.2 m and 0.1 rad.
+MAP_FROM_ODOM = [yawed(0.2, -0.1, 0.02), yawed(0.2, -0.1, 0.02), yawed(1.4, 0.5, 0.12), yawed(1.4, 0.5, 0.12)]
+
+
+def expected_map() -> ConvBKIMapper:
+    """The clouds integrated offline at map <- odom x odom <- base_link x base_link <- lidar_top."""
+    label_map = load_label_map("semantic_kitti")
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
+                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True)
+    for correction, base in zip(MAP_FROM_ODOM, BASE_IN_ODOM, strict=True):
+        mapper.integrate(POINTS, label_map.to_learning(LABELS), correction @ base @ MOUNT)
+    return mapper
+
+
+def test_a_robot_maps_in_map_through_tf_with_and_without_odometry(tmp_path):
+    params = ("-p", "map_frame:=map")
+    by_odometry = Rig(tmp_path / "odometry", *params)
+    by_tf = Rig(tmp_path / "tf", *params, "-p", "pose_source:=tf", odometry=False)
+    rigs = (by_odometry, by_tf)
+    try:
+        for rig in rigs:
+            rig.publish_tf(pose_to_transform_stamped(MOUNT, 0, "base_link", "lidar_top"), static=True)
+        for correction, base in zip(MAP_FROM_ODOM, BASE_IN_ODOM, strict=True):
+            stamp = by_odometry.next_stamp()
+            # As a robot sends them: the SLAM's correction on /tf, the odometry both as a message
+            # and on /tf (odom -> base_link), then the cloud in the LiDAR's frame.
+            slam = pose_to_transform_stamped(correction, stamp, "map", "odom")
+            by_odometry.publish_tf(slam)
+            by_odometry.publish(pose_to_odometry(base, stamp, "odom", "base_link"))
+            by_tf.publish_tf(slam, pose_to_transform_stamped(base, stamp, "odom", "base_link"))
+            for rig in rigs:
+                rig.publish(cloud(stamp, frame="lidar_top"))
+        expected = expected_map()
+        for rig in rigs:
+            stats = rig.wait_stats(lambda s: s.integrated + s.dropped == len(BASE_IN_ODOM))
+            assert stats.integrated == len(BASE_IN_ODOM), stats
+            msg = rig.map_message(len(shown_voxels(expected)[0]))
+            assert msg.header.frame_id == "map"
+            assert_same_voxels(msg, expected)
+            assert rig.call("save_map").success
+            expect_file_holds(rig.map_file, expected)
+        assert by_odometry.log.find(r"mapper ready.*poses from odometry, sensor mount from TF, map in 'map'")
+        assert by_odometry.log.find(r"the odometry is in 'odom', the map in map_frame 'map'")
+        assert by_tf.log.find(r"mapper ready.*poses from TF \('map' -> each cloud's frame\).* \+ TF")
+    finally:
+        outputs = [rig.close() for rig in rigs]
+    assert not any("Traceback" in output for output in outputs), outputs
+
+
+def test_a_cloud_whose_transform_never_comes_is_dropped_and_said(tmp_path):
+    """map_frame 'map', odometry in 'odom', no map -> odom on TF: each cloud waits
+    transform_timeout, then is dropped with a warning naming the transform; the map stays empty."""
+    rig = Rig(tmp_path, "-p", "map_frame:=map", "-p", "transform_timeout:=0.3")
+    try:
+        stamp = rig.next_stamp()
+        rig.publish(pose_to_odometry(BASE_IN_ODOM[0], stamp, "odom", "velo_link"), cloud(stamp))
+        stats = rig.wait_stats(lambda s: s.dropped == 1)
+        assert stats.integrated == 0 and stats.reasons == {"no transform": 1}, stats
+        rig.wait_log(r"\[WARN\].*dropping cloud stamped 1001\.000 s in frame 'velo_link' after waiting "
+                     r"transform_timeout = 0\.3 s: no transform from map_frame 'map' to the odometry's 'odom' "
+                     r"\(frame 'map' is unknown\)", since=0)
+    finally:
+        output = rig.close()
+    assert "Traceback" not in output, output
