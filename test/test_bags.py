@@ -26,7 +26,7 @@ EPOCH_NS = 1_700_000_000_000_000_000
 TIMES = [0.0, 0.1037, 0.2071, 0.3109]
 FRAME_SIZES = [300, 301, 280, 333]
 TOPICS = {"/kitti/velo/pointcloud": "sensor_msgs/msg/PointCloud2", "/kitti/odom": "nav_msgs/msg/Odometry",
-          "/tf": "tf2_msgs/msg/TFMessage"}
+          "/tf": "tf2_msgs/msg/TFMessage", "/tf_static": "tf2_msgs/msg/TFMessage"}
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory):
     """A 4-frame sequence 08: first pose not identity, raw ids with instance bits, probabilities."""
@@ -80,13 +80,17 @@ def test_kitti_to_bag_round_trip(dataset, tmp_path: Path, storage: str, capsys) 
 
     messages, connections, order = read_bag(out)
     assert {topic: c.msgtype for topic, c in connections.items()} == TOPICS
-    assert {topic: len(m) for topic, m in messages.items()} == dict.fromkeys(TOPICS, 4)
+    assert {topic: len(m) for topic, m in messages.items()} == {**dict.fromkeys(TOPICS, 4), "/tf_static": 1}
     expected_stamps = [EPOCH_NS + round(t * 1e9) for t in TIMES]
-    # per frame: /tf, then odometry, then the cloud, all at the frame's stamp
-    assert [topic for _, topic in order] == ["/tf", "/kitti/odom", "/kitti/velo/pointcloud"] * 4
-    assert [t for t, _ in order] == [s for s in expected_stamps for _ in range(3)]
+    # the mount once, first; per frame: /tf, then odometry, then the cloud, all at the frame's stamp
+    assert [topic for _, topic in order] == ["/tf_static", *["/tf", "/kitti/odom", "/kitti/velo/pointcloud"] * 4]
+    assert [t for t, _ in order] == [expected_stamps[0], *[s for s in expected_stamps for _ in range(3)]]
 
     sequence = SemanticKittiSequence(root, "08")
+    _, static_message = messages["/tf_static"][0]
+    (mount,) = static_message.transforms
+    assert (mount.header.frame_id, mount.child_frame_id) == ("camera_gray_left", "velo_link")
+    assert np.allclose(transform_to_pose(mount), sequence.calibration, atol=1e-12)  # calib.txt's Tr
     for number, (points, _, predicted) in enumerate(frames):
         timestamp, cloud = messages["/kitti/velo/pointcloud"][number]
         assert timestamp == expected_stamps[number] == stamp_to_ns(cloud.header.stamp)
@@ -104,25 +108,28 @@ def test_kitti_to_bag_round_trip(dataset, tmp_path: Path, storage: str, capsys) 
         assert np.allclose(odometry_to_pose(odom), sequence[number].pose, atol=1e-12)
         _, tf_message = messages["/tf"][number]
         (transform,) = tf_message.transforms
-        assert (transform.header.frame_id, transform.child_frame_id) == ("map", "velo_link")
+        assert (transform.header.frame_id, transform.child_frame_id) == ("map", "camera_gray_left")
         assert stamp_to_ns(transform.header.stamp) == timestamp
-        assert np.allclose(transform_to_pose(transform), sequence[number].pose, atol=1e-12)
+        # the vehicle's pose times the mount is the LiDAR's pose, as the odometry has it
+        assert np.allclose(transform_to_pose(transform) @ transform_to_pose(mount), sequence[number].pose,
+                           atol=1e-9)
 
     metadata = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert metadata["version"] == 9
     assert metadata["storage_identifier"] == storage
-    assert metadata["message_count"] == 12
+    assert metadata["message_count"] == 13
     assert metadata["starting_time"]["nanoseconds_since_epoch"] == expected_stamps[0]
     assert metadata["duration"]["nanoseconds"] == expected_stamps[-1] - expected_stamps[0]
     assert all((out / name).is_file() for name in metadata["relative_file_paths"])
     topics = {t["topic_metadata"]["name"]: t for t in metadata["topics_with_message_count"]}
     assert {name: t["topic_metadata"]["type"] for name, t in topics.items()} == TOPICS
-    for entry in topics.values():
-        assert entry["message_count"] == 4
+    for name, entry in topics.items():
+        assert entry["message_count"] == (1 if name == "/tf_static" else 4)
         assert entry["topic_metadata"]["serialization_format"] == "cdr"
         assert entry["topic_metadata"]["type_description_hash"].startswith("RIHS01_")
         (qos,) = entry["topic_metadata"]["offered_qos_profiles"]
-        assert (qos["reliability"], qos["durability"], qos["history"]) == ("reliable", "volatile", "keep_last")
+        durability = "transient_local" if name == "/tf_static" else "volatile"
+        assert (qos["reliability"], qos["durability"], qos["history"]) == ("reliable", durability, "keep_last")
 
 
 def test_kitti_to_bag_probabilities_and_frames(dataset, tmp_path: Path) -> None:
@@ -236,6 +243,16 @@ class Listener:
         self.node.create_subscription(PointCloud2, cloud_topic, self.clouds.append, qos)
         self.node.create_subscription(Odometry, odom_topic, self.odoms.append, qos)
         self.node.create_subscription(Clock, "/clock", lambda m: self.clocks.append(stamp_to_ns(m.clock)), qos)
+        self.tf, self.tf_static = [], []
+        try:
+            from rclpy.qos import DurabilityPolicy
+            from tf2_msgs.msg import TFMessage
+        except ImportError:  # no TF where tf2_msgs is not built
+            return
+        latched = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.node.create_subscription(TFMessage, "/tf", self.tf.append, qos)
+        self.node.create_subscription(TFMessage, "/tf_static", self.tf_static.append, latched)
 
     def spin_until(self, done, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -285,14 +302,16 @@ def test_play_bag_publishes_everything_in_order(dataset, tmp_path: Path, monkeyp
     try:
         with _playing(bag, domain, "--wait-subscribers", "20", *extra) as process:
             listener.spin_until(lambda: len(listener.clouds) == 4 and len(listener.odoms) == 4
-                                and len(listener.clocks) >= 4, timeout=40)
+                                and len(listener.clocks) >= 4 and len(listener.tf) == 4, timeout=40)
             _, stderr = process.communicate(timeout=30)
     finally:
         listener.close()
     assert process.returncode == 0, stderr
-    assert "Traceback" not in stderr
-    assert "skipping /tf" in stderr  # tf2_msgs has no rclpy package here: one info line, not an error
+    assert "Traceback" not in stderr and "skipping" not in stderr
     stamps = [EPOCH_NS + round(t * 1e9) for t in TIMES]
+    assert [stamp_to_ns(m.transforms[0].header.stamp) for m in listener.tf] == stamps
+    assert [(m.transforms[0].header.frame_id, m.transforms[0].child_frame_id) for m in listener.tf_static] == [
+        ("camera_gray_left", "velo_link")]
     assert [stamp_to_ns(m.header.stamp) for m in listener.clouds] == stamps
     assert [stamp_to_ns(m.header.stamp) for m in listener.odoms] == stamps
     assert listener.clocks == stamps  # one /clock per bag timestamp, in order

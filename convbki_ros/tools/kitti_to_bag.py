@@ -1,8 +1,11 @@
 """``kitti_to_bag``: a SemanticKITTI-format sequence -> rosbag2 (mcap or sqlite3).
 
 Topics: /kitti/velo/pointcloud (PointCloud2, frame velo_link, fields x, y, z, intensity
-and label or prob_i), /kitti/odom (nav_msgs/Odometry, frame map, child velo_link), /tf.
-Per frame, /tf and /kitti/odom are written just before the cloud, all at the cloud's stamp
+and label or prob_i), /kitti/odom (nav_msgs/Odometry of velo_link in map), and TF as a
+recorded robot has it: /tf_static holds the LiDAR's mount on the vehicle once (the pose of
+velo_link in camera_gray_left, KITTI's left grey camera, from calib.txt's Tr; recorded
+transient local), /tf the vehicle's pose (camera_gray_left in map, poses.txt). Per frame,
+/tf and /kitti/odom are written just before the cloud, all at the cloud's stamp
 (EPOCH + times.txt). The bag is written into a hidden folder next to BAG and renamed into
 place at the end, so an interrupted run leaves nothing half-written.
 """
@@ -28,6 +31,8 @@ EPOCH_NS = 1_700_000_000 * 1_000_000_000  # stamps = this + times.txt seconds (d
 CLOUD_TOPIC = "/kitti/velo/pointcloud"
 ODOM_TOPIC = "/kitti/odom"
 TF_TOPIC = "/tf"
+TF_STATIC_TOPIC = "/tf_static"
+VEHICLE_FRAME = "camera_gray_left"  # the frame poses.txt gives (KITTI's camera 0), as kitti2bag names it
 MAP_FRAME = "map"
 SENSOR_FRAME = "velo_link"
 DEFAULT_PREDICTIONS_DIR = "predictions"
@@ -38,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG,
         description="Write a SemanticKITTI-format sequence (scans, input segmentation, "
-        "poses) to a rosbag2: /kitti/velo/pointcloud, /kitti/odom and /tf. Ground truth "
+        "poses) to a rosbag2: /kitti/velo/pointcloud, /kitti/odom, /tf and /tf_static. Ground truth "
         "stays in the dataset folder. Stamps come from times.txt when present, else 0.1 s "
         "apart, counted from a fixed epoch (1700000000 s), so a replay is deterministic.",
     )
@@ -66,13 +71,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def data_qos():
-    """Offered QoS recorded in metadata.yaml: reliable, volatile, keep last 100 (what a driver offers)."""
+def data_qos(latched: bool = False):
+    """Offered QoS recorded in metadata.yaml: reliable, volatile, keep last 100 (what a driver offers);
+    ``latched``: transient local, as tf2's static broadcaster offers /tf_static."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
     zero = QosTime(sec=0, nsec=0)
-    return Qos(history=QosHistory.KEEP_LAST, depth=100, reliability=QosReliability.RELIABLE,
-               durability=QosDurability.VOLATILE, deadline=zero, lifespan=zero,
+    return Qos(history=QosHistory.KEEP_LAST, depth=1 if latched else 100, reliability=QosReliability.RELIABLE,
+               durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE, deadline=zero,
+               lifespan=zero,
                liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=zero,
                avoid_ros_namespace_conventions=False)
 
@@ -99,10 +106,13 @@ def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, prob
     typestore = get_typestore(Stores.ROS2_JAZZY)
     types = message_types(typestore)
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    counts = {TF_TOPIC: 0, ODOM_TOPIC: 0, CLOUD_TOPIC: 0}
+    counts = {TF_STATIC_TOPIC: 0, TF_TOPIC: 0, ODOM_TOPIC: 0, CLOUD_TOPIC: 0}
     previous = None
+    mount = sequence.calibration  # camera_gray_left <- velo_link
     with Writer(path, version=9, storage_plugin=plugin) as writer:
         qos = [data_qos()]
+        static_conn = writer.add_connection(TF_STATIC_TOPIC, "tf2_msgs/msg/TFMessage", typestore=typestore,
+                                            offered_qos_profiles=[data_qos(latched=True)])
         tf_conn = writer.add_connection(TF_TOPIC, "tf2_msgs/msg/TFMessage", typestore=typestore,
                                         offered_qos_profiles=qos)
         odom_conn = writer.add_connection(ODOM_TOPIC, "nav_msgs/msg/Odometry", typestore=typestore,
@@ -115,15 +125,21 @@ def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, prob
             if previous is not None and stamp <= previous:
                 raise UserError(f"{sequence.folder / 'times.txt'}: time of frame {frame.name} "
                                 f"({frame.stamp} s) is not after the previous frame's")
+            if previous is None:
+                static = pose_to_transform_stamped(mount, stamp, VEHICLE_FRAME, SENSOR_FRAME, types)
+                static_msg = types("tf2_msgs/msg/TFMessage")(transforms=[static])
+                writer.write(static_conn, stamp, typestore.serialize_cdr(static_msg, static_msg.__msgtype__))
+                counts[TF_STATIC_TOPIC] += 1
             previous = stamp
-            transform = pose_to_transform_stamped(frame.pose, stamp, MAP_FRAME, SENSOR_FRAME, types)
+            vehicle = frame.pose @ np.linalg.inv(mount)  # map <- camera_gray_left
+            transform = pose_to_transform_stamped(vehicle, stamp, MAP_FRAME, VEHICLE_FRAME, types)
             tf_msg = types("tf2_msgs/msg/TFMessage")(transforms=[transform])
             odom = pose_to_odometry(frame.pose, stamp, MAP_FRAME, SENSOR_FRAME, types)
             cloud = encode_cloud(stamp, SENSOR_FRAME, cloud_fields(frame, probabilities), types=types)
             writer.write(tf_conn, stamp, typestore.serialize_cdr(tf_msg, tf_msg.__msgtype__))
             writer.write(odom_conn, stamp, typestore.serialize_cdr(odom, odom.__msgtype__))
             writer.write(cloud_conn, stamp, typestore.serialize_cdr(cloud, cloud.__msgtype__))
-            for topic in counts:
+            for topic in (TF_TOPIC, ODOM_TOPIC, CLOUD_TOPIC):
                 counts[topic] += 1
     return counts
 

@@ -48,6 +48,7 @@ PROG = "play_bag"
 NODE_NAME = "play_bag"
 CLOCK_TOPIC = "/clock"
 DEPTH = 100
+LATCHED_TOPICS = ("/tf_static",)  # replayed transient local, whatever the bag recorded
 NOT_DELIVERED = 1  # exit code: some messages were not acknowledged by a subscriber
 BEHIND_S = 1.0  # this far behind the bag's pace (in wall seconds), the replay resumes from where it is
 FLUSH_TIMEOUT_S = 10.0  # how long the end waits for acknowledgements
@@ -144,6 +145,14 @@ class Channel:
     priority: int = 1  # order among messages sharing a timestamp: lower first
     skipped: str = ""
     count: int = field(default=0)
+
+
+def _recorded_transient_local(connection: Any) -> bool:
+    """Whether the bag recorded the topic's publishers as transient local (rosbag2's metadata)."""
+    profiles = getattr(getattr(connection, "ext", None), "offered_qos_profiles", None) or []
+    if isinstance(profiles, str):  # older rosbags: the metadata's YAML text
+        return "durability: 1" in profiles or "transient_local" in profiles.lower()
+    return any(getattr(getattr(profile, "durability", None), "name", "") == "TRANSIENT_LOCAL" for profile in profiles)
 
 
 def _priority(msgtype: str) -> int:
@@ -330,12 +339,23 @@ class BagPlayer:
         key = (topic, connection.msgtype)
         owner = self.bulk_node if connection.msgtype in BULK_TYPES else self.node
         if key not in self.publishers:
-            self.publishers[key] = owner.create_publisher(channel.cls, topic, self.qos)
+            self.publishers[key] = owner.create_publisher(channel.cls, topic, self._qos_of(connection))
         channel.publisher = self.publishers[key]
         channel.raw = not self.args.deserialize and self._same_type(owner, channel.publisher, connection.digest)
         if not channel.raw:
             self._ensure_typestore()
         return channel
+
+    def _qos_of(self, connection: Any) -> Any:
+        """The replay's QoS, transient local where the bag's topic was latched: /tf_static (a
+        robot's mounts, sent once at start) and any topic recorded with transient local
+        durability, so that a subscriber that joins later still gets them."""
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+
+        if not (connection.topic in LATCHED_TOPICS or _recorded_transient_local(connection)):
+            return self.qos
+        return QoSProfile(history=self.qos.history, depth=self.qos.depth, reliability=self.qos.reliability,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
     @staticmethod
     def _same_type(node: Any, publisher: Any, digest: str | None) -> bool:
