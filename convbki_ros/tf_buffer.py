@@ -304,9 +304,11 @@ class TransformBuffer:
     # ------------------------------------------------------------------------- the walk
 
     def _require_known(self, *frames: str) -> None:
-        for frame in frames:
-            if frame not in self._known:
-                raise UnknownFrameError(f"frame '{frame}' is unknown")
+        unknown = list(dict.fromkeys(frame for frame in frames if frame not in self._known))
+        if len(unknown) == 1:
+            raise UnknownFrameError(f"frame '{unknown[0]}' is unknown")
+        if unknown:
+            raise UnknownFrameError(f"frames {' and '.join(repr(frame) for frame in unknown)} are unknown")
 
     def _path_up(self, frame: str, stamp: int | None) -> list[str]:
         """``frame``, its parent at ``stamp``, theirs, ... up to the root."""
