@@ -164,6 +164,8 @@ class CloudQueue:
         for position, pending in enumerate(self.clouds):
             if pending.generation != self.generation:
                 return Decision(self._take(position), Verdict.STALE)
+            if not pending.received_clock_ns:  # received before the clock ran (use_sim_time, no /clock yet)
+                pending.received_clock_ns = now
             lookup = self._lookup(pending)
             if self._waiting(pending, lookup) and not expired(pending, timeout):
                 continue

@@ -1,0 +1,108 @@
+"""The node through the ros2 commands a user types, after `source install/setup.bash`.
+
+`ros2 param set/get` (a float parameter given as an integer too), `ros2 service call` for every
+service, `ros2 topic info -v` for the QoS of every topic the reference documents. Each command
+runs as its own process (bash, ros2cli, rclpy) against a node in its own process, over DDS,
+without the ros2 daemon (so no process outlives the test).
+"""
+
+import re
+import subprocess
+
+import pytest
+from mapper_rig import Rig
+from ros_helpers import REPO, ros_env
+
+WAIT = 60.0
+
+
+def _why_no_ros2cli() -> str | None:
+    if not (REPO / "install" / "setup.bash").is_file():
+        return "no install/setup.bash (run make setup)"
+    try:
+        import ros2cli  # noqa: F401
+    except ImportError:
+        return "ros2cli is not installed (set-up installs it where its sources' tarball is at hand)"
+    return None
+
+
+pytestmark = pytest.mark.skipif(_why_no_ros2cli() is not None, reason=_why_no_ros2cli() or "")
+
+
+def ros2(domain: int, command: str, timeout: float = WAIT) -> subprocess.CompletedProcess:
+    """``ros2 <command>`` in a bash that sourced install/setup.bash, as a user types it."""
+    return subprocess.run(["bash", "-c", f"source install/setup.bash && ros2 {command}"], cwd=REPO,
+                          env=ros_env(domain), stdin=subprocess.DEVNULL, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def topic_info(domain: int, topic: str, publishers: int, subscribers: int) -> str:
+    """``ros2 topic info -v`` once the graph shows the expected counts (discovery takes a while
+    for a fresh process): polled with a deadline."""
+    import time
+
+    deadline = time.monotonic() + WAIT
+    while True:
+        result = ros2(domain, f"topic info -v --no-daemon {topic}")
+        text = result.stdout
+        if (f"Publisher count: {publishers}" in text and f"Subscription count: {subscribers}" in text) \
+                or time.monotonic() > deadline:
+            return text
+        # the next try is the wait: each command is a new process that discovers the graph again
+
+
+def qos_of(text: str, node: str) -> dict[str, str]:
+    """The QoS lines of ``node``'s endpoint in a ``ros2 topic info -v`` output."""
+    for block in text.split("\n\n"):
+        if f"Node name: {node}" in block:
+            return {key.strip(): value.strip() for key, value in re.findall(r"^\s+(\w[\w ]*): (.+)$", block, re.M)}
+    raise AssertionError(f"no endpoint of {node} in:\n{text}")
+
+
+def test_ros2_param_service_and_topic_commands_work_against_the_node(tmp_path):
+    rig = Rig(tmp_path, "-p", "clear_box_min:=[-1.0, -1.0, -1.0]", "-p", "clear_box_max:=[1.0, 1.0, 1.0]")
+    domain, node = rig.domain, "/convbki_mapper"
+    try:
+        rig.integrate_good_cloud()
+
+        # -- parameters: a float given as an integer is taken, a bad value refused with the reason
+        result = ros2(domain, f"param set --no-daemon --timeout 30 {node} publish_period 2")
+        assert result.returncode == 0 and "Set parameter successful" in result.stdout, result
+        result = ros2(domain, f"param get --no-daemon --timeout 30 {node} publish_period")
+        assert "Double value is: 2.0" in result.stdout, result
+        result = ros2(domain, f"param set --no-daemon --timeout 30 {node} on_pose_jump sometimes")
+        assert "Setting parameter failed" in result.stdout and "keep, reset, new_file" in result.stdout, result
+        result = ros2(domain, f"param describe --no-daemon --timeout 30 {node} transform_timeout")
+        assert "Type: double" in result.stdout and "Min value: 0.0" in result.stdout, result
+
+        # -- every service, as `ros2 service call` prints the answer
+        answers = {}
+        for service in ("save_map", "load_map", "export_ply", "clear_box", "reset"):
+            result = ros2(domain, f"service call {node}/{service} std_srvs/srv/Trigger")
+            assert result.returncode == 0, result
+            answers[service] = result.stdout
+        assert re.search(r"success=True, message='saved \d+ voxels to ", answers["save_map"]), answers
+        assert re.search(r"success=True, message='loaded \d+ voxels", answers["load_map"]), answers
+        assert re.search(r"success=True, message='wrote \d+ voxels to .*\.ply'", answers["export_ply"]), answers
+        assert re.search(r"success=True, message='forgot \d+ voxels in the box", answers["clear_box"]), answers
+        assert re.search(r"success=True, message='map reset: forgot \d+ voxels", answers["reset"]), answers
+
+        # -- the QoS of every topic, as docs/node.md's table says
+        expected = {  # topic: (publishers, subscribers, node's endpoint: reliability, durability)
+            "/cloud_in": (1, 1, "RELIABLE", "VOLATILE"),
+            "/odom": (1, 1, "RELIABLE", "VOLATILE"),
+            "/tf": (0, 1, "RELIABLE", "VOLATILE"),
+            "/tf_static": (0, 1, "RELIABLE", "TRANSIENT_LOCAL"),
+            "/semantic_map": (1, 1, "RELIABLE", "TRANSIENT_LOCAL"),
+            "/semantic_map/variance": (1, 0, "RELIABLE", "TRANSIENT_LOCAL"),
+            "/semantic_map/view": (1, 0, "RELIABLE", "TRANSIENT_LOCAL"),
+            "/semantic_map/updates": (1, 0, "RELIABLE", "VOLATILE"),
+            "/semantic_map/local": (1, 0, "RELIABLE", "VOLATILE"),
+        }
+        for topic, (publishers, subscribers, reliability, durability) in expected.items():
+            text = topic_info(domain, topic, publishers, subscribers)
+            qos = qos_of(text, "convbki_mapper")
+            assert (qos.get("Reliability"), qos.get("Durability")) == (reliability, durability), (topic, text)
+    finally:
+        output = rig.close()
+    assert "Traceback" not in output, output
