@@ -138,6 +138,7 @@ if [[ "$MODE" == wheels ]]; then
             log "ros2cli and launch up to date"
         else
             log "installing ros2cli and launch from $TOOLS_TARBALL"
+            t_tools=$SECONDS
             TOOLS_SRC="$ROOT/build/ros2_tools"
             rm -rf "$TOOLS_SRC" && mkdir -p "$TOOLS_SRC"
             tar -xzf "$TOOLS_TARBALL" -C "$TOOLS_SRC" || die "could not unpack $TOOLS_TARBALL"
@@ -155,7 +156,7 @@ if [[ "$MODE" == wheels ]]; then
                 || die "pip install -r requirements-ros2-tools.txt failed (see above)"
             rm -rf "$TOOLS_SRC"
             echo "$TOOLS_HASH" > "$STAMPS/ros2_tools.sha256"
-            log "installed ${#tool_dirs[@]} packages (ros2cli, ros2interface, launch, launch_ros, ros2launch, ...)"
+            log "installed ${#tool_dirs[@]} packages (ros2cli, ros2interface, launch, launch_ros, ros2launch, ...) in $((SECONDS - t_tools)) s"
         fi
     fi
 fi
@@ -212,8 +213,8 @@ EOF
     # install/ beside convbki_ros. Their own --base-paths: colcon does not look below the
     # repo root, which is a package itself, so the main build never sees them.
     IFC_STAMP="$ROOT/build/.convbki_interfaces_stamp"
-    IFC_FP="$( { find scripts/interfaces -type f -printf '%p %T@ %s\n' | LC_ALL=C sort; echo "$REQ_HASH $VENV"; } \
-        | sha256sum | cut -d' ' -f1)"
+    IFC_FP="$( { find scripts/interfaces -type f -printf '%p %T@ %s\n' | LC_ALL=C sort
+                 echo "$REQ_HASH $VENV $PY_PATH"; } | sha256sum | cut -d' ' -f1)"
     ifc_built=true
     for pkg in tf2_msgs composition_interfaces; do
         [[ -f "$ROOT/install/$pkg/share/ament_index/resource_index/packages/$pkg" ]] || ifc_built=false
@@ -225,7 +226,8 @@ EOF
             command -v "$tool" >/dev/null 2>&1 \
                 || die "$tool not found: building tf2_msgs and composition_interfaces from the ROS 2 wheels needs CMake, make and a C/C++ compiler (Debian/Ubuntu: sudo apt install cmake build-essential)"
         done
-        log "building tf2_msgs and composition_interfaces (ROS 2 wheels have none) -> install/; about a minute"
+        log "building tf2_msgs and composition_interfaces (ROS 2 wheels have none) -> install/; about 30 s"
+        t_ifc=$SECONDS
         # A fresh build folder: its CMake caches name the venv's and Python's paths.
         rm -rf "$ROOT/build/interfaces"
         mkdir -p "$ROOT/build/interfaces"
@@ -242,6 +244,7 @@ EOF
             die "building the interface packages failed (full output: build/interfaces/colcon_build.log)"
         fi
         echo "$IFC_FP" > "$IFC_STAMP"
+        log "built tf2_msgs and composition_interfaces in $((SECONDS - t_ifc)) s"
     fi
 fi
 
