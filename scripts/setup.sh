@@ -126,7 +126,11 @@ if [[ "$MODE" == wheels ]]; then
     TOOLS_TARBALL="${CONVBKI_ROS2_TOOLS:-$ROOT/../shared/vendor/ros2-jazzy-python-tools.tar.gz}"
     if [[ ! -f "$TOOLS_TARBALL" ]]; then
         [[ -n "${CONVBKI_ROS2_TOOLS:-}" ]] && die "CONVBKI_ROS2_TOOLS=$CONVBKI_ROS2_TOOLS is not a file"
-        log "no ros2cli/launch sources at $TOOLS_TARBALL: the ros2 command is not installed"
+        if [[ -x "$VENV/bin/ros2" ]]; then
+            log "no ros2cli/launch sources at $TOOLS_TARBALL: keeping the ros2cli and launch installed before"
+        else
+            log "no ros2cli/launch sources at $TOOLS_TARBALL (set CONVBKI_ROS2_TOOLS): the ros2 command is not installed"
+        fi
     else
         # Not installed: launch_testing, launch_pytest and launch_testing_ros register pytest
         # plugins that every pytest run in the venv loads, and launch_testing 3.4.3's fails
