@@ -25,6 +25,9 @@ data_files = [
     ("share/" + package_name + "/config/kernels", _files("config/kernels/*.yaml")),
     ("share/" + package_name + "/config/dds", _files("config/dds/*.xml")),
 ]
+if _files("launch/*.launch.py"):
+    # `ros2 launch convbki_ros mapper.launch.py` looks in share/convbki_ros/launch.
+    data_files.append(("share/" + package_name + "/launch", _files("launch/*.launch.py")))
 if _files("rviz/*.rviz"):
     data_files.append(("share/" + package_name + "/rviz", _files("rviz/*.rviz")))
 
