@@ -83,7 +83,7 @@ def test_a_cloud_whose_transform_never_comes_is_dropped_and_said(tmp_path):
         assert stats.integrated == 0 and stats.reasons == {"no transform": 1}, stats
         rig.wait_log(r"\[WARN\].*dropping cloud stamped 1001\.000 s in frame 'velo_link' after waiting "
                      r"transform_timeout = 0\.3 s: no transform from map_frame 'map' to the odometry's 'odom' "
-                     r"\(frame 'map' is unknown\)", since=0)
+                     r"\(frames 'map' and 'odom' are unknown\)", since=0)
     finally:
         output = rig.close()
     assert "Traceback" not in output, output
