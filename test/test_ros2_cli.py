@@ -37,16 +37,17 @@ def ros2(domain: int, command: str, timeout: float = WAIT) -> subprocess.Complet
 
 
 def topic_info(domain: int, topic: str, publishers: int, subscribers: int) -> str:
-    """``ros2 topic info -v`` once the graph shows the expected counts (discovery takes a while
-    for a fresh process): polled with a deadline."""
+    """``ros2 topic info -v`` once the graph shows the expected counts and every endpoint's node
+    by name (a fresh process discovers endpoints before their nodes' names): polled with a
+    deadline."""
     import time
 
     deadline = time.monotonic() + WAIT
     while True:
         result = ros2(domain, f"topic info -v --no-daemon {topic}")
         text = result.stdout
-        if (f"Publisher count: {publishers}" in text and f"Subscription count: {subscribers}" in text) \
-                or time.monotonic() > deadline:
+        if (f"Publisher count: {publishers}" in text and f"Subscription count: {subscribers}" in text
+                and "_NODE_NAME_UNKNOWN_" not in text) or time.monotonic() > deadline:
             return text
         # the next try is the wait: each command is a new process that discovers the graph again
 
