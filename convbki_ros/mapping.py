@@ -68,6 +68,8 @@ class MappingCore:
         self.frames = SensorFrames(check_mount(optional(node, "base_to_sensor")), self.tf, map_frame)
         if self.tf is None and self.pose_source == "tf":
             raise StartupError(f"pose_source tf needs TF, which cannot be read here: {self.tf_missing}")
+        if self.tf is None:
+            node.get_logger().warning(f"TF is not read: {self.tf_missing}")
         self.queue = CloudQueue(max_pose_jump=node.param("max_pose_jump"), placer=self._place,
                                 locate=self._locate_by_tf if self.pose_source == "tf" else None)
         self.queue.transform_timeout = node.param("transform_timeout")

@@ -369,8 +369,8 @@ class TransformListener:
         try:
             from tf2_msgs.msg import TFMessage
         except ImportError as error:
-            raise ImportError("listening to TF needs the tf2_msgs package (TFMessage), which is not installed: "
-                              "install ros-jazzy-tf2-msgs or source a ROS 2 install") from error
+            raise ImportError("listening to TF needs tf2_msgs (TFMessage) for rclpy, which is not importable: "
+                              "source install/setup.bash (make setup builds it) or a ROS 2 install") from error
         from rclpy.callback_groups import ReentrantCallbackGroup
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -476,6 +476,6 @@ def make_tf_lookup(node: Any, cache_seconds: float = 10.0) -> tuple[Tf2Lookup | 
     try:
         listener = TransformListener(node, buffer)
     except ImportError as error:
-        return None, (f"no TF: tf2_ros is not installed ({tf2_ros_missing}) and {error}; "
-                      "frames other than the odometry's need the base_to_sensor parameter")
+        return None, (f"tf2_ros is not installed ({tf2_ros_missing}) and {error}; frames other than the "
+                      "odometry's need the base_to_sensor parameter")
     return BufferLookup(buffer, listener), "convbki_ros.tf_buffer.TransformBuffer (tf2_ros is not installed)"
