@@ -23,6 +23,7 @@ data_files = [
     ("share/" + package_name, ["package.xml"]),
     ("share/" + package_name + "/config", _files("config/*.yaml")),
     ("share/" + package_name + "/config/kernels", _files("config/kernels/*.yaml")),
+    ("share/" + package_name + "/config/traversability", _files("config/traversability/*.yaml")),
     ("share/" + package_name + "/config/dds", _files("config/dds/*.xml")),
 ]
 if _files("launch/*.launch.py"):

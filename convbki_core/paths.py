@@ -27,6 +27,13 @@ def config_dir() -> Path:
     return source_tree
 
 
+def traversability_profile(name: str) -> Path:
+    """A shipped traversability profile by name (``car``, ``small_robot``), or ``name`` as a
+    YAML file's path."""
+    shipped = config_dir() / "traversability" / f"{name}.yaml"
+    return shipped if "/" not in name and not name.endswith(".yaml") and shipped.is_file() else Path(name)
+
+
 def kernel_path(name: str) -> Path:
     """A shipped kernel file by stem, e.g. ``semantic_kitti_compound``."""
     return config_dir() / "kernels" / f"{name}.yaml"

@@ -260,3 +260,47 @@ def test_evaluate_save_map_refused_up_front_and_never_left_by_a_failed_run(tmp_p
     assert evaluate.main([*common, "--save-map", str(saved)]) == 2
     assert "No space left" in capsys.readouterr().err
     assert not saved.exists() and not list(tmp_path.glob(".final.npz*"))
+
+
+def test_costmap_writes_the_grid_of_every_observed_column(maps, tmp_path, capsys):
+    """The .npz holds column_costs of the map's voxels, cell for cell; the drive's road is
+    mostly free for the car and its buildings lethal; the .png is a picture."""
+    from convbki_core.costmap import column_costs, load_profile, rasterise
+    from convbki_core.datasets.labels import load_label_map
+    from convbki_core.paths import traversability_profile
+
+    out = tmp_path / "grid.npz"
+    assert map_tool.main(["costmap", str(maps["whole"]), "--out", str(out), "--quiet"]) == 0
+    assert "observed cells" in capsys.readouterr().out
+    saved = np.load(out)
+    metadata, indices, alpha = read_map(maps["whole"])
+    names = load_label_map("semantic_kitti").class_names
+    profile = load_profile(traversability_profile("car"), names)
+    columns = column_costs(indices, alpha, metadata["resolution"], profile, metadata["prior"])
+    grid = rasterise(columns, metadata["resolution"])
+    np.testing.assert_array_equal(saved["values"], grid.values)
+    np.testing.assert_allclose(saved["origin"], grid.origin_metres)
+    assert str(saved["profile"]) == "car" and float(saved["resolution"]) == metadata["resolution"]
+    # Columns whose ground voxel is surely road (p > 0.9) are mostly in the free group (<= 25).
+    ground_of = dict(zip(map(tuple, columns.cells.tolist()), columns.ground.tolist()))
+    costs = dict(zip(map(tuple, columns.cells.tolist()), columns.cost.tolist()))
+    p = alpha / alpha.sum(axis=1, keepdims=True)
+    road = [tuple(i[:2]) for i, share in zip(indices.tolist(), p[:, names.index("road")])
+            if share > 0.9 and ground_of.get(tuple(i[:2])) == i[2]]
+    free = np.mean([0 <= costs[cell] <= 25 for cell in road])
+    assert len(road) > 100 and free > 0.8, (len(road), free)
+    assert (grid.values == 100).sum() > 0 and (grid.values == -1).sum() > 0
+
+    picture = tmp_path / "grid.png"
+    assert map_tool.main(["costmap", str(maps["whole"]), "--out", str(picture), "--profile", "small_robot",
+                          "--quiet"]) == 0
+    assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_costmap_refuses_a_bad_profile_in_one_line(maps, tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("costs: {car: 300}\nground: [road]\n")
+    assert map_tool.main(["costmap", str(maps["whole"]), "--out", str(tmp_path / "g.npz"), "--profile",
+                          str(bad), "--quiet"]) == 2
+    assert one_line_error(capsys) == f"map_tool: error: {bad}: cost of 'car' must be a number from 0 to 100, got 300"
+    assert not (tmp_path / "g.npz").exists()

@@ -5,7 +5,9 @@
   kernel-weighted evidence on top of the prior, so a voxel present in k maps has the
   concentration sum_i alpha_i - (k - 1) * prior: the map one mapper would have built from
   all their scans (up to float32 rounding);
-* ``export-ply``: the voxel centres in class colours, for CloudCompare, Open3D or MeshLab.
+* ``export-ply``: the voxel centres in class colours, for CloudCompare, Open3D or MeshLab;
+* ``costmap``: the map's traversability grid for a robot profile (``convbki_core.costmap``),
+  as the node's ``~/get_costmap`` gives it, to a ``.npz`` or a ``.png``.
 """
 
 from __future__ import annotations
@@ -257,6 +259,73 @@ def _export_ply(args: argparse.Namespace) -> int:
     return 0
 
 
+def write_costmap_png(grid, path: Path) -> None:
+    """The grid as a picture, north up: unknown grey, free white, costly yellow to red, lethal black."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+    from matplotlib.colors import LinearSegmentedColormap
+
+    from convbki_core.io.atomic import atomic_write_with
+
+    colours = LinearSegmentedColormap.from_list("cost", [(0.0, "white"), (0.01, "#fff3b0"), (0.6, "#e8590c"),
+                                                         (0.99, "#c92a2a"), (1.0, "black")])
+    colours.set_bad("#9e9e9e")
+    values = np.ma.masked_less(grid.values.astype(np.float32), 0)
+    height, width = grid.values.shape
+    figure = plt.figure(figsize=(max(4.0, width / 100), max(4.0, height / 100)), dpi=100)
+    axes = figure.add_axes((0, 0, 1, 1))
+    low = grid.origin_metres
+    axes.imshow(values, cmap=colours, vmin=0, vmax=100, origin="lower", interpolation="nearest",
+                extent=(low[0], low[0] + width * grid.resolution, low[1], low[1] + height * grid.resolution))
+    axes.set_axis_off()
+    atomic_write_with(path, lambda handle: figure.savefig(handle, format="png"))
+    plt.close(figure)
+
+
+def _costmap(args: argparse.Namespace) -> int:
+    from convbki_core.costmap import ProfileError, column_costs, load_profile, rasterise
+    from convbki_core.io.atomic import atomic_write_with
+    from convbki_core.io.map_file import read_map
+    from convbki_core.paths import traversability_profile
+
+    out = _check_output(args.out, args.force)
+    if out.suffix not in (".npz", ".png"):
+        raise UserError(f"{out}: --out must end in .npz or .png")
+    with _steps(3, args.quiet, "costmap") as bar:
+        bar.set_description(f"reading {Path(args.map).name}")
+        metadata, indices, alpha = read_map(args.map)
+        names = class_names_for(metadata)
+        if names is None:
+            raise UserError(f"{args.map}: no class names for its {metadata['num_classes']} classes")
+        try:
+            profile = load_profile(traversability_profile(args.profile), tuple(names))
+        except ProfileError as error:
+            raise UserError(str(error)) from None
+        bar.update()
+        bar.set_description("costs")
+        resolution = float(metadata["resolution"])
+        grid = rasterise(column_costs(indices, alpha, resolution, profile, float(metadata["prior"])), resolution)
+        bar.update()
+        bar.set_description(f"writing {out.name}")
+        if out.suffix == ".png":
+            write_costmap_png(grid, out)
+        else:
+            def write(handle) -> None:
+                np.savez_compressed(handle, values=grid.values, origin=grid.origin_metres,
+                                    resolution=np.float64(resolution), profile=np.str_(profile.name),
+                                    frame_id=np.str_(metadata.get("frame_id") or ""))
+            atomic_write_with(out, write)
+        bar.update()
+    values = grid.values
+    known = values >= 0
+    print(f"wrote a {values.shape[1]} x {values.shape[0]} costmap ({profile.name}, {resolution:g} m cells) to "
+          f"{out}: {int(known.sum())} observed cells, {int((values == 0).sum())} free, "
+          f"{int((values >= 100).sum())} lethal")
+    return 0
+
+
 def _info(args: argparse.Namespace) -> int:
     import json
 
@@ -277,6 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
         "  map_tool info MAP [--json]\n"
         "  map_tool merge MAP MAP [MAP ...] --out MAP [--force]\n"
         "  map_tool export-ply MAP --out PLY [--max-variance V] [--force]\n"
+        "  map_tool costmap MAP --out GRID.npz|GRID.png [--profile car|small_robot|FILE] [--force]\n"
         "  --json: one JSON object; --out: the file to write (atomically); --force: replace it if it exists;\n"
         "  --max-variance: only voxels whose expected class has at most this variance; --quiet: no progress bar.\n"
         "`map_tool COMMAND --help` explains each command.")
@@ -302,14 +372,25 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--max-variance", type=positive(float, "--max-variance"), default=None, metavar="V",
                         help="only voxels whose expected class has at most this variance (default: all)")
     export.add_argument("--force", action="store_true", help="replace --out if it exists")
-    for command in (info, merge, export):
+    costmap = commands.add_parser("costmap", help="write the map's traversability costmap for a robot profile",
+                                  description="The cost of every observed column (0 free .. 100 lethal, -1 "
+                                  "unknown) as the mapper's semantic_map/costmap has it: the expected class cost "
+                                  "under each voxel's posterior plus a risk margin, from the ground up to the "
+                                  "robot's height. .npz: values (rows = y), origin (m), resolution, profile, "
+                                  "frame_id; .png: a picture.")
+    costmap.add_argument("map", metavar="MAP", help="map file to read")
+    costmap.add_argument("--out", required=True, metavar="GRID", help=".npz or .png file to write (atomically)")
+    costmap.add_argument("--profile", default="car", metavar="PROFILE",
+                         help="traversability profile: car or small_robot (shipped), or a YAML file (default: car)")
+    costmap.add_argument("--force", action="store_true", help="replace --out if it exists")
+    for command in (info, merge, export, costmap):
         command.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    commands = {"info": _info, "merge": _merge, "export-ply": _export_ply}
+    commands = {"info": _info, "merge": _merge, "export-ply": _export_ply, "costmap": _costmap}
     return run(PROG, lambda args: commands[args.command](args), build_parser(), argv)
 
 

@@ -1,0 +1,103 @@
+"""The traversability cost of hand-built columns, against expectations written out by hand."""
+
+import numpy as np
+import pytest
+
+from convbki_core.costmap import ProfileError, column_costs, load_profile, rasterise
+from convbki_core.datasets.labels import load_label_map
+from convbki_core.paths import config_dir
+
+NAMES = load_label_map("semantic_kitti").class_names
+CLASS = {name: number for number, name in enumerate(NAMES)}
+RESOLUTION = 0.2
+CAR = load_profile(config_dir() / "traversability" / "car.yaml", NAMES)
+
+
+def voxel(**concentrations: float) -> np.ndarray:
+    alpha = np.zeros(len(NAMES))
+    for name, value in concentrations.items():
+        alpha[CLASS[name.replace("_", "-")]] = value
+    return alpha
+
+
+def costs_of(voxels: dict, profile=CAR) -> dict:
+    """{(x, y): cost} of voxels given as {(x, y, z): alpha}."""
+    indices = np.array(list(voxels), np.int64)
+    alpha = np.stack(list(voxels.values()))
+    columns = column_costs(indices, alpha, RESOLUTION, profile)
+    return {tuple(cell): int(cost) for cell, cost in zip(columns.cells.tolist(), columns.cost)}
+
+
+def with_sigma(profile, sigma: float):
+    from dataclasses import replace
+
+    return replace(profile, risk_sigma=sigma)
+
+
+def test_a_sure_road_is_free_and_a_sure_sidewalk_past_a_kerb_costs_its_class():
+    # road at z 0; a kerb: the next column's sidewalk one voxel (0.2 m, under the 0.25 m
+    # obstacle height) higher, and in the kerb's own column both.
+    voxels = {(0, 0, 0): voxel(road=10), (1, 0, 0): voxel(road=10), (1, 0, 1): voxel(sidewalk=10),
+              (2, 0, 1): voxel(sidewalk=10)}
+    assert costs_of(voxels) == {(0, 0): 0, (1, 0): 70, (2, 0): 70}
+
+
+def test_a_canopy_above_the_band_does_not_block_the_road_under_it():
+    voxels = {(0, 0, 0): voxel(road=10), (0, 0, 11): voxel(vegetation=20), (0, 0, 15): voxel(vegetation=20)}
+    assert costs_of(voxels) == {(0, 0): 0}  # 2.2 m and 3.0 m above the road: over the 2.0 m band
+    voxels[(0, 0, 9)] = voxel(vegetation=20)  # a branch at 1.8 m: in the band
+    assert costs_of(voxels) == {(0, 0): 100}
+
+
+def test_a_car_on_hidden_ground_is_lethal_at_its_neighbours_ground_height():
+    voxels = {(x, 0, 0): voxel(road=10) for x in (0, 2)}
+    voxels |= {(1, 0, z): voxel(car=10) for z in range(3, 8)}  # 0.6 .. 1.4 m, the road under it unseen
+    assert costs_of(voxels) == {(0, 0): 0, (1, 0): 100, (2, 0): 0}
+
+
+def test_an_unsure_grass_cell_costs_its_expectation_and_the_margin():
+    # terrain 3, road 2: p = (0.6, 0.4); E[cost] = 0.6 * 70 = 42; E[cost^2] = 0.6 * 4900 = 2940;
+    # Var = (2940 - 42^2) / (5 + 1) = 196, sigma = 14: with the margin 42 + 14 = 56.
+    voxels = {(0, 0, 0): voxel(terrain=3, road=2)}
+    assert costs_of(voxels, with_sigma(CAR, 0.0)) == {(0, 0): 42}
+    assert costs_of(voxels) == {(0, 0): 56}
+    assert costs_of(voxels, with_sigma(CAR, 2.0)) == {(0, 0): 70}
+    # The arg-max class (terrain) would cost 70 with no doubt; a surer grass costs more: 30, 20
+    # gives E = 42 again, Var = 1176 / 51 = 23.06, sigma 4.80: 46.8 -> 47.
+    assert costs_of({(0, 0, 0): voxel(terrain=30, road=20)}) == {(0, 0): 47}
+
+
+def test_unobserved_and_only_empty_columns_are_unknown_and_a_departed_car_leaves_no_obstacle():
+    # A column that rays only found empty has no ground and nothing in the band: unknown.
+    empty = {(0, 0, z): voxel(unlabeled=20) for z in range(0, 5)}
+    assert costs_of(empty) == {(0, 0): -1}
+    # A car drove through and left: free space put 50 rays of evidence into class 0 over its 2.
+    # E[cost] = 2/52 * 100 = 3.85, Var = (2/52 * 10^4 - 3.85^2) / 53 = 6.98, sigma 2.64: 6.
+    left = {(0, 0, 0): voxel(road=10), (0, 0, 4): voxel(car=2, unlabeled=50)}
+    assert costs_of(left) == {(0, 0): 6}
+    grid = rasterise(column_costs(np.array([[0, 0, 0], [2, 1, 0]]), np.stack([voxel(road=10), voxel(road=10)]),
+                                  RESOLUTION, CAR), RESOLUTION)
+    assert grid.values.tolist() == [[0, -1, -1], [-1, -1, 0]]  # rows are y, the cells between unknown
+    assert grid.origin.tolist() == [0, 0]
+
+
+@pytest.mark.parametrize("text, problem", [
+    ("costs: {car: 100}\nground: [road]\n", "no cost for bicycle"),
+    ("costs: {cars: 100}\nground: [road]\n", "unknown class 'cars' in costs"),
+    ("costs: {car: 101}\nground: [road]\n", "cost of 'car' must be a number from 0 to 100, got 101"),
+    ("costs: {car: -1}\nground: [road]\n", "cost of 'car' must be a number from 0 to 100, got -1"),
+    ("costs: [1, 2]\n", "needs a `costs` mapping"),
+    (": : :\n", "not YAML"),
+])
+def test_a_bad_profile_is_one_line_naming_the_problem(tmp_path, text, problem):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ProfileError) as error:
+        load_profile(path, NAMES)
+    assert problem in str(error.value) and str(error.value).startswith(str(path)) and "\n" not in str(error.value)
+
+
+def test_both_shipped_profiles_load():
+    small = load_profile(config_dir() / "traversability" / "small_robot.yaml", NAMES)
+    assert small.class_costs[CLASS["sidewalk"]] == 0 and CAR.class_costs[CLASS["sidewalk"]] == 70
+    assert small.robot_height < CAR.robot_height
