@@ -110,14 +110,27 @@ class ColumnCosts:
     ground: np.ndarray
 
 
+def _moments(alpha: np.ndarray, profile: TraversabilityProfile) -> np.ndarray:
+    """Per voxel, in one product with the concentrations (no (N, C) temporaries): alpha0,
+    sum alpha c, sum alpha c^2, the ground classes' alpha, class 0's alpha; float64 (N, 5)."""
+    costs = profile.class_costs
+    ground = np.zeros(len(costs))
+    ground[list(profile.ground_classes)] = 1.0
+    empty = np.zeros(len(costs))
+    empty[0] = 1.0
+    weights = np.stack([np.ones(len(costs)), costs, costs ** 2, ground, empty], axis=1)
+    return (alpha @ weights.astype(alpha.dtype)).astype(np.float64)
+
+
 def voxel_costs(alpha: np.ndarray, profile: TraversabilityProfile) -> tuple[np.ndarray, np.ndarray]:
     """(expected cost, its standard deviation) of each voxel under its Dirichlet posterior."""
-    alpha = np.asarray(alpha, dtype=np.float64)
-    total = alpha.sum(axis=1)
-    p = alpha / total[:, None]
-    mean = p @ profile.class_costs
-    second = p @ (profile.class_costs ** 2)
-    variance = np.maximum(second - mean ** 2, 0.0) / (total + 1.0)
+    return _cost_moments(_moments(np.asarray(alpha), profile))
+
+
+def _cost_moments(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    total = moments[:, 0]
+    mean = moments[:, 1] / total
+    variance = np.maximum(moments[:, 2] / total - mean ** 2, 0.0) / (total + 1.0)
     return mean, np.sqrt(variance)
 
 
@@ -126,18 +139,25 @@ def column_costs(indices: np.ndarray, alpha: np.ndarray, resolution: float,
     """The cost of each column holding voxels with evidence (see the module's docstring);
     ``prior``: the map's prior concentration per class, which is not evidence."""
     indices = np.asarray(indices, dtype=np.int64).reshape(-1, 3)
-    alpha = np.asarray(alpha, dtype=np.float64)
-    evident = alpha.sum(axis=1) - prior * alpha.shape[1] >= profile.min_evidence
-    indices, alpha = indices[evident], alpha[evident]
+    alpha = np.asarray(alpha)
+    if not np.issubdtype(alpha.dtype, np.floating):
+        alpha = alpha.astype(np.float64)
+    moments = _moments(alpha, profile)
+    evident = moments[:, 0] - prior * alpha.shape[1] >= profile.min_evidence
+    indices, moments = indices[evident], moments[evident]
     if not len(indices):
         empty = np.zeros((0, 2), np.int64)
         return ColumnCosts(empty, np.zeros(0, np.int8), np.zeros(0, np.int64))
-    mean, sigma = voxel_costs(alpha, profile)
+    mean, sigma = _cost_moments(moments)
     risk = np.clip(mean + profile.risk_sigma * sigma, 0.0, LETHAL)
-    p = alpha / alpha.sum(axis=1, keepdims=True)
-    is_ground = p[:, list(profile.ground_classes)].sum(axis=1) > GROUND_SHARE
-    cells, column = np.unique(indices[:, :2], axis=0, return_inverse=True)
+    is_ground = moments[:, 3] / moments[:, 0] > GROUND_SHARE
+    is_empty = moments[:, 4] / moments[:, 0] > 0.5
+    # Columns by a linear key (unique over one int64 is far faster than over rows).
+    low = indices[:, :2].min(axis=0)
+    span = indices[:, 1].max() - low[1] + 1
+    keys, column = np.unique((indices[:, 0] - low[0]) * span + (indices[:, 1] - low[1]), return_inverse=True)
     column = column.reshape(-1)
+    cells = np.stack([keys // span + low[0], keys % span + low[1]], axis=1)
     count = len(cells)
     z = indices[:, 2]
 
@@ -160,7 +180,7 @@ def column_costs(indices: np.ndarray, alpha: np.ndarray, resolution: float,
     cost = np.full(count, -np.inf)
     np.maximum.at(cost, column[counted], risk[counted])
     # Something in the band that is not empty space, or ground seen: the column is observed.
-    occupied = counted & (p[:, 0] <= 0.5)
+    occupied = counted & ~is_empty
     observed = np.zeros(count, bool)
     observed[column[occupied | surface]] = True
     values = np.where(observed & np.isfinite(cost), np.rint(np.clip(cost, 0, LETHAL)), UNKNOWN).astype(np.int8)

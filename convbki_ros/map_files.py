@@ -88,6 +88,10 @@ class MapFiles:
         self.last_save: str | None = None  # what the last save (or attempt) said
         self._file_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="convbki_files")
 
+    async def on_file_thread(self, job, *args):
+        """``job(*args)`` on the file thread, awaited (for other long jobs of the node's services)."""
+        return await self._on_file_thread(job, *args)
+
     async def _on_file_thread(self, job, *args):
         """``job(*args)`` on the file thread; the executor runs other callbacks while it works."""
         done = Future()

@@ -20,6 +20,7 @@ from convbki_core.io.map_file import MapFileError, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_core.warm_up import WarmUpReport, warm_up
+from convbki_ros.costmap_output import profile_of
 from convbki_ros.params import (
     KERNEL_DECIDES,
     REPLACED,
@@ -73,6 +74,7 @@ class MappingCore:
         self.queue = CloudQueue(max_pose_jump=node.param("max_pose_jump"), placer=self._place,
                                 locate=self._locate_by_tf if self.pose_source == "tf" else None)
         self.queue.transform_timeout = node.param("transform_timeout")
+        self.costmap_profile = profile_of(node, label_map.class_names)
         self.map_lock = threading.Lock()
         self.map_version = 0  # bumped by every change of the map
         # Bumped whenever the map loses evidence (a reset, a forgotten box) or is replaced by a load:
@@ -471,6 +473,12 @@ class MappingCore:
         with self.map_lock:
             indices, alpha = self.mapper.items()
             return indices, alpha, self.map_version
+
+    def window_items(self):
+        """(map_version, the sensor's position in the map, window voxels' indices, alpha): copies."""
+        with self.map_lock:
+            indices, alpha = self.mapper.window.items()
+            return self.map_version, self.position.copy(), indices, alpha
 
     def window_records(self, palette: np.ndarray):
         """(map_version, the sensor's position (x, y, z) in the map, records of the window's voxels)."""

@@ -28,6 +28,7 @@ import threading
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
+from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
@@ -100,6 +101,7 @@ class MapperNode(Node):
         self.create_service(Trigger, "~/export_ply", self.files.on_export_ply, callback_group=file_io)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=housekeeping)
         self.create_service(Trigger, "~/clear_box", self._on_clear_box, callback_group=housekeeping)
+        self.create_service(GetMap, "~/get_costmap", self._on_get_costmap, callback_group=file_io)
 
         # Housekeeping runs on the steady clock: with use_sim_time the ROS clock stops when a bag
         # pauses or ends, and the map must still be published and the counters reported.
@@ -233,6 +235,29 @@ class MapperNode(Node):
         response.success, response.message = True, f"map reset: forgot {forgotten} voxels{self._file_kept()}"
         self.get_logger().info(response.message)
         return response
+
+    async def _on_get_costmap(self, request, response):
+        """The whole map's costmap (nav_msgs/OccupancyGrid), computed on the file thread; an empty
+        grid and one warning when it would have more than costmap_max_cells cells."""
+        response.map = await self.files.on_file_thread(self._whole_costmap)
+        return response
+
+    def _whole_costmap(self):
+        from convbki_ros.costmap_output import occupancy_grid, whole_grid
+
+        indices, alpha, _ = self.core.map_copy()
+        mapper, frame = self.core.mapper, self.core.frame
+        if len(indices):
+            span = indices[:, :2].max(axis=0) - indices[:, :2].min(axis=0) + 1
+            cells, limit = int(span[0]) * int(span[1]), self.param("costmap_max_cells")
+            if cells > limit:
+                self.get_logger().warning(f"~/get_costmap: the whole map's grid would have {cells} cells "
+                                          f"({span[0]} x {span[1]}), more than costmap_max_cells = {limit}: "
+                                          "answered an empty grid; raise costmap_max_cells, or use "
+                                          "semantic_map/costmap around the robot")
+                indices, alpha = indices[:0], alpha[:0]
+        grid = whole_grid(indices, alpha, mapper.resolution, mapper.prior, self.core.costmap_profile)
+        return occupancy_grid(grid, self.get_clock().now().nanoseconds, frame)
 
     def _on_clear_box(self, request, response):
         box = [optional(self, name) for name in ("clear_box_min", "clear_box_max")]

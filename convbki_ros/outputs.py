@@ -10,6 +10,8 @@ What each topic costs follows what it shows, never the whole map, except the who
   bounded whatever the map's size;
 * ``semantic_map/local`` (after updates, at most every ``local_period``): the whole window
   around the sensor;
+* ``semantic_map/costmap`` (with the cycle, latched, when the map changed): the planner's
+  nav_msgs/OccupancyGrid around the sensor (``costmap_output``);
 * ``semantic_map`` and ``semantic_map/variance`` (every ``map_period``, latched): the whole
   map, for late joiners and tools; sent only when it changed and someone listens. Its
   records are kept chunk by chunk (``ShownMap``) from the same changes the updates carry,
@@ -26,12 +28,14 @@ import threading
 import time
 
 import numpy as np
+from nav_msgs.msg import OccupancyGrid
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from convbki_core.records import RECORD, change_records, view_records
 from convbki_core.shown_map import ShownMap
 from convbki_ros.cloud_encoding import encode_cloud, records_cloud
+from convbki_ros.costmap_output import occupancy_grid, rolling_grid
 
 LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -58,6 +62,9 @@ class MapOutputs:
             durability=DurabilityPolicy.VOLATILE))
         self.view = node.create_publisher(PointCloud2, "semantic_map/view", LATCHED)
         self.local = node.create_publisher(PointCloud2, "semantic_map/local", 2)
+        self.costmap = node.create_publisher(OccupancyGrid, "semantic_map/costmap", LATCHED)
+        self.costmap_version_shown = -1
+        self.costmap_sent = False  # then kept current, as the other latched topics
         self.changed = threading.Condition()
         self.due = dict.fromkeys(OUTPUTS, False)
         self.refresh_updates = False  # the shown map changed as a whole (max_variance): send every voxel
@@ -151,8 +158,23 @@ class MapOutputs:
             self.view.publish(records_cloud(stamp, frame, RECORD, len(records), _copy_into(records)))
             self.view_version_shown = version
             self.view_sent = sent = True
+        if (self.costmap.get_subscription_count() or self.costmap_sent) and \
+                self.costmap_version_shown != self.core.map_version:
+            self._publish_costmap()
+            sent = True
         if sent:
             self.node.status.published("cycle", 1e3 * (time.perf_counter() - started))
+
+    def _publish_costmap(self) -> None:
+        version, position, indices, alpha = self.core.window_items()
+        mapper = self.core.mapper
+        bounds = self.node.param("local_bounds")
+        grid = rolling_grid(indices, alpha, mapper.resolution, mapper.prior, self.core.costmap_profile, position,
+                            self.node.param("costmap_size"), bounds[3] - bounds[0])
+        stamp = self.core.last_stamp or self.node.get_clock().now().nanoseconds
+        self.costmap.publish(occupancy_grid(grid, stamp, self.core.frame))
+        self.costmap_version_shown = version
+        self.costmap_sent = True
 
     def _shown(self, records: np.ndarray) -> np.ndarray:
         """The records of voxels in the shown map: not empty (class 0, free space) and, with a

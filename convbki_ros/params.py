@@ -120,6 +120,12 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("local_period", 0.5, "shortest time between two semantic_map/local messages: after updates, the "
          "newest window is sent at most this often; seconds; 0.0 = after every update", 0.0, 3600.0,
          run_time=True),
+    Spec("costmap_profile", "car", "traversability profile of semantic_map/costmap and ~/get_costmap: car or "
+         "small_robot (share/convbki_ros/config/traversability), or a profile YAML file's path"),
+    Spec("costmap_size", 0.0, "edge of the square semantic_map/costmap rolling with the sensor; metres; 0.0 = the "
+         "local window's footprint (local_bounds' x extent), and at most that", 0.0, 1e5),
+    Spec("costmap_max_cells", 25_000_000, "~/get_costmap refuses (one line) a whole-map grid of more cells than this; "
+         "count", 1, 1_000_000_000, run_time=True),
     Spec("cloud_queue_size", 100, "clouds waiting to be integrated or for their odometry (10 s at 10 Hz); when "
          "full the oldest is dropped; count", 1, 10000, run_time=True),
     Spec("cloud_queue_megabytes", 1024.0, "bytes of cloud data the queue may hold; when full the oldest cloud is "

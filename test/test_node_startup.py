@@ -27,6 +27,10 @@ BAD_STARTS = {
                             r"params file /nowhere/params.yaml: No such file or directory"),
     "broken params file": (BROKEN_YAML, r"params file .*broken_params_file.yaml is not valid YAML"),
     "mixed list": (MIXED_LIST, r"ROS 2 could not start: .*Couldn't parse params file"),
+    "costmap profile": (["-p", "costmap_profile:=/nowhere/robot.yaml"],
+                        r"parameter costmap_profile: /nowhere/robot.yaml: cannot read the traversability profile"),
+    "tf without map_frame": (["-p", "pose_source:=tf"], r"pose_source tf needs map_frame"),
+    "pose source": (["-p", "pose_source:=gps"], r"parameter pose_source: 'gps' is not one of odometry, tf"),
 }
 if not torch.cuda.is_available():
     BAD_STARTS["no cuda"] = (["-p", "device:=cuda"], r"device 'cuda' requested, but .* no CUDA")
