@@ -101,3 +101,37 @@ def test_both_shipped_profiles_load():
     small = load_profile(config_dir() / "traversability" / "small_robot.yaml", NAMES)
     assert small.class_costs[CLASS["sidewalk"]] == 0 and CAR.class_costs[CLASS["sidewalk"]] == 70
     assert small.robot_height < CAR.robot_height
+
+
+def test_a_car_that_drove_off_leaves_no_lethal_cells_behind_it():
+    """One scan sees a car on the road; then the road is seen with the car gone, the rays to it
+    and to a wall behind crossing where the car was. Free space empties its voxels: its cells,
+    all lethal at first, are lethal no more."""
+    from convbki_core.mapper import ConvBKIMapper
+    from convbki_core.paths import kernel_path
+
+    label_map = load_label_map("semantic_kitti")
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=((-20, -12, -3), (20, 12, 4)),
+                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True)
+    grid = np.stack(np.meshgrid(np.arange(-2, 16, 0.15), np.arange(-4, 4, 0.15)), -1).reshape(-1, 2)
+    ground = np.column_stack([grid, np.full(len(grid), -1.6)])
+    car = np.random.default_rng(1).uniform([4, -1, -1.5], [6, 1, -0.3], (1500, 3))
+    hidden = (ground[:, 0] > 3.8) & (ground[:, 0] < 6.2) & (np.abs(ground[:, 1]) < 1.2)
+    wall_grid = np.stack(np.meshgrid(np.arange(-4, 4, 0.15), np.arange(-1.6, 2.0, 0.15)), -1).reshape(-1, 2)
+    wall = np.column_stack([np.full(len(wall_grid), 19.0), wall_grid])
+
+    def car_cells() -> np.ndarray:
+        columns = column_costs(*mapper.items(), RESOLUTION, CAR, 0.001)
+        centres = (columns.cells + 0.5) * RESOLUTION
+        return columns.cost[(centres[:, 0] > 4.1) & (centres[:, 0] < 5.9) & (np.abs(centres[:, 1]) < 0.9)]
+
+    raw = np.concatenate([np.full((~hidden).sum(), 40), np.full(len(car), 10)]).astype(np.uint32)
+    mapper.integrate(np.concatenate([ground[~hidden], car]).astype(np.float32), label_map.to_learning(raw),
+                     np.eye(4))
+    seen = len(car_cells())
+    assert seen > 50 and (car_cells() == 100).all()
+    later = np.concatenate([ground, wall]).astype(np.float32)
+    raw = np.concatenate([np.full(len(ground), 40), np.full(len(wall), 50)]).astype(np.uint32)
+    for _ in range(20):
+        mapper.integrate(later, label_map.to_learning(raw), np.eye(4))
+    assert len(car_cells()) == seen and car_cells().max() < 100, car_cells()
