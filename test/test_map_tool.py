@@ -304,3 +304,35 @@ def test_costmap_refuses_a_bad_profile_in_one_line(maps, tmp_path, capsys):
                           str(bad), "--quiet"]) == 2
     assert one_line_error(capsys) == f"map_tool: error: {bad}: cost of 'car' must be a number from 0 to 100, got 300"
     assert not (tmp_path / "g.npz").exists()
+
+
+def test_evaluate_scores_the_costmap_against_the_ground_truth(tmp_path, capsys):
+    """--costmap-report: the JSON has the map's and the baseline's group scores and planning
+    check, their picture is written, and the scores are those of costmap_eval on the saved map."""
+    from convbki_core.costmap import load_profile
+    from convbki_core.costmap_eval import GroundTruthVoxels, grids_for, score_grid
+    from convbki_core.paths import traversability_profile
+
+    write_drive(tmp_path / "data", "08", frames=4)
+    report, saved = tmp_path / "costmap.json", tmp_path / "final.npz"
+    assert evaluate.main(["--dataset", str(tmp_path / "data"), "--sequence", "08", "--report", str(tmp_path / "r.json"),
+                          "--costmap-report", str(report), "--save-map", str(saved), "--quiet", *SMALL_WINDOW]) == 0
+    assert "costmap (car) against the ground truth's" in capsys.readouterr().out
+    written = json.loads(report.read_text())
+    assert written["profile"] == "car" and set(written) >= {"map", "baseline"}
+    assert set(written["map"]["planning"]) >= {"pairs", "crossing_truth_lethal", "length_ratio_median"}
+    assert report.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+
+    dataset = SemanticKittiSequence(tmp_path / "data", "08")
+    truth = GroundTruthVoxels(dataset.label_map.num_classes, 0.2)
+    for frame in dataset:
+        truth.add(transform(frame.points, frame.pose), frame.ground_truth, frame.moving, frame.pose[:3, 3], BOUNDS)
+    metadata, indices, alpha = read_map(saved)
+    grids = grids_for(indices, alpha, truth, 0.2, metadata["prior"],
+                      load_profile(traversability_profile("car"), dataset.label_map.class_names))
+    scores = score_grid(grids["map"].values, grids["truth"].values)
+    assert written["map"]["precision"] == scores.precision and written["map"]["recall"] == scores.recall
+
+
+def transform(points, pose):
+    return points @ pose[:3, :3].T + pose[:3, 3]

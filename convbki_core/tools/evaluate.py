@@ -82,7 +82,7 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
                     show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto",
                     free_space: bool = True, input_calibration: CalibrationStats | None = None,
                     tempered_calibration: CalibrationStats | None = None,
-                    max_concentration: float = DEFAULT_LIMIT) -> KernelRun:
+                    max_concentration: float = DEFAULT_LIMIT, truth_voxels=None) -> KernelRun:
     """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
 
     ``input_scores`` (when given) also receives the input segmentation's confusion counts, and
@@ -92,6 +92,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
     ``labels_folder`` (when given, an existing folder) receives one NNNNNN.label per frame.
     Where the ground truth marks moving objects, the run also counts the map's trail voxels.
     ``max_concentration``: the clamping limit with free space (``ConvBKIMapper``).
+    ``truth_voxels`` (a ``costmap_eval.GroundTruthVoxels``, when given) receives every frame's
+    ground-truth points, for the costmap's report.
     """
     config = load_kernel_file(kernel_file)
     label_map = dataset.label_map
@@ -133,6 +135,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
             write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
         if frame.moving is not None and label_map.movable_classes:
             swept.add(points_map, frame.moving)
+        if truth_voxels is not None:
+            truth_voxels.add(points_map, frame.ground_truth, frame.moving, frame.pose[:3, 3], local_bounds)
     if swept.moving_points:
         voxels = mapper.voxels()
         run_result.trail_voxels = swept.trail_voxels(voxels.indices, voxels.label, label_map.movable_classes)
@@ -246,6 +250,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "left; 0 = never (default: %(default)s, as the node)")
     p.add_argument("--prior", default=DEFAULT_PRIOR, type=float,
                    help="initial concentration of every class in a new voxel (default: %(default)s)")
+    p.add_argument("--costmap-report", default=None, metavar="JSON",
+                   help="also score the final map's traversability costmap (the node's semantic_map/costmap) "
+                   "against the ground truth's, with the projected-occupancy baseline and a planning check; "
+                   "writes JSON and a picture beside it")
+    p.add_argument("--costmap-profile", default="car", metavar="PROFILE",
+                   help="traversability profile for --costmap-report: car, small_robot or a YAML file (default: car)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -304,6 +314,18 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
             raise UserError(f"{args.write_labels}: not a folder (--write-labels names a dataset root to write)")
         labels_folder = outputs.staging(Path(args.write_labels) / "sequences" / dataset.sequence / "predictions")
     label_map = dataset.label_map
+    costmap_profile = truth_voxels = None
+    if args.costmap_report:
+        from convbki_core.costmap import ProfileError, load_profile
+        from convbki_core.costmap_eval import GroundTruthVoxels
+        from convbki_core.paths import traversability_profile
+
+        output_folder(args.costmap_report, "costmap report")
+        try:
+            costmap_profile = load_profile(traversability_profile(args.costmap_profile), label_map.class_names)
+        except ProfileError as error:
+            raise UserError(str(error)) from None
+        truth_voxels = GroundTruthVoxels(label_map.num_classes, load_kernel_file(kernels[0]).resolution)
     input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
     # The input has a class distribution only when it is given as probabilities.
     input_calibration = (CalibrationStats(label_map.num_classes, label_map.ignore_classes, thresholds=None)
@@ -323,7 +345,8 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                                     update_path=args.update_path, free_space=args.free_space,
                                     max_concentration=args.max_concentration,
                                     input_calibration=input_calibration if number == 0 else None,
-                                    tempered_calibration=tempered[1] if number == 0 and tempered else None))
+                                    tempered_calibration=tempered[1] if number == 0 and tempered else None,
+                                    truth_voxels=truth_voxels if number == 0 else None))
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,
                           input_calibration, tempered)
 
@@ -353,6 +376,10 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                                  title=f"sequence {dataset.sequence}, {len(positions)} frames, "
                                  f"{Path(run_result.kernel_file).stem}")
         pictures.append(reliability_path)
+    costmap_lines = []
+    if args.costmap_report:
+        costmap_lines = write_costmap_report(runs[0].mapper, truth_voxels, costmap_profile, label_map,
+                                             Path(args.costmap_report), outputs)
     if args.save_map:
         runs[0].mapper.save(outputs.file(args.save_map))  # atomic; removed again if the report fails
     # The report and the labels last: they are what scripts look for to tell that a run finished.
@@ -379,12 +406,52 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                 line += (f"; input at temperature {scaled['temperature']:g}: ECE {_number(scaled['ece'])}, "
                          f"NLL {_number(scaled['nll'])}, Brier {_number(scaled['brier'])}")
         print(line)
+    for line in costmap_lines:
+        print(line)
     print(f"report: {report_path}; pictures: {', '.join(map(str, pictures))}")
     if args.write_labels:
         print(f"labels: {Path(args.write_labels) / 'sequences' / dataset.sequence / 'predictions'}")
     if args.save_map:
         print(f"map: {args.save_map} ({len(runs[0].mapper)} voxels)")
     return 0
+
+
+def write_costmap_report(mapper, truth_voxels, profile, label_map, path: Path, outputs: NewOutputs) -> list[str]:
+    """Score the map's costmap, and the projected-occupancy baseline, against the ground truth's
+    (``costmap_eval``); write the JSON and a picture (map, baseline, truth; one planned path);
+    return the lines to print."""
+    from convbki_core.costmap_eval import grids_for, planning_check, road_cells, score_grid
+    from convbki_core.tools.plots import save_costmap_pictures
+
+    indices, alpha = mapper.items()
+    grids = grids_for(indices, alpha, truth_voxels, mapper.resolution, mapper.prior, profile)
+    road = road_cells(truth_voxels, grids["truth"], label_map.class_names.index("road"))
+    report = {"profile": profile.name, "resolution": mapper.resolution, "cells": int(grids["truth"].values.size)}
+    lines = [f"costmap ({profile.name}) against the ground truth's, on "
+             f"{int((grids['truth'].values >= 0).sum())} observed cells:"]
+    for name in ("map", "baseline"):
+        scores = score_grid(grids[name].values, grids["truth"].values)
+        check = planning_check(grids[name].values, grids["truth"].values, road)
+        report[name] = {"precision": scores.precision, "recall": scores.recall,
+                        "unknown_share": scores.unknown_share, "planning": check.summary()}
+        summary = check.summary()
+
+        def pct(value):
+            return "-" if value is None else f"{100 * value:.1f}"
+
+        lines.append(f"  {name:8s} precision free {pct(scores.precision['free'])} costly "
+                     f"{pct(scores.precision['costly'])} lethal {pct(scores.precision['lethal'])}; recall free "
+                     f"{pct(scores.recall['free'])} costly {pct(scores.recall['costly'])} lethal "
+                     f"{pct(scores.recall['lethal'])}; unknown {pct(scores.unknown_share)} %; paths "
+                     f"{summary['planned_on_both']}/{summary['pairs']}, crossing truth-lethal "
+                     f"{summary['crossing_truth_lethal']}, length ratio median "
+                     f"{_number(summary['length_ratio_median'])}")
+    picture = path.with_suffix(".png")
+    save_costmap_pictures({name: grids[name] for name in ("map", "baseline", "truth")}, road,
+                          outputs.file(picture), title=f"costmap, {profile.name} profile")
+    atomic_write_bytes(outputs.file(path), (json.dumps(report, indent=2) + "\n").encode())
+    lines.append(f"costmap report: {path}; picture: {picture}")
+    return lines
 
 
 def _number(value: float | None) -> str:

@@ -194,3 +194,56 @@ def save_kernel_picture(kernel: ConvBKIKernel, class_ids: Sequence[int], class_n
         axis.set_ylabel("dz [m]")
     figure.colorbar(image, ax=list(axes[0]), fraction=0.03)
     _save(figure, path)
+
+
+def costmap_colours():
+    """Costs 0..100: free white, costly yellow to red, lethal black; unknown grey."""
+    from matplotlib.colors import LinearSegmentedColormap
+
+    colours = LinearSegmentedColormap.from_list("cost", [(0.0, "white"), (0.01, "#fff3b0"), (0.6, "#e8590c"),
+                                                         (0.99, "#c92a2a"), (1.0, "black")])
+    colours.set_bad("#9e9e9e")
+    return colours
+
+
+def save_costmap_pictures(grids: dict, road: np.ndarray | None, path: str | Path, title: str = "") -> None:
+    """Costmaps side by side (``{name: costmap.CostGrid}``, one extent), north up, with one
+    path planned on each (between the two road cells furthest apart that both grids' planner
+    reaches)."""
+    from convbki_core.costmap_eval import _dijkstra, group_of
+
+    plt = _pyplot()
+    figure, axes = plt.subplots(1, len(grids), figsize=(5 * len(grids), 5), squeeze=False)
+    path_cells = None
+    if road is not None and road.any():
+        # The two road cells furthest apart among a few that the first grid's planner connects.
+        free = road & np.all([group_of(grid.values) == 0 for grid in grids.values()], axis=0)
+        cells = np.flatnonzero(free)
+        first = next(iter(grids.values())).values
+        rng = np.random.default_rng(0)
+        best = 0.0
+        for _ in range(30 if len(cells) >= 2 else 0):
+            a, b = rng.choice(cells, 2, replace=False)
+            distance = np.hypot(*np.subtract(divmod(a, free.shape[1]), divmod(b, free.shape[1])))
+            if distance > best and len(_dijkstra(first, int(a), int(b), 25.0)[1]):
+                best, path_cells = distance, (a, b)
+    for axis, (name, grid) in zip(axes[0], grids.items()):
+        values = np.ma.masked_less(grid.values.astype(np.float32), 0)
+        height, width = grid.values.shape
+        low = grid.origin_metres
+        extent = (low[0], low[0] + width * grid.resolution, low[1], low[1] + height * grid.resolution)
+        axis.imshow(values, cmap=costmap_colours(), vmin=0, vmax=100, origin="lower", interpolation="nearest",
+                    extent=extent)
+        if path_cells is not None:
+            _, planned = _dijkstra(grid.values, int(path_cells[0]), int(path_cells[1]), 25.0)
+            if len(planned):
+                ys, xs = np.divmod(planned, width)
+                axis.plot(low[0] + (xs + 0.5) * grid.resolution, low[1] + (ys + 0.5) * grid.resolution, "c-",
+                          linewidth=1.5)
+        axis.set_title(name)
+        axis.set_xlabel("x (m)")
+        axis.set_ylabel("y (m)")
+        axis.set_aspect("equal")
+    if title:
+        figure.suptitle(title)
+    _save(figure, path)
