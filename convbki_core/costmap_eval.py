@@ -5,7 +5,9 @@
   evidence of its class), without the points of moving objects: a car that drove by is no
   obstacle where it once was. Its costs have no risk margin: the truth is not uncertain.
 * **Class groups** of a cost, as a planner reads them: free (<= ``FREE_MAX``, map_server's
-  free threshold), lethal (>= ``LETHAL_MIN``, its occupied threshold) and costly between.
+  free threshold), lethal (>= ``LETHAL_MIN``: what stands in the robot's way, 100 in a
+  profile, less the doubt of a map that is not quite sure) and costly between (the
+  profiles' 50-70 surfaces, a car's sidewalk).
   Per group, precision and recall over the cells observed in the ground truth; the share of
   those cells the map leaves unknown.
 * **The baseline** users have today: octomap_server's projected occupancy, any non-empty
@@ -29,7 +31,7 @@ import numpy as np
 from convbki_core.costmap import LETHAL, UNKNOWN, CostGrid, TraversabilityProfile, column_costs, rasterise
 
 FREE_MAX = 25
-LETHAL_MIN = 65
+LETHAL_MIN = 90
 COST_WEIGHT = 25.0
 GROUPS = ("free", "costly", "lethal")
 
@@ -138,7 +140,7 @@ def _dijkstra(values: np.ndarray, start: int, goal: int, weight: float) -> tuple
                 continue
             other = ny * width + nx
             value = flat[other]
-            if value < 0 or value >= 65:
+            if value < 0 or value >= 90:  # LETHAL_MIN
                 continue
             step = (1.4142135623730951 if dy and dx else 1.0) * (1.0 + value / weight)
             if cost + step < best[other]:

@@ -5,15 +5,15 @@ import numpy as np
 from convbki_core.costmap_eval import GroundTruthVoxels, _dijkstra, group_of, planning_check, score_grid
 
 
-def test_groups_follow_map_servers_thresholds():
-    assert group_of(np.array([-1, 0, 25, 26, 64, 65, 100])).tolist() == [-1, 0, 0, 1, 1, 2, 2]
+def test_groups_free_up_to_25_lethal_from_90():
+    assert group_of(np.array([-1, 0, 25, 26, 89, 90, 100])).tolist() == [-1, 0, 0, 1, 1, 2, 2]
 
 
 def test_scores_count_cells_both_observed_and_the_unknown_share():
-    truth = np.array([[0, 0, 100, 70], [0, -1, 100, 0]])
+    truth = np.array([[0, 0, 100, 95], [0, -1, 100, 0]])
     grid = np.array([[0, 50, 100, -1], [100, 0, 100, 0]])
     scores = score_grid(grid, truth)
-    # (70 is lethal: >= 65.) Both observed: (0,0) free/free, (0,1) costly/free, (0,2) lethal/lethal, (1,0) lethal/free,
+    # Both observed: (0,0) free/free, (0,1) costly/free, (0,2) lethal/lethal, (1,0) lethal/free,
     # (1,2) lethal/lethal, (1,3) free/free; (0,3) unknown in the grid: 1 of 7 truth cells.
     assert scores.observed_cells == 6 and abs(scores.unknown_share - 1 / 7) < 1e-12
     assert scores.precision == {"free": 1.0, "costly": 0.0, "lethal": 2 / 3}
