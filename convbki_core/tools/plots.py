@@ -213,7 +213,7 @@ def save_costmap_pictures(grids: dict, road: np.ndarray | None, path: str | Path
     from convbki_core.costmap_eval import _dijkstra, group_of
 
     plt = _pyplot()
-    figure, axes = plt.subplots(1, len(grids), figsize=(5 * len(grids), 5), squeeze=False)
+    figure, axes = plt.subplots(1, len(grids), figsize=(6 * len(grids), 6), squeeze=False)
     path_cells = None
     if road is not None and road.any():
         # The two road cells furthest apart among a few that the first grid's planner connects.

@@ -80,6 +80,30 @@ def score_final_map(map_file: Path, dataset: SemanticKittiSequence) -> dict:
             "moving_points": swept.moving_points, "mapper": mapper}
 
 
+def save_costmap_picture(map_file: Path, label_map, path: Path) -> None:
+    """The saved map's costmap for the car profile (what the node's ~/get_costmap answers), with
+    a path planned between two road cells far apart."""
+    from convbki_core.costmap import column_costs, load_profile, rasterise
+    from convbki_core.io.map_file import read_map
+    from convbki_core.paths import traversability_profile
+    from convbki_core.tools.plots import save_costmap_pictures
+
+    metadata, indices, alpha = read_map(map_file)
+    resolution = float(metadata["resolution"])
+    profile = load_profile(traversability_profile("car"), label_map.class_names)
+    columns = column_costs(indices, alpha, resolution, profile, float(metadata["prior"]))
+    grid = rasterise(columns, resolution)
+    # Road cells: columns whose ground voxel is most likely road.
+    road = np.zeros(grid.values.shape, bool)
+    ground_voxels = {tuple(cell) + (int(z),) for cell, z in zip(columns.cells.tolist(), columns.ground)}
+    keep = np.array([tuple(i) in ground_voxels for i in indices.tolist()])
+    on_road = keep & (alpha.argmax(axis=1) == label_map.class_names.index("road"))
+    local = indices[on_road, :2] - grid.origin
+    road[local[:, 1], local[:, 0]] = True
+    save_costmap_pictures({"costmap (car profile)": grid}, road, path,
+                          title="semantic_map/costmap of the demo's map: 0 free (white) .. 100 lethal (black)")
+
+
 def _demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if args.dataset:  # a wrong --dataset is reported before anything is created
@@ -155,6 +179,8 @@ def _demo(args: argparse.Namespace) -> int:
     title = (f"convbki_ros demo: {len(dataset)} scans, {scores['voxels']:,} voxels; mIoU input "
              f"{scores['input']['miou']:.3f} -> map {scores['map']['miou']:.3f}")
     save_map_picture(scores.pop("mapper").voxels(), dataset.label_map, 0.2, picture, title)
+    costmap_picture = out / "costmap.png"
+    save_costmap_picture(map_file, dataset.label_map, costmap_picture)
     summary = {"scans": len(dataset), "integrated": counters[1], "dropped": counters[2], "voxels": scores["voxels"],
                "input_miou": scores["input"]["miou"], "map_miou": scores["map"]["miou"],
                "moving_points": scores["moving_points"], "trail_voxels": scores["trail_voxels"],
@@ -168,7 +194,7 @@ def _demo(args: argparse.Namespace) -> int:
     for name, value in scores["input"]["iou"].items():
         print(f"  {name:<14}{100 * value:>10.1f}{100 * scores['map']['iou'][name]:>10.1f}")
     print(f"  {'mIoU':<14}{100 * scores['input']['miou']:>10.1f}{100 * scores['map']['miou']:>10.1f}")
-    print(f"  map: {map_file}  ply: {out / 'map.ply'}  picture: {picture}  bag: {bag}")
+    print(f"  map: {map_file}  ply: {out / 'map.ply'}  pictures: {picture}, {costmap_picture}  bag: {bag}")
     print(f"  done in {summary['seconds']:.0f} s")
     return 0
 
