@@ -88,6 +88,9 @@ def test_ros2_param_service_and_topic_commands_work_against_the_node(tmp_path):
         assert re.search(r"success=True, message=.wrote \d+ voxels to .*\.ply.\)", answers["export_ply"]), answers
         assert re.search(r"success=True, message=.forgot \d+ voxels in the box", answers["clear_box"]), answers
         assert re.search(r"success=True, message=.map reset: forgot \d+ voxels", answers["reset"]), answers
+        result = ros2(domain, f"service call {node}/get_costmap nav_msgs/srv/GetMap")
+        assert result.returncode == 0 and "map=nav_msgs.msg.OccupancyGrid(" in result.stdout, result
+        assert re.search(r"frame_id='map'.*resolution=0\.2", result.stdout.replace("\n", " ")), result.stdout[:2000]
 
         # -- the QoS of every topic, as docs/node.md's table says
         expected = {  # topic: (publishers, subscribers, node's endpoint: reliability, durability)
@@ -100,6 +103,7 @@ def test_ros2_param_service_and_topic_commands_work_against_the_node(tmp_path):
             "/semantic_map/view": (1, 0, "RELIABLE", "TRANSIENT_LOCAL"),
             "/semantic_map/updates": (1, 0, "RELIABLE", "VOLATILE"),
             "/semantic_map/local": (1, 0, "RELIABLE", "VOLATILE"),
+            "/semantic_map/costmap": (1, 0, "RELIABLE", "TRANSIENT_LOCAL"),
         }
         for topic, (publishers, subscribers, reliability, durability) in expected.items():
             text = topic_info(domain, topic, publishers, subscribers)
