@@ -48,6 +48,8 @@ INTERFACES = {
     "diagnostic_msgs/msg/DiagnosticArray": ["std_msgs/Header header", "DiagnosticStatus[] status"],
     "std_srvs/srv/Trigger": ["---", "bool success", "string message"],
     "rosgraph_msgs/msg/Clock": ["builtin_interfaces/Time clock"],
+    "nav_msgs/msg/OccupancyGrid": ["std_msgs/Header header", "MapMetaData info", "int8[] data"],
+    "nav_msgs/srv/GetMap": ["---", "OccupancyGrid map"],
     # TF (the pose source `tf`, a cloud's mount)
     "tf2_msgs/msg/TFMessage": ["geometry_msgs/TransformStamped[] transforms"],
     # what launch_ros imports
