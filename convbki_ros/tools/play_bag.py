@@ -52,11 +52,12 @@ LATCHED_TOPICS = ("/tf_static",)  # replayed transient local, whatever the bag r
 NOT_DELIVERED = 1  # exit code: some messages were not acknowledged by a subscriber
 BEHIND_S = 1.0  # this far behind the bag's pace (in wall seconds), the replay resumes from where it is
 FLUSH_TIMEOUT_S = 10.0  # how long the end waits for acknowledgements
-SETTLE_S = 1.0  # after a pause: how long to watch for subscribers that DDS expires on resuming
+SETTLE_S = 3.0  # after a pause: how long to watch for subscribers that DDS expires on resuming (an announcement period)
 REDISCOVERY_S = 10.0  # after a pause: how long to wait for them to be found again
 MATCHING_S = 10.0  # at the start: how much longer to wait for a subscriber already discovered to match
 DEFAULT_NODE = "/convbki_mapper"
 NODE_SILENT_S = 15.0  # with --wait-for-node: the node sent no /diagnostics for this long: it is gone
+LOST_AFTER_S = 10.0  # with --wait-for-node: clouds the node has not received after this long without progress are lost
 NODE_START_TIMEOUT_S = 120.0  # a node on a fresh install compiles its kernels before it reports
 # Message types sent from the bulk participant (see the module's docstring).
 BULK_TYPES = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/PointCloud", "sensor_msgs/msg/Image",
@@ -204,6 +205,9 @@ class NodePacer:
         self.heard = time.monotonic()
         self.baseline: NodeProgress | None = None
         self.published = 0
+        self.lost = 0  # clouds given up as lost: sent, never received by the node
+        self.progress_at = time.monotonic()  # when the node last received a cloud, or one was sent
+        self.received_seen = 0
         self.dropped = self.missing = 0  # set by finish()
         self.first_sent: float | None = None
         self.executor = SingleThreadedExecutor(context=node.context)
@@ -242,10 +246,26 @@ class NodePacer:
         assert self.latest is not None
         return max(1, min(DEPTH, self.latest.queue_limit) // 2)
 
-    def in_flight(self) -> int:
+    def received(self) -> int:
         assert self.latest is not None and self.baseline is not None
         received = self.latest.scans_in - self.baseline.scans_in
-        return max(0, self.published - received) + self.latest.queue
+        if received > self.received_seen:
+            self.received_seen, self.progress_at = received, time.monotonic()
+        return received
+
+    def in_flight(self) -> int:
+        return max(0, self.published - self.lost - self.received()) + self.latest.queue
+
+    def _give_up_stalled(self) -> bool:
+        """Clouds sent that the node has not received while it went LOST_AFTER_S without
+        receiving any are lost (DDS lost them, e.g. after the player was stopped): counted, and
+        the replay goes on. True when some were given up now."""
+        waiting = self.published - self.lost - self.received()
+        if waiting <= 0 or time.monotonic() - self.progress_at < LOST_AFTER_S:
+            return False
+        self.lost += waiting
+        self.progress_at = time.monotonic()
+        return True
 
     def _check_alive(self) -> None:
         silent = time.monotonic() - self.heard
@@ -259,6 +279,7 @@ class NodePacer:
             if not ok():
                 return False
             self._check_alive()
+            self._give_up_stalled()
             self._spin(0.05)
         return True
 
@@ -266,16 +287,18 @@ class NodePacer:
         if self.first_sent is None:
             self.first_sent = time.monotonic()
         self.published += clouds
+        self.progress_at = time.monotonic()
 
     def finish(self, ok: Callable[[], bool]) -> str:
         """Wait until the node has received every cloud sent and emptied its queue (or stops
         reporting); what it did with them, in one line."""
         while ok():
             latest = self.latest
-            received = latest.scans_in - self.baseline.scans_in
-            if received >= self.published and latest.integrated + latest.dropped >= latest.scans_in:
-                break  # every cloud sent arrived, and every cloud that arrived was integrated or dropped
+            received = self.received()
+            if received >= self.published - self.lost and latest.integrated + latest.dropped >= latest.scans_in:
+                break  # every cloud sent arrived (or was given up), every one that arrived was dealt with
             self._check_alive()
+            self._give_up_stalled()
             self._spin(0.1)
         latest, baseline = self.latest, self.baseline
         dropped = latest.dropped - baseline.dropped
