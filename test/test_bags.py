@@ -419,7 +419,7 @@ def test_a_paced_replay_and_a_paused_player_lose_nothing(dataset, tmp_path: Path
             process.send_signal(signal.SIGCONT)
             _, stderr = process.communicate(timeout=90)
         assert re.search(r"resumed 1 time\(s\) after falling behind the bag's pace .* the longest 2\d\.\d s", stderr)
-        # Nothing is lost, or, rarely (Fast DDS, after such a stop: seen twice in a dozen CI runs),
+        # Nothing is lost, or, rarely (after such a stop: seen in two of six full CI runs),
         # what was lost is said: the node's own counters against what was sent, and exit 1.
         received = int(re.search(r"play_bag: /convbki_mapper received (\d) of 4 clouds", stderr).group(1))
         stats = rig.wait_stats(lambda s: s.scans_in == 4 + received and s.integrated + s.dropped == s.scans_in)
