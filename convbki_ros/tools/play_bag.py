@@ -55,6 +55,10 @@ FLUSH_TIMEOUT_S = 10.0  # how long the end waits for acknowledgements
 SETTLE_S = 3.0  # after a pause: how long to watch for subscribers that DDS expires on resuming (an announcement period)
 REDISCOVERY_S = 10.0  # after a pause: how long to wait for them to be found again
 MATCHING_S = 10.0  # at the start: how much longer to wait for a subscriber already discovered to match
+# At the start, once the player's writers have matched: the subscriber's side matches them a
+# moment later (on a loaded machine, most of a second), and volatile messages sent in between
+# reach no one although the writer counts them delivered.
+MATCH_GRACE_S = 1.0
 DEFAULT_NODE = "/convbki_mapper"
 NODE_SILENT_S = 15.0  # with --wait-for-node: the node sent no /diagnostics for this long: it is gone
 LOST_AFTER_S = 10.0  # with --wait-for-node: clouds the node has not received after this long without progress are lost
@@ -126,7 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "have a subscriber (stops waiting 1 s after the first one matches), so "
                    "the first messages are not lost (default: %(default)s)")
     p.add_argument("--start-delay", default=0.0, type=seconds_arg, metavar="S",
-                   help="sleep S seconds more before the first message (default: %(default)s)")
+                   help="sleep S seconds more before the first message (default: %(default)s; a second is "
+                   "always given once subscribers matched, for their side to match too)")
     p.add_argument("--deserialize", action="store_true",
                    help="always deserialise and convert messages to the installed types "
                    "(slower; by default the bag's bytes are published unchanged when the "
@@ -415,7 +420,7 @@ class BagPlayer:
         self.typestore = {c.msgtype: bag_store if c.msgtype in bag_store.types else jazzy
                           for c in self.reader.connections}
 
-    def wait_for_subscribers(self, timeout: float) -> None:
+    def wait_for_subscribers(self, timeout: float) -> bool:
         """Block until every publisher has a subscriber, or ``timeout``. Topics nobody subscribes
         to are given up 1 s after the first match; one whose subscriber either participant has
         already discovered is waited for (the other participant is still matching it), up to
@@ -423,13 +428,13 @@ class BagPlayer:
         seconds to match, and what it sends before that reaches no one."""
         publishers = [*self.publishers.values(), *([self.clock_publisher] if self.clock_publisher else [])]
         if not publishers or timeout <= 0:
-            return
+            return False
         started = time.monotonic()
         first_match = None
         while time.monotonic() < started + timeout + MATCHING_S:
             pending = [p for p in publishers if p.get_subscription_count() == 0]
             if not pending:
-                return
+                return True
             if len(pending) < len(publishers) and first_match is None:
                 first_match = time.monotonic()
             discovered = [p for p in pending if any(node.count_subscribers(p.topic_name)
@@ -441,6 +446,7 @@ class BagPlayer:
         missing = [p.topic_name for p in publishers if p.get_subscription_count() == 0]
         if missing:
             self.node.get_logger().info(f"starting with no subscriber on {', '.join(missing)}")
+        return len(missing) < len(publishers)
 
     def _publish(self, channel: Channel, data: bytes, timestamp: int) -> None:
         if channel.raw:
@@ -609,8 +615,9 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
             if pacer is not None and not pacer.wait_for_node(NODE_START_TIMEOUT_S, rclpy.ok):
                 return 0
             player = BagPlayer(node, reader, args, bulk_node, pacer)
-            player.wait_for_subscribers(args.wait_subscribers)
-            if args.start_delay > 0 and not _sleep_until(time.monotonic() + args.start_delay, rclpy.ok):
+            matched = player.wait_for_subscribers(args.wait_subscribers)
+            delay = args.start_delay + (MATCH_GRACE_S if matched else 0.0)
+            if delay > 0 and not _sleep_until(time.monotonic() + delay, rclpy.ok):
                 return 0
             started = time.monotonic()
             sent = player.play(rclpy.ok)
