@@ -259,31 +259,6 @@ def _export_ply(args: argparse.Namespace) -> int:
     return 0
 
 
-def write_costmap_png(grid, path: Path) -> None:
-    """The grid as a picture, north up: unknown grey, free white, costly yellow to red, lethal black."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib import pyplot as plt
-    from matplotlib.colors import LinearSegmentedColormap
-
-    from convbki_core.io.atomic import atomic_write_with
-
-    colours = LinearSegmentedColormap.from_list("cost", [(0.0, "white"), (0.01, "#fff3b0"), (0.6, "#e8590c"),
-                                                         (0.99, "#c92a2a"), (1.0, "black")])
-    colours.set_bad("#9e9e9e")
-    values = np.ma.masked_less(grid.values.astype(np.float32), 0)
-    height, width = grid.values.shape
-    figure = plt.figure(figsize=(max(4.0, width / 100), max(4.0, height / 100)), dpi=100)
-    axes = figure.add_axes((0, 0, 1, 1))
-    low = grid.origin_metres
-    axes.imshow(values, cmap=colours, vmin=0, vmax=100, origin="lower", interpolation="nearest",
-                extent=(low[0], low[0] + width * grid.resolution, low[1], low[1] + height * grid.resolution))
-    axes.set_axis_off()
-    atomic_write_with(path, lambda handle: figure.savefig(handle, format="png"))
-    plt.close(figure)
-
-
 def _costmap(args: argparse.Namespace) -> int:
     from convbki_core.costmap import ProfileError, column_costs, load_profile, rasterise
     from convbki_core.io.atomic import atomic_write_with
@@ -310,7 +285,9 @@ def _costmap(args: argparse.Namespace) -> int:
         bar.update()
         bar.set_description(f"writing {out.name}")
         if out.suffix == ".png":
-            write_costmap_png(grid, out)
+            from convbki_core.tools.plots import save_costmap_pictures
+
+            save_costmap_pictures({f"costmap ({profile.name})": grid}, None, out)
         else:
             def write(handle) -> None:
                 np.savez_compressed(handle, values=grid.values, origin=grid.origin_metres,
