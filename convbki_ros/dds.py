@@ -5,7 +5,11 @@ PointCloud2 overflows the receiver's buffer and the small messages that arrive w
 (odometry) are lost until the next heartbeat repairs them, seconds later: the mapper then
 sees clouds without poses. The package ships a Fast DDS profile with a large shared-memory
 segment and 4 MB UDP buffers; the package's own processes use it unless the user chose a
-profile (``FASTDDS_DEFAULT_PROFILES_FILE``) or another middleware.
+profile or another middleware.
+
+Fast DDS 2.x (ROS 2 Jazzy's) reads the profile named by ``FASTRTPS_DEFAULT_PROFILES_FILE``;
+Fast DDS 3.x renamed the variable ``FASTDDS_DEFAULT_PROFILES_FILE``. Both are set, and a
+profile the user named in either is left alone.
 """
 
 from __future__ import annotations
@@ -15,7 +19,8 @@ from pathlib import Path
 
 from convbki_core.paths import config_dir
 
-PROFILE_VARIABLE = "FASTDDS_DEFAULT_PROFILES_FILE"
+# The variable Fast DDS 2.x reads first, then the one of Fast DDS 3.x.
+PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 
 
 def large_data_profile(player: bool = False) -> Path:
@@ -30,13 +35,14 @@ def use_large_data_profile(player: bool = False) -> str | None:
     instead of Fast DDS's 20 s, so that subscribers do not forget a player stopped for a while
     (SIGSTOP, Ctrl-Z, a stalled machine) and lose what it sends when it resumes.
     """
-    if os.environ.get(PROFILE_VARIABLE):
+    if any(os.environ.get(variable) for variable in PROFILE_VARIABLES):
         return None
     middleware = os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
     profile = large_data_profile(player)
     if not middleware.startswith("rmw_fastrtps") or not profile.is_file():
         return None
-    os.environ[PROFILE_VARIABLE] = str(profile)
+    for variable in PROFILE_VARIABLES:
+        os.environ[variable] = str(profile)
     return str(profile)
 
 

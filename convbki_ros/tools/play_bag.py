@@ -329,6 +329,9 @@ class BagPlayer:
         self.node = node
         self.pacer = pacer
         self.pauses: list[float] = []  # seconds the player was behind the bag's pace, each time it resumed
+        # (topic, seconds): subscribers that DDS forgot on resuming after a pause, and how long
+        # they were missing (their participant's lease ran out in this process while it was stopped)
+        self.forgotten: list[tuple[str, float]] = []
         self.bulk_node = bulk_node or node
         self.reader = reader
         self.args = args
@@ -529,12 +532,19 @@ class BagPlayer:
         """
         deadline = time.monotonic() + REDISCOVERY_S
         settle = time.monotonic() + SETTLE_S
+        missing: dict[tuple[str, str], list[float]] = {}  # per publisher: first and last time seen short
         while ok() and time.monotonic() < deadline:
-            back = all(publisher.get_subscription_count() >= self.subscribers.get(key, 0)
-                       for key, publisher in self.publishers.items())
+            back = True
+            for key, publisher in self.publishers.items():
+                if publisher.get_subscription_count() < self.subscribers.get(key, 0):
+                    back = False
+                    now = time.monotonic()
+                    missing.setdefault(key, [now, now])[1] = now
             if back and time.monotonic() > settle:
-                return
+                break
             time.sleep(0.05)
+        for key, (first, last) in missing.items():
+            self.forgotten.append((key[0], last - first + 0.05))
 
     def _watch_subscribers(self) -> None:
         """Notice a subscriber that goes away during the replay: what it had not yet acknowledged
@@ -631,6 +641,10 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
                 print(f"{PROG}: resumed {len(player.pauses)} time(s) after falling behind the bag's pace (stopped "
                       f"or stalled), the longest {max(player.pauses):.1f} s; the replay went on at its pace from "
                       "there", file=sys.stderr)
+            for topic, seconds in player.forgotten:
+                print(f"{PROG}: after the stop, DDS had forgotten the subscribers of {topic} (their lease ran out "
+                      f"while the player was stopped) and found them again within {seconds:.1f} s; messages "
+                      "sent meanwhile may not have reached them", file=sys.stderr)
             if finished and pacer is not None:
                 print(f"{PROG}: {pacer.finish(rclpy.ok)}", file=sys.stderr)
                 if pacer.missing:
