@@ -1,0 +1,167 @@
+"""Replay a bag to a fresh mapper node, the way a user does, and report what reached the map.
+
+Each replay starts a node with the shipped parameters (``config/mapper.yaml``, ``use_sim_time``),
+plays the bag with ``play_bag --clock`` (at ``--rate`` or paced with ``--wait-for-node``),
+optionally stops the player with SIGSTOP for some seconds and resumes it, and prints one JSON
+line per replay: scans integrated and dropped, the queue's peak, how many "no usable odometry"
+warnings the node logged, the worst ``/diagnostics`` level it published, the odometry delay it
+reported last, and play_bag's exit code and seconds.
+
+    scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --replays 10
+    scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --stop-after 4 --stop-for 20
+    scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --wait-for-node
+
+Run it alone on the machine: the figures are timings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from convbki_core.paths import config_dir
+from convbki_ros.tools.demo import COUNTERS, LineReader
+
+ODOMETRY_DELAY = re.compile(r"odometry delay median (\d+) ms \(max (\d+)\), longest gap between arrivals (\d+) ms")
+
+
+class DiagnosticsWatch:
+    """The worst level the mapper published on /diagnostics, from a subscriber in this process."""
+
+    def __init__(self, domain: str):
+        os.environ["ROS_DOMAIN_ID"] = domain
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("replay_study_diagnostics", context=self.context)
+        self.worst = -1
+        self.messages = []
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_message, 50)
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=0.2)
+        except self.rclpy.executors.ExternalShutdownException:
+            pass  # close() shut the context down
+
+    def _on_message(self, message) -> None:
+        for status in message.status:
+            if "convbki" in status.name or "mapper" in status.name:
+                level = int.from_bytes(status.level, "little") if isinstance(status.level, bytes) else int(status.level)
+                if level > self.worst:
+                    self.worst = level
+                if level >= 2:
+                    self.messages.append(status.message)
+
+    def close(self) -> None:
+        self.rclpy.shutdown(context=self.context)
+        self.thread.join(5)
+
+
+def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
+    domain = str(random.randint(1, 100))
+    env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    watch = DiagnosticsWatch(domain)
+    map_file = out / f"map_{index}.npz"
+    node = subprocess.Popen(
+        [sys.executable, "-m", "convbki_ros.mapper", "--ros-args", "--params-file", str(config_dir() / "mapper.yaml"),
+         "-r", "cloud_in:=/kitti/velo/pointcloud", "-r", "odom:=/kitti/odom", "-p", "use_sim_time:=true",
+         "-p", f"map_file:={map_file}", "-p", "stats_period:=1.0", "-p", "save_on_shutdown:=false"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    result = {"replay": index}
+    odometry_warnings = 0
+    counters = (0, 0, 0, 0)
+    peak = 0
+    delay = None
+    try:
+        with (out / f"mapper_{index}.log").open("w") as log:
+            reader = LineReader(node, log)
+            reader.wait_for("mapper ready", timeout=180)
+            command = [sys.executable, "-m", "convbki_ros.play_bag", str(args.bag), "--clock"]
+            command += ["--wait-for-node"] if args.wait_for_node else ["--rate", str(args.rate)]
+            started = time.monotonic()
+            player = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            stopped = False
+            player_out: list[str] = []
+            pump = threading.Thread(target=lambda: player_out.extend(player.stdout), daemon=True)
+            pump.start()
+            while True:
+                if args.stop_for and not stopped and time.monotonic() - started >= args.stop_after:
+                    player.send_signal(signal.SIGSTOP)
+                    time.sleep(args.stop_for)  # the fault injected: the source stops for this long
+                    player.send_signal(signal.SIGCONT)
+                    stopped = True
+                try:
+                    line = reader.next(timeout=1.0 if args.stop_for and not stopped else 60)
+                except Exception:
+                    if player.poll() is None and args.stop_for and not stopped:
+                        continue
+                    raise
+                odometry_warnings += "no usable odometry" in line
+                match = COUNTERS.search(line)
+                if match:
+                    counters = tuple(int(v) for v in match.groups())
+                    peak = int(re.search(r"queue peak (\d+)", line).group(1))
+                found = ODOMETRY_DELAY.search(line)
+                if found:
+                    delay = [int(v) for v in found.groups()]
+                scans_in, integrated, dropped, queued = counters
+                if player.poll() is not None and integrated + dropped == scans_in and queued == 0 \
+                        and scans_in >= args.expect:
+                    break
+                if player.poll() is not None and time.monotonic() - started > 600:
+                    break
+            result["play_bag_seconds"] = round(time.monotonic() - started, 1)
+            result["play_bag_rc"] = player.wait()
+            pump.join(5)
+            result["play_bag_said"] = [line.strip() for line in player_out if line.strip()][-3:]
+            node.send_signal(signal.SIGINT)
+            node.wait(timeout=30)
+            reader.finish()
+    finally:
+        if node.poll() is None:
+            node.kill()
+        watch.close()
+    result.update(scans_in=counters[0], integrated=counters[1], dropped=counters[2], queue_peak=peak,
+                  odometry_warnings=odometry_warnings, worst_diagnostics=watch.worst,
+                  errors=watch.messages[:3], last_odometry_delay_ms=delay)
+    return result
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("bag")
+    parser.add_argument("--replays", type=int, default=1)
+    parser.add_argument("--rate", type=float, default=1.0)
+    parser.add_argument("--wait-for-node", action="store_true")
+    parser.add_argument("--stop-after", type=float, default=4.0, help="seconds into the replay to stop the player")
+    parser.add_argument("--stop-for", type=float, default=0.0, help="seconds the player stays stopped (0: never)")
+    parser.add_argument("--expect", type=int, default=150, help="clouds in the bag")
+    parser.add_argument("--out", default="out/replay_study")
+    args = parser.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for index in range(args.replays):
+        print(json.dumps(replay(args, index, out)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
