@@ -4,22 +4,31 @@ The map is a set of voxels with Dirichlet concentrations. A planner wants, per c
 grid (a column of voxels), how costly it is to drive there, as Nav2 reads an occupancy
 grid: 0 free .. 100 lethal, -1 unknown. Per column:
 
-1. **Ground.** The ground surface is the highest voxel whose expected probability of the
-   ground classes (a profile's ``ground_classes``: road, parking, sidewalk, ...) is over
-   one half. A column whose ground is hidden (under a car) takes its neighbours' ground
-   height, and failing that the height just under its lowest voxel.
-2. **The band.** Voxels from ``min_obstacle_height`` above the ground up to
+1. **Empty or occupied.** Class 0 is space that rays found empty. A voxel whose class 0
+   holds more than half of its concentration is empty space and costs nothing (a mover that
+   left, emptied by free space, no longer blocks); the others are occupied.
+2. **Ground.** An occupied voxel is ground when the ground classes (a profile's
+   ``ground_classes``: road, parking, sidewalk, ...) hold more than half of its occupied
+   evidence. The column's ground is its highest ground voxel under its lowest obstacle
+   voxel (so leaves read as terrain on top of a tree do not lift the ground into the
+   canopy), or its highest ground voxel where no obstacle is under one. A column whose
+   ground is hidden (under a car) takes its neighbours' ground height, and failing that the
+   height just under its lowest voxel.
+3. **The band.** Voxels from ``min_obstacle_height`` above the ground up to
    ``robot_height`` can be in the robot's way; a kerb lower than the first, or a canopy
    above the second, is not.
-3. **Expected cost.** Each voxel's cost is the expectation of the class cost under its
-   Dirichlet posterior, not the cost of its most likely class: with expected probabilities
-   ``p = alpha / alpha0``, ``E[cost] = p . c`` and ``Var[cost] = (p . c^2 - (p . c)^2) /
-   (alpha0 + 1)``. A risk margin adds ``risk_sigma`` standard deviations, so a voxel the map
-   is unsure about costs more than one it is sure about. Class 0 (space that rays found
-   empty) costs nothing, so a mover that left, emptied by free space, no longer blocks.
-4. **The cell** costs the most of its ground voxel and its band voxels. A column with
-   neither ground evidence nor anything in its band (only empty space, or nothing seen) is
-   unknown.
+4. **Expected cost.** An occupied voxel's cost is the expectation of the class cost under
+   its Dirichlet posterior given that it is occupied, not the cost of its most likely class.
+   By the Dirichlet's aggregation property the occupied classes' share is again Dirichlet,
+   with the concentrations ``alpha_1 .. alpha_C`` and ``A = alpha0 - alpha_empty``:
+   ``E[cost] = sum alpha_c c_c / A`` and ``Var[cost] = (sum alpha_c c_c^2 / A - E^2) /
+   (A + 1)``. A risk margin adds ``risk_sigma`` standard deviations, so a voxel the map is
+   unsure about costs more than one it is sure about. (Conditioning on occupancy matters:
+   the rays that graze a fence leave empty-space evidence in its voxels, and the plain
+   expectation would call a 70 % fence voxel 70 % of an obstacle.)
+5. **The cell** costs the most of its ground voxel and its band voxels. A column with
+   neither ground evidence nor anything occupied in its band (only empty space, or nothing
+   seen) is unknown.
 """
 
 from __future__ import annotations
@@ -30,9 +39,15 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from convbki_core.native import HAVE_NUMBA, parallel_region
+
+if HAVE_NUMBA:
+    from convbki_core.native import njit, prange
+
 UNKNOWN = -1
 LETHAL = 100
-GROUND_SHARE = 0.5  # a voxel is ground when the ground classes hold more than this share
+GROUND_SHARE = 0.5  # an occupied voxel is ground when the ground classes hold more than this share
+EMPTY_SHARE = 0.5  # a voxel is empty space when class 0 (seen empty by rays) holds more than this share
 NEIGHBOUR_PASSES = 3  # how many cells away a hidden column looks for its ground height
 
 
@@ -110,28 +125,53 @@ class ColumnCosts:
     ground: np.ndarray
 
 
-def _moments(alpha: np.ndarray, profile: TraversabilityProfile) -> np.ndarray:
-    """Per voxel, in one product with the concentrations (no (N, C) temporaries): alpha0,
-    sum alpha c, sum alpha c^2, the ground classes' alpha, class 0's alpha; float64 (N, 5)."""
-    costs = profile.class_costs
+def _moment_weights(profile: TraversabilityProfile) -> np.ndarray:
+    """(5, C) float64: the weights of alpha0, sum alpha c, sum alpha c^2, the ground classes'
+    alpha and class 0's alpha."""
+    costs = profile.class_costs.astype(np.float64)
     ground = np.zeros(len(costs))
     ground[list(profile.ground_classes)] = 1.0
     empty = np.zeros(len(costs))
     empty[0] = 1.0
-    weights = np.stack([np.ones(len(costs)), costs, costs ** 2, ground, empty], axis=1)
-    return (alpha @ weights.astype(alpha.dtype)).astype(np.float64)
+    return np.ascontiguousarray(np.stack([np.ones(len(costs)), costs, costs ** 2, ground, empty]))
 
 
-def voxel_costs(alpha: np.ndarray, profile: TraversabilityProfile) -> tuple[np.ndarray, np.ndarray]:
-    """(expected cost, its standard deviation) of each voxel under its Dirichlet posterior."""
-    return _cost_moments(_moments(np.asarray(alpha), profile))
+def _moments(alpha: np.ndarray, profile: TraversabilityProfile) -> np.ndarray:
+    """Per voxel: alpha0, sum alpha c, sum alpha c^2, the ground classes' alpha, class 0's
+    alpha; float64 (N, 5), summed in class order in float64, the same arithmetic as the
+    window's kernel below, so a grid from the window equals the grid of the same voxels saved."""
+    weights = _moment_weights(profile)
+    if HAVE_NUMBA:
+        return _row_moments(np.ascontiguousarray(alpha), weights)
+    return np.asarray(alpha, np.float64) @ weights.T
 
 
-def _cost_moments(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+if HAVE_NUMBA:
+
+    @njit(nogil=True)
+    def _row_moments(alpha, weights):  # pragma: no cover - compiled
+        rows, classes = alpha.shape
+        out = np.zeros((rows, 5))
+        for row in range(rows):
+            for k in range(5):
+                total = 0.0
+                for c in range(classes):
+                    total += np.float64(alpha[row, c]) * weights[k, c]
+                out[row, k] = total
+        return out
+
+def _voxel_risks(moments: np.ndarray, risk_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per voxel: its risk (the expected cost given that it is occupied, plus ``risk_sigma``
+    standard deviations, clipped to 0..100; 0 where empty space is the likelier), whether it is
+    ground (the ground classes hold most of its occupied evidence) and whether it is empty."""
     total = moments[:, 0]
-    mean = moments[:, 1] / total
-    variance = np.maximum(moments[:, 2] / total - mean ** 2, 0.0) / (total + 1.0)
-    return mean, np.sqrt(variance)
+    occupied = np.maximum(total - moments[:, 4], np.finfo(np.float64).tiny)
+    is_empty = moments[:, 4] / total > EMPTY_SHARE
+    mean = moments[:, 1] / occupied
+    variance = np.maximum(moments[:, 2] / occupied - mean * mean, 0.0) / (occupied + 1.0)
+    risk = np.where(is_empty, 0.0, np.clip(mean + risk_sigma * np.sqrt(variance), 0.0, LETHAL))
+    is_ground = ~is_empty & (moments[:, 3] / occupied > GROUND_SHARE)
+    return risk, is_ground, is_empty
 
 
 def column_costs(indices: np.ndarray, alpha: np.ndarray, resolution: float,
@@ -148,10 +188,7 @@ def column_costs(indices: np.ndarray, alpha: np.ndarray, resolution: float,
     if not len(indices):
         empty = np.zeros((0, 2), np.int64)
         return ColumnCosts(empty, np.zeros(0, np.int8), np.zeros(0, np.int64))
-    mean, sigma = _cost_moments(moments)
-    risk = np.clip(mean + profile.risk_sigma * sigma, 0.0, LETHAL)
-    is_ground = moments[:, 3] / moments[:, 0] > GROUND_SHARE
-    is_empty = moments[:, 4] / moments[:, 0] > 0.5
+    risk, is_ground, is_empty = _voxel_risks(moments, profile.risk_sigma)
     # Columns by a linear key (unique over one int64 is far faster than over rows).
     low = indices[:, :2].min(axis=0)
     span = indices[:, 1].max() - low[1] + 1
@@ -163,7 +200,15 @@ def column_costs(indices: np.ndarray, alpha: np.ndarray, resolution: float,
 
     # 1. ground: the highest ground voxel of each column; hidden columns from their neighbours
     ground = np.full(count, np.iinfo(np.int64).min)
-    np.maximum.at(ground, column[is_ground], z[is_ground])
+    # The ground under the lowest obstacle voxel where one is under the column's ground
+    # evidence (leaves or a sign read as terrain on top of a tree), else the highest.
+    obstacle = ~is_ground & ~is_empty
+    first_obstacle = np.full(count, np.iinfo(np.int64).max)
+    np.minimum.at(first_obstacle, column[obstacle], z[obstacle])
+    below = is_ground & (z < first_obstacle[column])
+    np.maximum.at(ground, column[below], z[below])
+    above_only = is_ground & (ground[column] == np.iinfo(np.int64).min)
+    np.maximum.at(ground, column[above_only], z[above_only])
     has_ground = ground > np.iinfo(np.int64).min
     estimate = _ground_from_neighbours(cells, ground.astype(np.float64), has_ground)
     lowest = np.full(count, np.iinfo(np.int64).max)
@@ -197,6 +242,15 @@ def _ground_from_neighbours(cells: np.ndarray, ground: np.ndarray, known: np.nda
     shape = cells.max(axis=0) - low + 1 + NEIGHBOUR_PASSES
     grid = np.full(tuple(shape), np.nan)
     grid[tuple((cells - low).T)] = estimate
+    return _spread_ground(grid)[tuple((cells - low).T)]
+
+
+def _spread_ground(grid: np.ndarray) -> np.ndarray:
+    """``grid`` (NaN: no ground height) with each NaN cell given the mean of its known 8
+    neighbours, NEIGHBOUR_PASSES times (a pass sees the cells the previous one filled). The
+    grid needs NEIGHBOUR_PASSES cells of margin beyond the columns it serves."""
+    if HAVE_NUMBA:
+        return _spread_ground_compiled(np.ascontiguousarray(grid, np.float64), NEIGHBOUR_PASSES)
     for _ in range(NEIGHBOUR_PASSES):
         missing = np.isnan(grid)
         if not missing.any():
@@ -208,7 +262,31 @@ def _ground_from_neighbours(cells: np.ndarray, ground: np.ndarray, known: np.nda
         counts = np.sum(~np.isnan(neighbours), axis=0)
         fill = missing & (counts > 0)
         grid[fill] = sums[fill] / counts[fill]
-    return grid[tuple((cells - low).T)]
+    return grid
+
+
+if HAVE_NUMBA:
+
+    @njit(nogil=True)
+    def _spread_ground_compiled(grid, passes):  # pragma: no cover - compiled
+        size_x, size_y = grid.shape
+        for _ in range(passes):
+            before = grid.copy()
+            for x in range(size_x):
+                for y in range(size_y):
+                    if not np.isnan(before[x, y]):
+                        continue
+                    total = 0.0
+                    count = 0
+                    for dx in (-1, 0, 1):
+                        for dy in (-1, 0, 1):
+                            nx, ny = x + dx, y + dy
+                            if (dx or dy) and 0 <= nx < size_x and 0 <= ny < size_y and not np.isnan(before[nx, ny]):
+                                total += before[nx, ny]
+                                count += 1
+                    if count:
+                        grid[x, y] = total / count
+        return grid
 
 
 @dataclass(frozen=True)
@@ -239,3 +317,166 @@ def rasterise(columns: ColumnCosts, resolution: float, origin: np.ndarray | None
     inside = (local[:, 0] >= 0) & (local[:, 0] < width) & (local[:, 1] >= 0) & (local[:, 1] < height)
     values[local[inside, 1], local[inside, 0]] = columns.cost[inside]
     return CostGrid(origin, values, float(resolution))
+
+
+
+def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
+    """The part of ``grid`` at ``origin`` (global cell) of ``size`` (width, height) cells,
+    unknown where ``grid`` does not reach."""
+    origin = np.asarray(origin, np.int64)
+    width, height = int(size[0]), int(size[1])
+    values = np.full((height, width), UNKNOWN, np.int8)
+    shift = origin - grid.origin  # where the crop starts in grid's cells (x, y)
+    x0, y0 = max(0, -shift[0]), max(0, -shift[1])
+    x1 = min(width, grid.values.shape[1] - shift[0])
+    y1 = min(height, grid.values.shape[0] - shift[1])
+    if x1 > x0 and y1 > y0:
+        values[y0:y1, x0:x1] = grid.values[y0 + shift[1]:y1 + shift[1], x0 + shift[0]:x1 + shift[0]]
+    return CostGrid(origin, values, grid.resolution)
+
+def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray, resolution: float,
+                profile: TraversabilityProfile, prior: float) -> CostGrid:
+    """The costs of the dense torus window's columns (``RollingWindow``'s ``alpha`` (C, X, Y, Z),
+    ``mask``, ``origin``, ``dims``) over its footprint: equal to ``rasterise(column_costs(
+    *window.items(), ...))`` on that footprint, without gathering the voxels. Two compiled
+    passes over the columns (per voxel its cost and whether it is ground or empty; then each
+    column's ground and band), the neighbours' ground for hidden columns in between."""
+    origin = np.asarray(origin, np.int64)
+    if not HAVE_NUMBA:  # the same rules, through the voxels gathered
+        from convbki_core.window import gather_window
+
+        indices, values = gather_window(alpha, mask.copy(), origin, dims)
+        return rasterise(column_costs(indices, values, resolution, profile, prior), resolution, origin[:2],
+                         (int(dims[0]), int(dims[1])))
+    size_x, size_y = mask.shape[:2]
+    risk = np.empty(mask.shape)
+    kind = np.empty(mask.shape, np.uint8)
+    top_ground = np.empty((size_x, size_y), np.int64)
+    lowest = np.empty((size_x, size_y), np.int64)
+    with parallel_region():
+        _voxel_pass(alpha, mask, origin, np.asarray(dims, np.int64), _moment_weights(profile),
+                    float(prior) * alpha.shape[0], profile.min_evidence, profile.risk_sigma, risk, kind,
+                    top_ground, lowest)
+    # Global order (column origin + i at row i) for the neighbours, whose adjacency the torus breaks.
+    order_x = (origin[0] + np.arange(size_x)) % size_x
+    order_y = (origin[1] + np.arange(size_y)) % size_y
+    top = top_ground[np.ix_(order_x, order_y)]
+    low = lowest[np.ix_(order_x, order_y)]
+    has_ground = top > _NO_GROUND
+    observed = low < _NO_VOXEL
+    ground_z = np.where(has_ground, top, low - 1)
+    hidden = observed & ~has_ground
+    if hidden.any() and has_ground.any():
+        margin = NEIGHBOUR_PASSES
+        grid = np.full((size_x + 2 * margin, size_y + 2 * margin), np.nan)
+        grid[margin:-margin, margin:-margin] = np.where(has_ground, top.astype(np.float64), np.nan)
+        estimate = _spread_ground(grid)[margin:-margin, margin:-margin]
+        found = hidden & ~np.isnan(estimate)
+        ground_z[found] = np.round(estimate[found]).astype(np.int64)
+    physical_ground = np.empty_like(ground_z)
+    physical_ground[np.ix_(order_x, order_y)] = ground_z
+    values = np.empty((size_x, size_y), np.int8)
+    with parallel_region():
+        _column_pass(risk, kind, origin, np.asarray(dims, np.int64), physical_ground, float(resolution),
+                     profile.min_obstacle_height, profile.robot_height, values)
+    return CostGrid(origin[:2].copy(), np.ascontiguousarray(values[np.ix_(order_x, order_y)].T), float(resolution))
+
+
+_NO_GROUND = np.iinfo(np.int64).min
+_NO_VOXEL = np.iinfo(np.int64).max
+_EVIDENT, _GROUND, _EMPTY = 1, 2, 4
+_TINY = np.finfo(np.float64).tiny
+
+if HAVE_NUMBA:
+
+    @njit(parallel=True, nogil=True)
+    def _voxel_pass(alpha, mask, origin, dims, weights, prior_total, min_evidence, risk_sigma, risk, kind,
+                    top_ground, lowest):  # pragma: no cover - compiled
+        """Per voxel with evidence: its risk and kind bits (``_voxel_risks``' rules); per column:
+        the ground voxel's global z (``column_costs``' rule) and the lowest voxel's. The voxels
+        of a column are visited upwards in global z, so the first obstacle is known on the way."""
+        size_x, size_y, size_z = mask.shape
+        classes = alpha.shape[0]
+        for x in prange(size_x):
+            sums = np.empty((5, size_z))  # the column's moments per physical z
+            for y in range(size_y):
+                ground_below = _NO_GROUND  # the highest ground voxel under the first obstacle
+                ground_any = _NO_GROUND
+                obstacle_seen = False
+                low = _NO_VOXEL
+                evident = False
+                for z in range(size_z):
+                    kind[x, y, z] = 0
+                    evident |= mask[x, y, z] & 1 != 0
+                if not evident:
+                    top_ground[x, y] = _NO_GROUND
+                    lowest[x, y] = _NO_VOXEL
+                    continue
+                # Class by class along z: each class's run of the column is contiguous in memory,
+                # where the classes of one voxel lie a whole class plane apart.
+                sums[:, :] = 0.0
+                for c in range(classes):
+                    w0, w1, w2, w3, w4 = weights[0, c], weights[1, c], weights[2, c], weights[3, c], weights[4, c]
+                    for z in range(size_z):  # one contiguous run: vectorised
+                        value = np.float64(alpha[c, x, y, z])
+                        sums[0, z] += value * w0
+                        sums[1, z] += value * w1
+                        sums[2, z] += value * w2
+                        sums[3, z] += value * w3
+                        sums[4, z] += value * w4
+                for step in range(size_z):
+                    global_z = origin[2] + step
+                    z = global_z % dims[2]
+                    if mask[x, y, z] & 1 == 0:  # no evidence (the EVIDENCE bit)
+                        continue
+                    m0 = sums[0, z]
+                    m1 = sums[1, z]
+                    m2 = sums[2, z]
+                    m3 = sums[3, z]
+                    m4 = sums[4, z]
+                    if not m0 - prior_total >= min_evidence:
+                        continue
+                    low = min(low, global_z)
+                    if m4 / m0 > EMPTY_SHARE:
+                        risk[x, y, z] = 0.0
+                        kind[x, y, z] = _EVIDENT | _EMPTY
+                        continue
+                    occupied = max(m0 - m4, _TINY)
+                    mean = m1 / occupied
+                    variance = max(m2 / occupied - mean * mean, 0.0) / (occupied + 1.0)
+                    risk[x, y, z] = min(max(mean + risk_sigma * np.sqrt(variance), 0.0), 100.0)
+                    if m3 / occupied > GROUND_SHARE:
+                        kind[x, y, z] = _EVIDENT | _GROUND
+                        ground_any = global_z
+                        if not obstacle_seen:
+                            ground_below = global_z
+                    else:
+                        kind[x, y, z] = _EVIDENT
+                        obstacle_seen = True
+                top_ground[x, y] = ground_below if ground_below != _NO_GROUND else ground_any
+                lowest[x, y] = low
+
+    @njit(parallel=True, nogil=True)
+    def _column_pass(risk, kind, origin, dims, ground_z, resolution, min_obstacle_height, robot_height,
+                     values):  # pragma: no cover - compiled
+        """Per column: the most costly of its ground voxel and its band voxels, -1 unless
+        something non-empty is in the band or its ground was seen."""
+        size_x, size_y, size_z = kind.shape
+        for x in prange(size_x):
+            for y in range(size_y):
+                cost = -np.inf
+                observed = False
+                ground = ground_z[x, y]
+                for z in range(size_z):
+                    bits = kind[x, y, z]
+                    if bits == 0:
+                        continue
+                    global_z = origin[2] + (z - origin[2]) % dims[2]
+                    above = (global_z - ground) * resolution
+                    in_band = above >= min_obstacle_height - 1e-9 and above <= robot_height + 1e-9
+                    surface = (bits & _GROUND) != 0 and global_z == ground
+                    if in_band or surface:
+                        cost = max(cost, risk[x, y, z])
+                        if surface or (bits & _EMPTY) == 0:
+                            observed = True
+                values[x, y] = np.int8(np.rint(min(max(cost, 0.0), 100.0))) if observed else np.int8(-1)

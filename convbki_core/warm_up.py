@@ -8,7 +8,7 @@ same kernel, classes, prior, update path and device on a small window through ev
 mapping and its outputs call: scans with labels and with probabilities (float32 and
 float64 points, tempered and not), window moves (slabs out to the store and back), free
 space with clamping, a forgotten box, the map's changes, statistics and point records,
-the shown map, queries inside and outside the window, a save to a temporary file, its
+the shown map, the planner's costmap, queries inside and outside the window, a save to a temporary file, its
 load and a PLY export. The mapper itself is not touched; ``warm_up(settings)`` takes the
 mapper's constructor arguments instead, so that it can run while that mapper allocates its
 window (a third of a gigabyte at the paper's grid, which numpy fills without holding the GIL).
@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from convbki_core.costmap import TraversabilityProfile, column_costs, window_grid
 from convbki_core.free_space import FREE_CLASS
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
@@ -126,6 +127,10 @@ def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bo
     view_records(window, np.zeros(3), 2.0, max(1, len(window) // 2))
     mapper.voxels()
     mapper.local_voxels()
+    profile = TraversabilityProfile("warm-up", np.linspace(0.0, 100.0, classes), (1,))
+    window = mapper.window
+    window_grid(window.alpha, window.mask, window.origin, window.dims, resolution, profile, mapper.prior)
+    column_costs(*mapper.items(), resolution, profile, mapper.prior)
     half = 2 * resolution
     forgotten = mapper.forget_box((-half, -half, -half), (half, half, half))
     changes = mapper.take_changes(everything=True)

@@ -3,14 +3,23 @@
 The cost of each cell comes from ``convbki_core.costmap`` (the expected class cost under each
 voxel's posterior plus a risk margin, in the robot's height band). The rolling grid is a
 square around the sensor, at most the local window's footprint, computed from the window's
-voxels; the whole-map grid of ``~/get_costmap`` from a copy of every voxel.
+dense arrays in place; the whole-map grid of ``~/get_costmap`` from a copy of every voxel.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.costmap import CostGrid, ProfileError, column_costs, load_profile, rasterise
+from convbki_core.costmap import (
+    UNKNOWN,
+    CostGrid,
+    ProfileError,
+    column_costs,
+    crop,
+    load_profile,
+    rasterise,
+    window_grid,
+)
 from convbki_core.paths import traversability_profile
 from convbki_ros.params import StartupError
 from convbki_ros.transforms import make_header, message_types
@@ -32,12 +41,15 @@ def rolling_geometry(position: np.ndarray, resolution: float, size: float, windo
     return centre - cells // 2, cells
 
 
-def rolling_grid(indices: np.ndarray, alpha: np.ndarray, resolution: float, prior: float, profile,
-                 position: np.ndarray, size: float, window_extent: float) -> CostGrid:
-    """The rolling grid of the window's voxels ``indices``, ``alpha``."""
+def rolling_grid(window, resolution: float, prior: float, profile, position: np.ndarray, size: float,
+                 window_extent: float) -> CostGrid:
+    """The rolling grid from the mapper's dense window (``RollingWindow``), read in place: call
+    it under the map's lock. Equal to the grid of the same voxels saved (``column_costs``)."""
     origin, cells = rolling_geometry(position, resolution, size, window_extent)
-    columns = column_costs(indices, alpha, resolution, profile, prior)
-    return rasterise(columns, resolution, origin, (cells, cells))
+    if window.origin is None:  # nothing mapped yet
+        return CostGrid(origin, np.full((cells, cells), UNKNOWN, np.int8), float(resolution))
+    footprint = window_grid(window.alpha, window.mask, window.origin, window.dims, resolution, profile, prior)
+    return crop(footprint, origin, (cells, cells))
 
 
 def whole_grid(indices: np.ndarray, alpha: np.ndarray, resolution: float, prior: float, profile) -> CostGrid:

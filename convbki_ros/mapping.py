@@ -20,7 +20,7 @@ from convbki_core.io.map_file import MapFileError, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_core.warm_up import WarmUpReport, warm_up
-from convbki_ros.costmap_output import profile_of
+from convbki_ros.costmap_output import profile_of, rolling_grid
 from convbki_ros.params import (
     KERNEL_DECIDES,
     REPLACED,
@@ -474,11 +474,13 @@ class MappingCore:
             indices, alpha = self.mapper.items()
             return indices, alpha, self.map_version
 
-    def window_items(self):
-        """(map_version, the sensor's position in the map, window voxels' indices, alpha): copies."""
+    def rolling_costmap(self, size: float, window_extent: float):
+        """(map_version, the planner's rolling grid around the sensor), from the window in place."""
         with self.map_lock:
-            indices, alpha = self.mapper.window.items()
-            return self.map_version, self.position.copy(), indices, alpha
+            mapper = self.mapper
+            grid = rolling_grid(mapper.window, mapper.resolution, mapper.prior, self.costmap_profile, self.position,
+                                size, window_extent)
+            return self.map_version, grid
 
     def window_records(self, palette: np.ndarray):
         """(map_version, the sensor's position (x, y, z) in the map, records of the window's voxels)."""

@@ -35,7 +35,7 @@ from sensor_msgs.msg import PointCloud2
 from convbki_core.records import RECORD, change_records, view_records
 from convbki_core.shown_map import ShownMap
 from convbki_ros.cloud_encoding import encode_cloud, records_cloud
-from convbki_ros.costmap_output import occupancy_grid, rolling_grid
+from convbki_ros.costmap_output import occupancy_grid
 
 LATCHED = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -166,11 +166,8 @@ class MapOutputs:
             self.node.status.published("cycle", 1e3 * (time.perf_counter() - started))
 
     def _publish_costmap(self) -> None:
-        version, position, indices, alpha = self.core.window_items()
-        mapper = self.core.mapper
         bounds = self.node.param("local_bounds")
-        grid = rolling_grid(indices, alpha, mapper.resolution, mapper.prior, self.core.costmap_profile, position,
-                            self.node.param("costmap_size"), bounds[3] - bounds[0])
+        version, grid = self.core.rolling_costmap(self.node.param("costmap_size"), bounds[3] - bounds[0])
         stamp = self.core.last_stamp or self.node.get_clock().now().nanoseconds
         self.costmap.publish(occupancy_grid(grid, stamp, self.core.frame))
         self.costmap_version_shown = version

@@ -72,13 +72,74 @@ def test_unobserved_and_only_empty_columns_are_unknown_and_a_departed_car_leaves
     empty = {(0, 0, z): voxel(unlabeled=20) for z in range(0, 5)}
     assert costs_of(empty) == {(0, 0): -1}
     # A car drove through and left: free space put 50 rays of evidence into class 0 over its 2.
-    # E[cost] = 2/52 * 100 = 3.85, Var = (2/52 * 10^4 - 3.85^2) / 53 = 6.98, sigma 2.64: 6.
+    # Empty space holds 50/52 of the voxel: it is empty, and costs nothing.
     left = {(0, 0, 0): voxel(road=10), (0, 0, 4): voxel(car=2, unlabeled=50)}
-    assert costs_of(left) == {(0, 0): 6}
+    assert costs_of(left) == {(0, 0): 0}
     grid = rasterise(column_costs(np.array([[0, 0, 0], [2, 1, 0]]), np.stack([voxel(road=10), voxel(road=10)]),
                                   RESOLUTION, CAR), RESOLUTION)
     assert grid.values.tolist() == [[0, -1, -1], [-1, -1, 0]]  # rows are y, the cells between unknown
     assert grid.origin.tolist() == [0, 0]
+
+
+def test_empty_space_evidence_in_an_occupied_voxel_does_not_dilute_its_cost():
+    # Rays grazing a fence leave class-0 evidence in its voxels: fence 7, empty 3. Given that the
+    # voxel is occupied (7/10 > 1/2) it is fence for sure: E = 100, Var = 0: lethal, where the
+    # plain expectation (0.7 * 100 = 70, +1 sigma 14.5) would have called it 84.
+    fence = {(0, 0, 0): voxel(road=10), (0, 0, 3): voxel(fence=7, unlabeled=3)}
+    assert costs_of(fence) == {(0, 0): 100}
+    # The grass of the test above with as much empty-space evidence as class evidence (not more:
+    # still occupied) costs what it did: 42 without the margin, 56 with it.
+    grass = {(0, 0, 0): voxel(terrain=3, road=2, unlabeled=5)}
+    assert costs_of(grass, with_sigma(CAR, 0.0)) == {(0, 0): 42}
+    assert costs_of(grass) == {(0, 0): 56}
+    # One unit more of empty space and it is empty space: a column with nothing else is unknown.
+    assert costs_of({(0, 0, 0): voxel(terrain=3, road=2, unlabeled=5.01)}) == {(0, 0): -1}
+
+
+def test_leaves_read_as_terrain_on_top_of_a_tree_do_not_lift_the_ground_into_the_canopy():
+    # Terrain at z 0, the tree's foliage from 0.4 m to 1.6 m, and at 1.8 m leaves the segmentation
+    # called terrain. The ground is the terrain under the first obstacle, so the foliage is in
+    # the band: lethal. (The highest ground voxel would put the band above the tree: 70.)
+    tree = {(0, 0, 0): voxel(terrain=10)} | {(0, 0, z): voxel(vegetation=10) for z in range(2, 9)}
+    tree[(0, 0, 9)] = voxel(terrain=6, vegetation=2)
+    assert costs_of(tree) == {(0, 0): 100}
+    # With nothing under it, a raised ground is still ground: a sidewalk past a kerb.
+    assert costs_of({(0, 0, 1): voxel(sidewalk=10), (0, 0, 6): voxel(vegetation=10)}) == {(0, 0): 100}
+    assert costs_of({(0, 0, 1): voxel(sidewalk=10), (0, 0, 13): voxel(vegetation=10)}) == {(0, 0): 70}
+
+
+def test_the_grid_read_from_the_dense_window_equals_the_grid_of_its_voxels_gathered():
+    """The node computes its rolling grid from the window's dense torus arrays in place; the same
+    voxels gathered (what a saved map holds) give the same grid, cell for cell, also after the
+    window moved and wrapped around its torus, with hidden ground and empty space in it."""
+    from convbki_core.costmap import window_grid
+    from convbki_core.mapper import ConvBKIMapper
+    from convbki_core.paths import kernel_path
+
+    label_map = load_label_map("semantic_kitti")
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=((-8, -6, -3), (8, 6, 3)),
+                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True)
+    rng = np.random.default_rng(3)
+    raw_classes = np.array([40, 48, 70, 72, 10, 50, 51, 80])  # road, sidewalk, vegetation, terrain, car, ...
+    compared = 0
+    for step in range(6):
+        ground = np.column_stack([rng.uniform(-7, 7, (4000, 2)), rng.normal(-1.6, 0.03, 4000)])
+        things = rng.uniform([-6, -5, -1.5], [6, 5, 1.5], (1500, 3))
+        points = np.concatenate([ground, things]).astype(np.float32)
+        raw = np.concatenate([rng.choice(raw_classes[:4], len(ground)), rng.choice(raw_classes, len(things))])
+        pose = np.eye(4)
+        pose[:3, 3] = [2.3 * step, -1.1 * step, 0.0]
+        mapper.integrate(points, label_map.to_learning(raw.astype(np.uint32)), pose)
+        window = mapper.window
+        for profile in (CAR, with_sigma(CAR, 0.0)):
+            dense = window_grid(window.alpha, window.mask, window.origin, window.dims, RESOLUTION, profile, 0.001)
+            gathered = rasterise(column_costs(*window.items(), RESOLUTION, profile, 0.001), RESOLUTION,
+                                 window.origin[:2], tuple(window.dims[:2].tolist()))
+            assert np.array_equal(dense.origin, gathered.origin)
+            assert np.array_equal(dense.values, gathered.values), int((dense.values != gathered.values).sum())
+            compared += int((dense.values >= 0).sum())
+    assert (mapper.window.origin % mapper.window.dims != 0).any()  # the torus wrapped
+    assert compared > 10_000
 
 
 @pytest.mark.parametrize("text, problem", [

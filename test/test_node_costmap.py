@@ -4,9 +4,10 @@
 import numpy as np
 from mapper_rig import BOUNDS, POSE, Rig
 
+from convbki_core.costmap import column_costs, rasterise
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.io.map_file import read_map
-from convbki_ros.costmap_output import profile_of, rolling_grid, whole_grid
+from convbki_ros.costmap_output import profile_of, rolling_geometry, whole_grid
 
 
 class Params:
@@ -35,8 +36,9 @@ def test_the_costmap_topic_and_service_equal_the_offline_grids(tmp_path):
         rig.integrate_good_cloud()
         assert rig.call("save_map").success
         metadata, indices, alpha = read_map(rig.map_file)
-        rolling = rolling_grid(indices, alpha, metadata["resolution"], metadata["prior"], profile, POSE[:3, 3],
-                               20.0, BOUNDS[3] - BOUNDS[0])
+        origin, cells = rolling_geometry(POSE[:3, 3], metadata["resolution"], 20.0, BOUNDS[3] - BOUNDS[0])
+        rolling = rasterise(column_costs(indices, alpha, metadata["resolution"], profile, metadata["prior"]),
+                            metadata["resolution"], origin, (cells, cells))
 
         def current(msg) -> bool:
             """The grid of the map as saved (an earlier one, e.g. of the empty map at start, is not)."""

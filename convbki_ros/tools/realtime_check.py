@@ -78,6 +78,7 @@ LISTENERS: dict[str, Watch] = {
     "variance": Watch("/semantic_map/variance", "latched", 1),
     "updates": Watch("/semantic_map/updates", "volatile", 10),
     "view": Watch("/semantic_map/view", "latched", 1),
+    "costmap": Watch("/semantic_map/costmap", "latched", 1, "nav_msgs/msg/OccupancyGrid"),
 }
 PUBLICATION_MODES = {"default": None, "asynchronous": "ASYNCHRONOUS", "synchronous": "SYNCHRONOUS"}
 MODE_VARIABLE = "RMW_FASTRTPS_PUBLICATION_MODE"  # convbki_ros.dds: the node keeps a value set by the user

@@ -3,7 +3,8 @@
 An rclpy node subscribes ``--topic`` with a reliable QoS, ``--qos latched`` (transient local,
 what RViz uses for a latched map) or ``volatile``, keeping the last ``--depth`` messages. It
 prints ``listener ready`` once subscribed, then one line per message received:
-``message MONOTONIC_S WIDTH BYTES`` (WIDTH and BYTES: the PointCloud2's points and data size).
+``message MONOTONIC_S WIDTH BYTES`` (WIDTH and BYTES: the PointCloud2's points and data size,
+or an OccupancyGrid's width and cells).
 SIGINT or SIGTERM ends it. Like a user who follows the README for RViz, it uses the package's
 large-data Fast DDS profile unless one is chosen in the environment.
 
@@ -55,8 +56,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                      durability=durability)
 
     def received(msg) -> None:
-        print(f"message {time.monotonic():.3f} {getattr(msg, 'width', 0)} {len(getattr(msg, 'data', b''))}",
-              flush=True)
+        # A cloud's points, or a grid's cells (OccupancyGrid keeps its width in info).
+        width = msg.width if hasattr(msg, "width") else getattr(getattr(msg, "info", None), "width", 0)
+        print(f"message {time.monotonic():.3f} {width} {len(getattr(msg, 'data', b''))}", flush=True)
 
     node.create_subscription(message_class, args.topic, received, qos)
     print(f"listener ready: {args.topic} ({args.qos}, depth {args.depth})", flush=True)
