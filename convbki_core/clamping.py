@@ -6,12 +6,16 @@ return behind it, and would need thousands of scans to win it back. OctoMap meet
 problem in occupancy mapping with its clamping policy: a voxel's belief is held within bounds
 so that a bounded number of contrary observations can overturn it. Here the bound is on the
 total concentration: when free evidence arrives at a voxel whose concentrations sum to more
-than ``limit``, all of them (the free one included) are scaled down to sum to ``limit``:
+than ``limit``, the evidence above the prior (the free one included) is scaled down so that
+they sum to ``limit``, with ``a0`` the prior and C the classes:
 
-    alpha[:, v] <- alpha[:, v] * limit / sum_c alpha[c, v]    if sum_c alpha[c, v] > limit
+    alpha[c, v] <- a0 + (alpha[c, v] - a0) * (limit - C a0) / (sum_c alpha[c, v] - C a0)
 
-Scaling keeps the expected class and the ratios between the classes: the map reads the same
-at that moment, only later evidence weighs more against the old.
+Scaling keeps the ratios between the classes' evidence, so the expected class: the map reads
+the same at that moment, only later evidence weighs more against the old. It keeps the prior
+too: every concentration stays at or above it, as in a map built by sums alone, so maps made
+with clamping merge as evidence (``map_tool merge``: the prior counted once, the evidence of
+each map added; see the docs for how that differs from mapping the whole drive at once).
 
 It is applied where a ray first contradicts a voxel: when the voxel takes free evidence while
 its free concentration is still below one unit (``FIRST_CONTRADICTION``), i.e. the rays had
@@ -56,9 +60,10 @@ def first_contradiction(before: np.ndarray) -> np.ndarray:
 
 
 def clamp_numpy(alpha: np.ndarray, voxels: tuple[np.ndarray, np.ndarray, np.ndarray], before: np.ndarray,
-                limit: float) -> None:
+                limit: float, prior: float) -> None:
     """Clamp, in place, the voxels ``voxels`` (x, y, z index arrays into ``alpha`` (C, X, Y, Z))
-    that have just taken free evidence; ``before`` their free concentrations before it."""
+    that have just taken free evidence; ``before`` their free concentrations before it;
+    ``prior`` the map's prior concentration, which clamping keeps."""
     if limit <= 0 or len(voxels[0]) == 0:
         return
     check = first_contradiction(before)
@@ -68,14 +73,16 @@ def clamp_numpy(alpha: np.ndarray, voxels: tuple[np.ndarray, np.ndarray, np.ndar
     for row in column:  # class by class, as the compiled pass sums
         total += row
     over = total > limit
-    scale = np.float32(limit) / total[over]
-    alpha[:, x[over], y[over], z[over]] = column[:, over] * scale
+    floor = np.float32(prior)
+    base = np.float32(alpha.shape[0]) * floor
+    scale = (np.float32(limit) - base) / (total[over] - base)
+    alpha[:, x[over], y[over], z[over]] = floor + (column[:, over] - floor) * scale
 
 
 if HAVE_NUMBA:
 
     @njit(nogil=True, inline="always")
-    def clamp_voxel(alpha, x, y, z, before, limit):  # pragma: no cover - compiled; tested against numpy
+    def clamp_voxel(alpha, x, y, z, before, limit, prior):  # pragma: no cover - compiled; tested against numpy
         """The clamping of one voxel that has just taken free evidence (``before``: its free
         concentration before it); ``limit`` <= 0: off."""
         if limit <= 0 or before >= FIRST_CONTRADICTION:
@@ -84,12 +91,14 @@ if HAVE_NUMBA:
         for c in range(alpha.shape[0]):
             total += alpha[c, x, y, z]
         if total > limit:
-            scale = np.float32(limit) / total
+            floor = np.float32(prior)
+            base = np.float32(alpha.shape[0]) * floor
+            scale = (np.float32(limit) - base) / (total - base)
             for c in range(alpha.shape[0]):
-                alpha[c, x, y, z] *= scale
+                alpha[c, x, y, z] = floor + (alpha[c, x, y, z] - floor) * scale
 
 
-def clamp_torch(alpha: torch.Tensor, before: torch.Tensor, limit: float) -> None:
+def clamp_torch(alpha: torch.Tensor, before: torch.Tensor, limit: float, prior: float) -> None:
     """The same on a device window, just after its free evidence was added: ``before``
     (X, Y, Z) the free concentrations before it (the voxels whose free concentration changed
     are those that took free evidence)."""
@@ -104,5 +113,7 @@ def clamp_torch(alpha: torch.Tensor, before: torch.Tensor, limit: float) -> None
     for row in column:
         total += row
     over = total > limit
-    scale = torch.tensor(limit, dtype=alpha.dtype, device=alpha.device) / total[over]
-    alpha[:, index[0][over], index[1][over], index[2][over]] = column[:, over] * scale
+    floor = torch.tensor(prior, dtype=alpha.dtype, device=alpha.device)
+    base = torch.tensor(alpha.shape[0], dtype=alpha.dtype, device=alpha.device) * floor
+    scale = (torch.tensor(limit, dtype=alpha.dtype, device=alpha.device) - base) / (total[over] - base)
+    alpha[:, index[0][over], index[1][over], index[2][over]] = floor + (column[:, over] - floor) * scale

@@ -104,7 +104,7 @@ def ray_weights(features: np.ndarray) -> np.ndarray:
 def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndarray, offsets: np.ndarray,
                       tap_weights: np.ndarray, origin: np.ndarray, dims: np.ndarray, alpha: np.ndarray,
                       mask: np.ndarray, counts: np.ndarray, through: np.ndarray | None = None,
-                      max_concentration: float = 0.0) -> int:
+                      max_concentration: float = 0.0, prior: float = 0.0) -> int:
     """Add one scan's free-space evidence into the torus window, in place; returns the number
     of voxels whose free concentration grew.
 
@@ -116,7 +116,7 @@ def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndar
     ``counts``: the scratch of ``scratch_counts``. ``through`` (M,) bool: rays whose return
     lies beyond the window; they end in the window's boundary voxel ``occupied[m]``, which
     they cross too (``window_exits``). ``max_concentration``: the clamping limit of the
-    voxels that take free evidence (``clamping``; 0: none).
+    voxels that take free evidence (``clamping``; 0: none), which keeps the ``prior``.
     """
     occupied = np.ascontiguousarray(occupied, np.int64)
     through = np.zeros(len(occupied), np.bool_) if through is None else np.ascontiguousarray(through, np.bool_)
@@ -127,9 +127,9 @@ def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndar
         with parallel_region():
             return int(_free_space_numba(sensor, occupied, np.ascontiguousarray(weights, np.float32), through,
                                          offsets, tap_weights, origin, dims, alpha, mask, counts,
-                                         float(max_concentration)))
+                                         float(max_concentration), float(prior)))
     return _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
-                             float(max_concentration))
+                             float(max_concentration), float(prior))
 
 
 def window_exits(sensor: np.ndarray, points: np.ndarray, origin: np.ndarray,
@@ -226,7 +226,7 @@ def _walk_ray(start, end_voxel, visit, through=False) -> None:
 
 
 def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
-                      max_concentration=0.0) -> int:
+                      max_concentration=0.0, prior=0.0) -> int:
     """The same pass in Python loops and numpy (the fallback without numba, and a reference)."""
     counts = np.zeros(tuple(int(d) for d in dims), np.float64)
 
@@ -249,7 +249,7 @@ def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, 
     x, y, z = physical[grew].T
     before = alpha[FREE_CLASS, x, y, z].copy()
     alpha[FREE_CLASS, x, y, z] += evidence[grew]
-    clamp_numpy(alpha, (x, y, z), before, max_concentration)
+    clamp_numpy(alpha, (x, y, z), before, max_concentration, prior)
     mask[x, y, z] |= np.uint8(CHANGED)
     mask &= np.uint8(_KEEP_UNTOUCHED)
     return int(grew.sum())
@@ -415,7 +415,7 @@ if HAVE_NUMBA:
         return found, last, first
 
     @njit(nogil=True)
-    def _clamp_run(alpha, start, marks, limit):  # pragma: no cover - compiled
+    def _clamp_run(alpha, start, marks, limit, prior):  # pragma: no cover - compiled
         """Clamp the voxels of a run that ``_apply_run`` marked ``_CHECK`` (``alpha`` (C, V)
         flat planes, the run starting at flat index ``start``) and clear their bit."""
         for j in range(marks.shape[0]):
@@ -427,14 +427,16 @@ if HAVE_NUMBA:
             total = np.float32(0.0)
             for c in range(alpha.shape[0]):
                 total += alpha[c, voxel]
-            if total > limit:
-                scale = np.float32(limit) / total
+            if total > limit:  # clamping's rule (``clamping.clamp_voxel``), on flat planes
+                floor = np.float32(prior)
+                base = np.float32(alpha.shape[0]) * floor
+                scale = (np.float32(limit) - base) / (total - base)
                 for c in range(alpha.shape[0]):
-                    alpha[c, voxel] *= scale
+                    alpha[c, voxel] = floor + (alpha[c, voxel] - floor) * scale
 
     @njit(parallel=True, nogil=True)
     def _apply_centre(sensor_x, weight, origin, alpha, mask, counts, shared_plane, parts,
-                      limit):  # pragma: no cover
+                      limit, prior):  # pragma: no cover
         """Add the counted rays as free evidence through a centre-only free kernel, each thread
         over its own x planes; clear the counts and the ``TOUCHED`` bits. ``counts`` as
         ``_count_rays`` left them with ``corner`` (origin x, origin y, 0), ``sensor_x`` the
@@ -461,14 +463,14 @@ if HAVE_NUMBA:
                     grown, last, first = _apply_run(free[begin:end], marks[begin:end],
                                                     counted[source:source + end - begin], weight, clamping)
                     if last:
-                        _clamp_run(planes, begin + first, marks[begin + first:begin + last], limit)
+                        _clamp_run(planes, begin + first, marks[begin + first:begin + last], limit, prior)
                     found += grown
             grew[part] = found
         return grew.sum()
 
     @njit(parallel=True, nogil=True)
     def _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, counts,
-                      shared_plane, parts, limit):  # pragma: no cover - compiled
+                      shared_plane, parts, limit, prior):  # pragma: no cover - compiled
         """Add the counted rays as free evidence through a free kernel of any taps, each thread
         over its own x planes; clear the counts and the ``TOUCHED`` bits. ``counts`` and
         ``sensor_x`` as in ``_apply_centre``."""
@@ -499,7 +501,7 @@ if HAVE_NUMBA:
                             if evidence > 0:
                                 before = alpha[FREE_CLASS, x, y, z]
                                 alpha[FREE_CLASS, x, y, z] += evidence
-                                clamp_voxel(alpha, x, y, z, before, limit)
+                                clamp_voxel(alpha, x, y, z, before, limit, prior)
                                 mask[x, y, z] = marks | CHANGED
                                 found += 1
                         elif marks & TOUCHED != 0:
@@ -552,7 +554,7 @@ if HAVE_NUMBA:
         return out
 
     def _free_space_numba(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
-                          counts, limit):
+                          counts, limit, prior):
         volume, shared_plane = counts
         # Counted in window order along x and y, where a window around the sensor holds every
         # ray whole, and on the torus along z, where the window's planes keep their runs long.
@@ -561,6 +563,7 @@ if HAVE_NUMBA:
         sensor_x = (int(np.floor(sensor[0])) - int(origin[0])) % int(dims[0])
         parts = max(1, min(numba.get_num_threads(), int(dims[0])))
         if len(offsets) == 1 and not offsets[0].any():
-            return _apply_centre(sensor_x, tap_weights[0], origin, alpha, mask, volume, shared_plane, parts, limit)
+            return _apply_centre(sensor_x, tap_weights[0], origin, alpha, mask, volume, shared_plane, parts, limit,
+                                 prior)
         return _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, volume, shared_plane, parts,
-                             limit)
+                             limit, prior)

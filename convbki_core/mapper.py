@@ -237,11 +237,12 @@ class ConvBKIMapper:
                 result.freed_voxels = torch_free_space(counts, self._free_filter, self.window)
                 counts.fill(0.0)
                 if before is not None:
-                    clamp_torch(self.window.alpha, before, self.max_concentration)
+                    clamp_torch(self.window.alpha, before, self.max_concentration, self.prior)
             else:
                 result.freed_voxels = free_space_update(sensor, ends, weights, offsets, tap_weights, origin,
                                                         self.geometry.dims, self.window.alpha, self.window.mask,
-                                                        self._free_counts, through, self.max_concentration)
+                                                        self._free_counts, through, self.max_concentration,
+                                                        self.prior)
         self.scans_integrated += 1
         self.sensor_position = pose[:3, 3].copy()
         finished = time.perf_counter()

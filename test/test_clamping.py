@@ -23,9 +23,15 @@ def _window(seed: int, classes: int = 6, dims=(5, 4, 3)):
     return alpha, before, takes
 
 
+PRIOR = 1e-3
+
+
 def _expected(alpha: np.ndarray, before: np.ndarray, takes: np.ndarray, limit: float) -> np.ndarray:
-    """The rule written out voxel by voxel."""
+    """The rule written out voxel by voxel: the evidence above the prior scaled so that the
+    concentrations sum to the limit."""
     out = alpha.copy()
+    prior = np.float32(PRIOR)
+    base = np.float32(alpha.shape[0]) * prior
     for x, y, z in zip(*np.nonzero(takes)):
         if before[x, y, z] >= 1.0:
             continue
@@ -33,7 +39,8 @@ def _expected(alpha: np.ndarray, before: np.ndarray, takes: np.ndarray, limit: f
         for c in range(alpha.shape[0]):
             total = np.float32(total + alpha[c, x, y, z])
         if total > limit:
-            out[:, x, y, z] = alpha[:, x, y, z] * (np.float32(limit) / total)
+            scale = (np.float32(limit) - base) / (total - base)
+            out[:, x, y, z] = prior + (alpha[:, x, y, z] - prior) * scale
     return out
 
 
@@ -47,22 +54,27 @@ def test_numpy_clamps_by_the_rule(seed):
     alpha, before, takes = _window(seed)
     expected = _expected(alpha, before, takes, 300.0)
     got = alpha.copy()
-    clamp_numpy(got, np.nonzero(takes), before[takes], 300.0)
+    clamp_numpy(got, np.nonzero(takes), before[takes], 300.0, PRIOR)
     np.testing.assert_array_equal(got, expected)
     changed = (got != alpha).any(axis=0)
     assert changed.any() and not changed.all()  # the case exercises both branches
     sums = got.sum(axis=0)
     assert np.all(sums[changed] <= 300.0 * (1 + 1e-5))
-    # Scaling keeps the expected class of every clamped voxel.
+    # Scaling keeps the expected class of every clamped voxel, and the prior: no concentration
+    # falls below it, so the map's files still merge as sums of evidence.
     assert np.array_equal(got.argmax(axis=0), alpha.argmax(axis=0))
+    assert got.min() >= np.float32(PRIOR)
+    heavy = changed & (alpha.sum(axis=0) > 1000)
+    evidence, kept = alpha[:, heavy] - np.float32(PRIOR), got[:, heavy] - np.float32(PRIOR)
+    np.testing.assert_allclose(kept / kept.sum(axis=0), evidence / evidence.sum(axis=0), rtol=1e-3, atol=1e-6)
 
 
 def test_torch_equals_numpy():
     alpha, before, takes = _window(3)
     expected = alpha.copy()
-    clamp_numpy(expected, np.nonzero(takes), before[takes], 300.0)
+    clamp_numpy(expected, np.nonzero(takes), before[takes], 300.0, PRIOR)
     tensor = torch.as_tensor(alpha.copy())
-    clamp_torch(tensor, torch.as_tensor(before), 300.0)
+    clamp_torch(tensor, torch.as_tensor(before), 300.0, PRIOR)
     np.testing.assert_array_equal(tensor.numpy(), expected)
 
 
@@ -73,15 +85,15 @@ def test_compiled_equals_numpy():
     from convbki_core.clamping import clamp_voxel
 
     @njit
-    def clamp_all(alpha, voxels, before, limit):
+    def clamp_all(alpha, voxels, before, limit, prior):
         for i in range(voxels.shape[0]):
-            clamp_voxel(alpha, voxels[i, 0], voxels[i, 1], voxels[i, 2], before[i], limit)
+            clamp_voxel(alpha, voxels[i, 0], voxels[i, 1], voxels[i, 2], before[i], limit, prior)
 
     alpha, before, takes = _window(4)
     expected = alpha.copy()
-    clamp_numpy(expected, np.nonzero(takes), before[takes], 300.0)
+    clamp_numpy(expected, np.nonzero(takes), before[takes], 300.0, PRIOR)
     got = alpha.copy()
-    clamp_all(got, np.argwhere(takes), before[takes], 300.0)
+    clamp_all(got, np.argwhere(takes), before[takes], 300.0, PRIOR)
     np.testing.assert_array_equal(got, expected)
 
 
@@ -89,7 +101,7 @@ def test_off_and_below_the_limit_change_nothing():
     alpha, before, takes = _window(5)
     for limit in (0.0, 1e9):
         got = alpha.copy()
-        clamp_numpy(got, np.nonzero(takes), before[takes], limit)
+        clamp_numpy(got, np.nonzero(takes), before[takes], limit, PRIOR)
         np.testing.assert_array_equal(got, alpha)
 
 
@@ -102,7 +114,7 @@ def test_a_bounded_number_of_rays_empties_a_long_stay():
         for scan in range(1, 5000):
             before = alpha[0].copy()
             alpha[0] += 3.0
-            clamp_numpy(alpha, (np.zeros(1, int),) * 3, before.reshape(-1), limit)
+            clamp_numpy(alpha, (np.zeros(1, int),) * 3, before.reshape(-1), limit, PRIOR)
             if alpha[:, 0, 0, 0].argmax() == 0:
                 return scan
         return 5000

@@ -215,9 +215,9 @@ def test_the_compiled_pass_clamps_exactly_as_the_numpy_pass(wide):
         unclamped, unclamped_mask = alpha.copy(), mask.copy()
         counts = scratch_counts(dims)
         grew = free_space_update(sensor, ends, weights, offsets, tap_weights, origin, dims, compiled_alpha,
-                                 compiled_mask, counts, through, limit)
+                                 compiled_mask, counts, through, limit, 1e-3)
         assert grew == _free_space_numpy(sensor, ends, weights, through, offsets, tap_weights, origin, dims, alpha,
-                                         mask, limit) > 0
+                                         mask, limit, 1e-3) > 0
         assert np.array_equal(compiled_alpha, alpha) and np.array_equal(compiled_mask, mask)
         assert not counts[0].any() and not counts[1].any()
         assert not (compiled_mask & 8).any()  # the pass's own bit does not outlive it
@@ -227,6 +227,7 @@ def test_the_compiled_pass_clamps_exactly_as_the_numpy_pass(wide):
         if scaled.any():
             clamped_somewhere = True
             np.testing.assert_allclose(alpha[:, scaled].sum(axis=0), limit, rtol=1e-5)
+            assert alpha[:, scaled].min() >= np.float32(1e-3)  # the prior is kept
     assert clamped_somewhere
 
 

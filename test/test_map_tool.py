@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from kitti_fixture import write_drive
 
+from convbki_core.clamping import DEFAULT_LIMIT
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.map_file import MapSnapshot, read_map
 from convbki_core.io.ply import read_ply
@@ -34,8 +35,9 @@ def sorted_map(path):
     return metadata, indices[order], alpha[order]
 
 
-def map_frames(dataset, start, stop, path):
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, prior=PRIOR, device="cpu")
+def map_frames(dataset, start, stop, path, **options):
+    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, prior=PRIOR, device="cpu",
+                           **options)
     for position in range(start, stop):
         frame = dataset[position]
         mapper.integrate(frame.points, frame.input_values, frame.pose)
@@ -50,9 +52,14 @@ def maps(tmp_path_factory):
     assert synth(["--out", str(root / "data"), "--sequence", "08", "--frames", str(FRAMES), "--seed", "3",
                   "--beams", "16", "--azimuth-steps", "360", "--noise-strength", "0.35", "--quiet"]) == 0
     dataset = SemanticKittiSequence(root / "data", "08")
+    product = {"free_space": True, "max_concentration": DEFAULT_LIMIT,
+               "ignore_classes": dataset.label_map.ignore_classes}  # the node's and evaluate's defaults
     return {"first": map_frames(dataset, 0, HALF, root / "first.npz"),
             "second": map_frames(dataset, HALF, FRAMES, root / "second.npz"),
-            "whole": map_frames(dataset, 0, FRAMES, root / "whole.npz")}
+            "whole": map_frames(dataset, 0, FRAMES, root / "whole.npz"),
+            "product_first": map_frames(dataset, 0, HALF, root / "product_first.npz", **product),
+            "product_second": map_frames(dataset, HALF, FRAMES, root / "product_second.npz", **product),
+            "product_whole": map_frames(dataset, 0, FRAMES, root / "product_whole.npz", **product)}
 
 
 def one_line_error(capsys) -> str:
@@ -85,6 +92,28 @@ def test_merge_of_two_halves_is_the_map_of_the_whole_drive(maps, tmp_path, capsy
     np.testing.assert_array_equal(alpha[rows], first_alpha[only_first])
     assert metadata["num_voxels"] == len(whole_indices) and metadata["scans_integrated"] == FRAMES
     assert metadata["merged_from"] == [str(maps["first"]), str(maps["second"])]
+
+
+def test_maps_made_with_free_space_and_clamping_merge_into_the_labels_of_the_whole_drive(maps, tmp_path):
+    """Clamping keeps the prior, so the product's own files merge. The merge adds the halves'
+    evidence, which is not one mapper's in two ways, as the docs say: clamping is not a sum, and
+    the second half's rays added no free evidence to the voxels only the first half held (free
+    space reaches voxels that hold evidence in that mapper). So the labels differ, nearly all as
+    voxels the whole drive's rays emptied that the merge leaves occupied."""
+    out = tmp_path / "merged.npz"
+    assert map_tool.main(["merge", str(maps["product_first"]), str(maps["product_second"]), "--out", str(out),
+                          "--quiet"]) == 0
+    _, indices, alpha = sorted_map(out)
+    _, whole_indices, whole_alpha = sorted_map(maps["product_whole"])
+    np.testing.assert_array_equal(indices, whole_indices)  # free space adds to voxels with evidence only
+    assert alpha.min() >= np.float32(PRIOR)
+    clamped = ~np.isclose(alpha.sum(axis=1), whole_alpha.sum(axis=1), rtol=1e-4)
+    assert clamped.any()  # the drive has voxels where the two differ, or this proves nothing
+    merged_labels, whole_labels = alpha.argmax(axis=1), whole_alpha.argmax(axis=1)
+    differ = merged_labels != whole_labels
+    assert differ.mean() <= 0.03, differ.mean()
+    left_occupied = differ & (whole_labels == 0)
+    assert left_occupied.sum() >= 0.9 * differ.sum(), (int(left_occupied.sum()), int(differ.sum()))
 
 
 def test_merge_counts_the_prior_once(maps, tmp_path):

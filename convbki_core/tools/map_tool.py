@@ -1,10 +1,12 @@
 """``map_tool``: inspect, merge and export ConvBKI map files (the ``mapfile`` format).
 
 * ``info``: what a map holds (voxels, bounds, classes, settings, sizes);
-* ``merge``: the exact union of maps built in one frame. The ConvBKI update is a sum of
+* ``merge``: the union of maps built in one frame. The ConvBKI update is a sum of
   kernel-weighted evidence on top of the prior, so a voxel present in k maps has the
-  concentration sum_i alpha_i - (k - 1) * prior: the map one mapper would have built from
-  all their scans (up to float32 rounding);
+  concentration sum_i alpha_i - (k - 1) * prior: without free space the map one mapper
+  would have built from all their scans (up to float32 rounding). With free space it is the
+  sum of the maps' evidence, not quite one mapper's: a map's rays emptied only the voxels
+  that map held, and clamping (which keeps the prior) is not a sum;
 * ``export-ply``: the voxel centres in class colours, for CloudCompare, Open3D or MeshLab;
 * ``costmap``: the map's traversability grid for a robot profile (``convbki_core.costmap``),
   as the node's ``~/get_costmap`` gives it, to a ``.npz`` or a ``.png``.
@@ -206,7 +208,8 @@ def _merge(args: argparse.Namespace) -> int:
             # Every class of every voxel starts at the prior and only grows: anything below was built otherwise.
             if len(alpha) and alpha.min() < prior * (1 - 1e-6):
                 raise UserError(f"{name}: holds concentrations below its prior {prior}, so it was not built "
-                                "with that prior and the merge would not be exact")
+                                "with that prior (or by a version whose clamping scaled the prior too) and the "
+                                "merge would not be exact")
             maps.append((metadata, indices, alpha))
             bar.update()
         bar.set_description("merging")
@@ -333,10 +336,12 @@ def build_parser() -> argparse.ArgumentParser:
                                "scans integrated, voxels per expected class, file size and memory per voxel.")
     info.add_argument("map", metavar="MAP", help="map file to read")
     info.add_argument("--json", action="store_true", help="print one JSON object instead of text")
-    merge = commands.add_parser("merge", help="merge maps built in one frame, exactly", description="Merge maps "
-                                "built in one frame with the same resolution, classes and prior (e.g. two halves of "
-                                "a drive): a voxel in k maps gets the sum of their concentrations minus (k - 1) x "
-                                "prior, which is the map one mapper would have built from all their scans.")
+    merge = commands.add_parser("merge", help="merge maps built in one frame (their evidence summed)",
+                                description="Merge maps built in one frame with the same resolution, classes and "
+                                "prior (e.g. two halves of a drive): a voxel in k maps gets the sum of their "
+                                "concentrations minus (k - 1) x prior. Without free space that is the map one mapper "
+                                "would have built from all their scans; with free space, the sum of their evidence "
+                                "(a map's rays emptied only the voxels it held).")
     merge.add_argument("first", metavar="MAP", help="first map; the output keeps its metadata")
     merge.add_argument("rest", metavar="MAP", nargs="+", help="more maps to add")
     merge.add_argument("--out", required=True, metavar="MAP", help="merged map file to write (atomically)")
