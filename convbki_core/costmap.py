@@ -320,6 +320,20 @@ def rasterise(columns: ColumnCosts, resolution: float, origin: np.ndarray | None
 
 
 
+
+def grid_of_window(window, resolution: float, profile: TraversabilityProfile, prior: float) -> CostGrid:
+    """``window_grid`` of a mapper's window (``RollingWindow`` or ``TorchWindow``) over its
+    footprint: read in place where its arrays are in host memory (numpy, or torch on the CPU),
+    from its voxels gathered where they are on a GPU."""
+    alpha, mask = window.alpha, window.mask
+    if not isinstance(alpha, np.ndarray):
+        if alpha.device.type != "cpu":
+            indices, values = window.items()
+            return rasterise(column_costs(indices, values, resolution, profile, prior), resolution,
+                             np.asarray(window.origin[:2], np.int64), (int(window.dims[0]), int(window.dims[1])))
+        alpha, mask = alpha.numpy(), mask.numpy()
+    return window_grid(alpha, mask, window.origin, window.dims, resolution, profile, prior)
+
 def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
     """The part of ``grid`` at ``origin`` (global cell) of ``size`` (width, height) cells,
     unknown where ``grid`` does not reach."""

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.costmap import TraversabilityProfile, column_costs, window_grid
+from convbki_core.costmap import TraversabilityProfile, column_costs, grid_of_window
 from convbki_core.free_space import FREE_CLASS
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
@@ -128,8 +128,7 @@ def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bo
     mapper.voxels()
     mapper.local_voxels()
     profile = TraversabilityProfile("warm-up", np.linspace(0.0, 100.0, classes), (1,))
-    window = mapper.window
-    window_grid(window.alpha, window.mask, window.origin, window.dims, resolution, profile, mapper.prior)
+    grid_of_window(mapper.window, resolution, profile, mapper.prior)
     column_costs(*mapper.items(), resolution, profile, mapper.prior)
     half = 2 * resolution
     forgotten = mapper.forget_box((-half, -half, -half), (half, half, half))

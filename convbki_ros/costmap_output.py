@@ -16,9 +16,9 @@ from convbki_core.costmap import (
     ProfileError,
     column_costs,
     crop,
+    grid_of_window,
     load_profile,
     rasterise,
-    window_grid,
 )
 from convbki_core.paths import traversability_profile
 from convbki_ros.params import StartupError
@@ -48,7 +48,7 @@ def rolling_grid(window, resolution: float, prior: float, profile, position: np.
     origin, cells = rolling_geometry(position, resolution, size, window_extent)
     if window.origin is None:  # nothing mapped yet
         return CostGrid(origin, np.full((cells, cells), UNKNOWN, np.int8), float(resolution))
-    footprint = window_grid(window.alpha, window.mask, window.origin, window.dims, resolution, profile, prior)
+    footprint = grid_of_window(window, resolution, profile, prior)
     return crop(footprint, origin, (cells, cells))
 
 

@@ -108,17 +108,19 @@ def test_leaves_read_as_terrain_on_top_of_a_tree_do_not_lift_the_ground_into_the
     assert costs_of({(0, 0, 1): voxel(sidewalk=10), (0, 0, 13): voxel(vegetation=10)}) == {(0, 0): 70}
 
 
-def test_the_grid_read_from_the_dense_window_equals_the_grid_of_its_voxels_gathered():
+@pytest.mark.parametrize("update_path", ["fast", "torch"])
+def test_the_grid_read_from_the_dense_window_equals_the_grid_of_its_voxels_gathered(update_path):
     """The node computes its rolling grid from the window's dense torus arrays in place; the same
     voxels gathered (what a saved map holds) give the same grid, cell for cell, also after the
     window moved and wrapped around its torus, with hidden ground and empty space in it."""
-    from convbki_core.costmap import window_grid
+    from convbki_core.costmap import grid_of_window
     from convbki_core.mapper import ConvBKIMapper
     from convbki_core.paths import kernel_path
 
     label_map = load_label_map("semantic_kitti")
     mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=((-8, -6, -3), (8, 6, 3)),
-                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True)
+                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True,
+                           update_path=update_path)
     rng = np.random.default_rng(3)
     raw_classes = np.array([40, 48, 70, 72, 10, 50, 51, 80])  # road, sidewalk, vegetation, terrain, car, ...
     compared = 0
@@ -132,7 +134,7 @@ def test_the_grid_read_from_the_dense_window_equals_the_grid_of_its_voxels_gathe
         mapper.integrate(points, label_map.to_learning(raw.astype(np.uint32)), pose)
         window = mapper.window
         for profile in (CAR, with_sigma(CAR, 0.0)):
-            dense = window_grid(window.alpha, window.mask, window.origin, window.dims, RESOLUTION, profile, 0.001)
+            dense = grid_of_window(window, RESOLUTION, profile, 0.001)
             gathered = rasterise(column_costs(*window.items(), RESOLUTION, profile, 0.001), RESOLUTION,
                                  window.origin[:2], tuple(window.dims[:2].tolist()))
             assert np.array_equal(dense.origin, gathered.origin)

@@ -176,7 +176,7 @@ def costmap_figures(frames: list, repeat: int) -> dict:
     """One refresh of the planner's rolling costmap (the car profile's grid over the paper's
     window, read from the window in place, as the node does) after each scan, free space on,
     with 1 M and with 10 M voxels stored elsewhere in the map."""
-    from convbki_core.costmap import load_profile, window_grid
+    from convbki_core.costmap import grid_of_window, load_profile
     from convbki_core.paths import traversability_profile
 
     label_map = load_label_map("semantic_kitti")
@@ -187,10 +187,8 @@ def costmap_figures(frames: list, repeat: int) -> dict:
         mapper.store.write(*far_strip(frames, stored, mapper.num_classes, mapper.prior))
         times = []
         for _ in integrate_frames(mapper, frames[:repeat]):
-            window = mapper.window
             started = time.perf_counter()
-            window_grid(window.alpha, window.mask, window.origin, window.dims, mapper.resolution, profile,
-                        mapper.prior)
+            grid_of_window(mapper.window, mapper.resolution, profile, mapper.prior)
             times.append(1e3 * (time.perf_counter() - started))
         results[stored] = {"costmap_ms": steady(times), "window_voxels": mapper.window.count()}
         del mapper
