@@ -82,6 +82,14 @@ def clamp_numpy(alpha: np.ndarray, voxels: tuple[np.ndarray, np.ndarray, np.ndar
 if HAVE_NUMBA:
 
     @njit(nogil=True, inline="always")
+    def evidence_scale(total, limit, prior, classes):  # pragma: no cover - compiled
+        """(the prior as float32, the factor of the evidence above it) that bring a voxel's
+        concentrations summing to ``total`` down to ``limit``."""
+        floor = np.float32(prior)
+        base = np.float32(classes) * floor
+        return floor, (np.float32(limit) - base) / (total - base)
+
+    @njit(nogil=True, inline="always")
     def clamp_voxel(alpha, x, y, z, before, limit, prior):  # pragma: no cover - compiled; tested against numpy
         """The clamping of one voxel that has just taken free evidence (``before``: its free
         concentration before it); ``limit`` <= 0: off."""
@@ -91,9 +99,7 @@ if HAVE_NUMBA:
         for c in range(alpha.shape[0]):
             total += alpha[c, x, y, z]
         if total > limit:
-            floor = np.float32(prior)
-            base = np.float32(alpha.shape[0]) * floor
-            scale = (np.float32(limit) - base) / (total - base)
+            floor, scale = evidence_scale(total, limit, prior, alpha.shape[0])
             for c in range(alpha.shape[0]):
                 alpha[c, x, y, z] = floor + (alpha[c, x, y, z] - floor) * scale
 

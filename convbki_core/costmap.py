@@ -40,6 +40,7 @@ import numpy as np
 import yaml
 
 from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.window import EVIDENCE, gather_window
 
 if HAVE_NUMBA:
     from convbki_core.native import njit, prange
@@ -159,6 +160,7 @@ if HAVE_NUMBA:
                     total += np.float64(alpha[row, c]) * weights[k, c]
                 out[row, k] = total
         return out
+
 
 def _voxel_risks(moments: np.ndarray, risk_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per voxel: its risk (the expected cost given that it is occupied, plus ``risk_sigma``
@@ -319,6 +321,11 @@ def rasterise(columns: ColumnCosts, resolution: float, origin: np.ndarray | None
     return CostGrid(origin, values, float(resolution))
 
 
+def _gathered_grid(indices: np.ndarray, alpha: np.ndarray, origin: np.ndarray, dims: np.ndarray, resolution: float,
+                   profile: TraversabilityProfile, prior: float) -> CostGrid:
+    """The grid of a window's gathered voxels over its footprint (``window_grid``'s rules the slow way)."""
+    return rasterise(column_costs(indices, alpha, resolution, profile, prior), resolution,
+                     np.asarray(origin[:2], np.int64), (int(dims[0]), int(dims[1])))
 
 
 def grid_of_window(window, resolution: float, profile: TraversabilityProfile, prior: float) -> CostGrid:
@@ -328,11 +335,10 @@ def grid_of_window(window, resolution: float, profile: TraversabilityProfile, pr
     alpha, mask = window.alpha, window.mask
     if not isinstance(alpha, np.ndarray):
         if alpha.device.type != "cpu":
-            indices, values = window.items()
-            return rasterise(column_costs(indices, values, resolution, profile, prior), resolution,
-                             np.asarray(window.origin[:2], np.int64), (int(window.dims[0]), int(window.dims[1])))
+            return _gathered_grid(*window.items(), window.origin, window.dims, resolution, profile, prior)
         alpha, mask = alpha.numpy(), mask.numpy()
     return window_grid(alpha, mask, window.origin, window.dims, resolution, profile, prior)
+
 
 def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
     """The part of ``grid`` at ``origin`` (global cell) of ``size`` (width, height) cells,
@@ -348,6 +354,7 @@ def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
         values[y0:y1, x0:x1] = grid.values[y0 + shift[1]:y1 + shift[1], x0 + shift[0]:x1 + shift[0]]
     return CostGrid(origin, values, grid.resolution)
 
+
 def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray, resolution: float,
                 profile: TraversabilityProfile, prior: float) -> CostGrid:
     """The costs of the dense torus window's columns (``RollingWindow``'s ``alpha`` (C, X, Y, Z),
@@ -357,11 +364,8 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     column's ground and band), the neighbours' ground for hidden columns in between."""
     origin = np.asarray(origin, np.int64)
     if not HAVE_NUMBA:  # the same rules, through the voxels gathered
-        from convbki_core.window import gather_window
-
-        indices, values = gather_window(alpha, mask.copy(), origin, dims)
-        return rasterise(column_costs(indices, values, resolution, profile, prior), resolution, origin[:2],
-                         (int(dims[0]), int(dims[1])))
+        return _gathered_grid(*gather_window(alpha, mask.copy(), origin, dims), origin, dims, resolution, profile,
+                              prior)
     size_x, size_y = mask.shape[:2]
     risk = np.empty(mask.shape)
     kind = np.empty(mask.shape, np.uint8)
@@ -421,7 +425,7 @@ if HAVE_NUMBA:
                 evident = False
                 for z in range(size_z):
                     kind[x, y, z] = 0
-                    evident |= mask[x, y, z] & 1 != 0
+                    evident |= mask[x, y, z] & EVIDENCE != 0
                 if not evident:
                     top_ground[x, y] = _NO_GROUND
                     lowest[x, y] = _NO_VOXEL
@@ -441,7 +445,7 @@ if HAVE_NUMBA:
                 for step in range(size_z):
                     global_z = origin[2] + step
                     z = global_z % dims[2]
-                    if mask[x, y, z] & 1 == 0:  # no evidence (the EVIDENCE bit)
+                    if mask[x, y, z] & EVIDENCE == 0:
                         continue
                     m0 = sums[0, z]
                     m1 = sums[1, z]

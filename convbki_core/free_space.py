@@ -57,7 +57,7 @@ _CHECK = 8
 if HAVE_NUMBA:
     import numba
 
-    from convbki_core.clamping import clamp_voxel
+    from convbki_core.clamping import clamp_voxel, evidence_scale
     from convbki_core.native import njit, prange
 
     # Bytes, so that the mask's update stays in bytes and vectorises.
@@ -428,9 +428,7 @@ if HAVE_NUMBA:
             for c in range(alpha.shape[0]):
                 total += alpha[c, voxel]
             if total > limit:  # clamping's rule (``clamping.clamp_voxel``), on flat planes
-                floor = np.float32(prior)
-                base = np.float32(alpha.shape[0]) * floor
-                scale = (np.float32(limit) - base) / (total - base)
+                floor, scale = evidence_scale(total, limit, prior, alpha.shape[0])
                 for c in range(alpha.shape[0]):
                     alpha[c, voxel] = floor + (alpha[c, voxel] - floor) * scale
 
