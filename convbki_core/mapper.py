@@ -29,6 +29,7 @@ import torch
 
 from convbki_core.clamping import DEFAULT_LIMIT, check_limit, clamp_torch
 from convbki_core.devices import resolve_device
+from convbki_core.forgetting import MoverForgetting
 from convbki_core.free_space import (
     FREE_CLASS,
     count_rays,
@@ -43,6 +44,7 @@ from convbki_core.io.ply import write_voxels_ply
 from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
 from convbki_core.native import HAVE_NUMBA
+from convbki_core.present_movers import PresentMovers, labels_now, present_movers
 from convbki_core.records import RECORD, records_from_alpha, window_records
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
@@ -122,6 +124,9 @@ class ConvBKIMapper:
     ``max_concentration``: with free space, a voxel that rays first find empty while its
     concentrations sum to more than this is scaled down to it (``clamping`` module), so a
     bounded number of rays can empty what a mover left; 0 turns that off.
+    ``movable_classes``: with free space, the classes whose evidence is of the time it was
+    seen (a label map's movers: car, person, ...): their voxels forget where a return shows
+    another class and where they float over empty space (``forgetting``); () turns that off.
     """
 
     def __init__(self, kernel: ConvBKIKernel | KernelConfig | str | Path,
@@ -130,7 +135,7 @@ class ConvBKIMapper:
                  prior: float = 1e-3, resolution: float | None = None, filter_size: int | None = None,
                  device: str = "auto", frame_id: str = "map", ignore_classes: tuple[int, ...] = (0,),
                  update_path: str = "auto", track_changes: bool = False, free_space: bool = False,
-                 max_concentration: float = DEFAULT_LIMIT):
+                 max_concentration: float = DEFAULT_LIMIT, movable_classes: Sequence[int] = ()):
         if isinstance(kernel, (str, Path)):
             kernel = load_kernel_file(kernel)
         # The mapper's own kernel: a caller's kernel object keeps its device and grid.
@@ -172,6 +177,11 @@ class ConvBKIMapper:
         self._free_taps: tuple[np.ndarray, np.ndarray] | None = None
         self._plan_key: tuple | None = None
         self._free_counts = scratch_counts(self.geometry.dims) if self.free_space else None
+        self.present_movers: PresentMovers | None = None  # the last scan's moving points, never in the map
+        self.movable_classes = tuple(int(c) for c in movable_classes)
+        self.forgetting = (MoverForgetting(self.movable_classes, kernel.num_classes, self.prior, self.geometry.dims,
+                                           kernel.filter_size // 2)
+                           if self.free_space and self.movable_classes else None)
         self._refresh_filters()  # the filters of the first scan, prepared now
 
     # -- properties ------------------------------------------------------------------------
@@ -198,17 +208,30 @@ class ConvBKIMapper:
         return self.window.origin
 
     # -- the update ------------------------------------------------------------------------
-    def integrate(self, points: np.ndarray, values: np.ndarray, pose: np.ndarray) -> IntegrationResult:
+    def integrate(self, points: np.ndarray, values: np.ndarray, pose: np.ndarray,
+                  moving: np.ndarray | None = None) -> IntegrationResult:
         """Fuse one scan into the map.
 
         ``points`` (N, 3) in the sensor frame (m); ``values`` (N,) integer learning labels
         or (N, C) class probabilities (calibrated by the kernel's ``temperature``); ``pose``
         (4, 4) map <- sensor. Invalid points are dropped and counted in the result; an
-        invalid pose raises ``ValueError`` and leaves the map untouched.
+        invalid pose raises ``ValueError`` and leaves the map untouched. ``moving`` (N,)
+        bool, where the input marks moving objects: those points are evidence for this scan
+        only (``present_movers``): they stay out of the map, and this scan's queries of their
+        voxels read them.
         """
         started = time.perf_counter()
         pose = check_pose(pose)
         points, values = check_scan(points, values, self.num_classes)
+        movers = None
+        if moving is not None:
+            moving = np.asarray(moving, bool).reshape(-1)
+            if moving.shape[0] != points.shape[0]:
+                raise ValueError(f"got {points.shape[0]} points but {moving.shape[0]} moving flags")
+            if moving.any():
+                movers = present_movers(transform_points(points[moving], pose), values[moving], self.num_classes,
+                                        self.resolution, self.ignore_classes)
+                points, values = points[~moving], values[~moving]
         origin = self.geometry.origin_for(pose[:3, 3])
         # Probability rows are calibrated by the kernel's temperature in the voxeliser, so every
         # update path (fast, dense, torch) receives the same F; labels are never touched.
@@ -223,9 +246,18 @@ class ConvBKIMapper:
         moved = time.perf_counter()
         result = IntegrationResult(volume.stats, origin, occupied_voxels=volume.num_voxels)
         marks = EVIDENCE | CHANGED | (TOUCHED if self.free_space else 0)
+        forgetting_s = 0.0  # the movers' rules count with free space (both make space empty)
+        if self.forgetting is not None:
+            self.forgetting.window_moved(origin, self.window.mask)
+            self.forgetting.contradicted(volume, self.window)
+            forgetting_s = time.perf_counter() - moved
         if volume.num_voxels:
             update = {"fast": self._update_fast, "dense": self._update_dense, "torch": self._update_torch}
             result.new_voxels = update[self.update_path](volume, marks)
+        if self.forgetting is not None:
+            started_rule = time.perf_counter()
+            self.forgetting.unsupported(self.window)
+            forgetting_s += time.perf_counter() - started_rule
         updated = time.perf_counter()
         if self.free_space and volume.num_voxels:
             offsets, tap_weights = self._free_space_taps()
@@ -245,9 +277,11 @@ class ConvBKIMapper:
                                                         self.prior)
         self.scans_integrated += 1
         self.sensor_position = pose[:3, 3].copy()
+        self.present_movers = movers
         finished = time.perf_counter()
         result.timing_ms = {"voxelize": 1e3 * (voxelized - started), "query": 1e3 * (moved - voxelized),
-                            "update": 1e3 * (updated - moved), "free": 1e3 * (finished - updated),
+                            "update": 1e3 * (updated - moved - forgetting_s),
+                            "free": 1e3 * (finished - updated + forgetting_s),
                             "total": 1e3 * (finished - started)}
         return result
 
@@ -309,13 +343,22 @@ class ConvBKIMapper:
         Returns (labels (N,) int64, has_evidence (N,) bool); labels are -1 where the voxel
         holds no evidence, or (with ``within_window``) lies outside the current window. With
         free space, the class is the most likely of the others: a query point is a return,
-        so the question is what the surface there is, not whether the voxel is empty.
+        so the question is what the surface there is, not whether the voxel is empty. A voxel
+        that holds the last scan's moving points reads as their most likely class.
         """
         alpha, has_evidence = self.concentrations_at(points_map, within_window)
         labels = np.full(alpha.shape[0], -1, np.int64)
         if self.free_space:
             alpha[:, FREE_CLASS] = 0.0
         labels[has_evidence] = dirichlet_statistics(alpha[has_evidence]).label
+        if self.present_movers is not None:
+            points_map = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
+            usable = np.isfinite(points_map).all(axis=1)
+            now = np.full(len(labels), -1, np.int64)
+            held = np.zeros(len(labels), bool)
+            now[usable], held[usable] = labels_now(self.present_movers, voxel_indices(points_map[usable],
+                                                                                      self.resolution))
+            labels[held], has_evidence = now[held], has_evidence | held
         return labels, has_evidence
 
     def items(self) -> tuple[np.ndarray, np.ndarray]:
@@ -368,6 +411,9 @@ class ConvBKIMapper:
         self.window.clear()
         self.scans_integrated = 0
         self.sensor_position = None
+        self.present_movers = None
+        if self.forgetting is not None:
+            self.forgetting.clear()
 
     def forget_box(self, box_min: Sequence[float], box_max: Sequence[float]) -> np.ndarray:
         """Forget the evidence of every voxel whose centre lies in the box ``box_min`` ..

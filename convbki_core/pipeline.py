@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from convbki_core.datasets import DatasetError, Frame, SequenceDataset
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.kernel_file import KernelConfig
 from convbki_core.mapper import ConvBKIMapper, IntegrationResult
@@ -54,6 +55,9 @@ def paper_mapper(kernel: str | Path | KernelConfig | None = None, **options) -> 
     ``ConvBKIMapper`` keyword: local_bounds, resolution, filter_size, update_path, ...)
     override the rest."""
     settings = {"local_bounds": PAPER_BOUNDS, "device": _device, **options}
+    if kernel is None and settings.get("free_space") and "movable_classes" not in settings:
+        # The product's free space: with the movers' rules of SemanticKITTI's movable classes.
+        settings["movable_classes"] = load_label_map("semantic_kitti").movable_classes
     return ConvBKIMapper(kernel_path(PAPER_KERNEL) if kernel is None else kernel, **settings)
 
 

@@ -18,17 +18,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from convbki_core.volume import voxel_indices
+from convbki_core.volume import voxel_indices, voxel_keys
 
-_BITS = 21
-_OFFSET = 1 << (_BITS - 1)
 _NEIGHBOURS = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
-
-
-def voxel_keys(indices: np.ndarray) -> np.ndarray:
-    """One int64 per voxel index (each axis within +-2^20 voxels)."""
-    shifted = np.asarray(indices, np.int64) + _OFFSET
-    return (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
 
 
 def _grown(indices: np.ndarray) -> np.ndarray:
@@ -64,3 +56,43 @@ class SweptSpace:
         candidates = np.isin(labels, np.asarray(movable_classes, np.int64))
         keys = voxel_keys(indices[candidates])
         return int(np.count_nonzero(np.isin(keys, swept) & ~np.isin(keys, present)))
+
+
+class StaticCoverage:
+    """What forgetting must not cost: the share of the static world the final map still shows.
+
+    Every ``every``-th scan's static ground-truth points (labelled, not moving) are kept by
+    voxel; at the end, the share of them whose voxel the map shows (its expected class is
+    not class 0, the empty space of free space) is the static coverage. A rule that empties
+    trails by also emptying walls and parked cars loses coverage; plain ConvBKI, which never
+    empties anything, is the reference.
+    """
+
+    def __init__(self, resolution: float, every: int = 10):
+        self.resolution = float(resolution)
+        self.every = int(every)
+        self._scans = 0
+        self._keys: list[np.ndarray] = []
+
+    def add(self, points_map: np.ndarray, ground_truth: np.ndarray, moving: np.ndarray | None) -> None:
+        """One scan, in order: its points in the map frame, ground-truth learning labels and
+        moving flags (None: the ground truth marks no movers)."""
+        if self._scans % self.every == 0:
+            static = ground_truth != 0
+            if moving is not None:
+                static &= ~moving
+            static &= np.isfinite(points_map).all(axis=1)
+            self._keys.append(voxel_keys(voxel_indices(points_map[static], self.resolution)))
+        self._scans += 1
+
+    @property
+    def points(self) -> int:
+        return int(sum(len(keys) for keys in self._keys))
+
+    def coverage(self, indices: np.ndarray, labels: np.ndarray) -> float | None:
+        """The share of the kept points in voxels of the map (global ``indices`` (N, 3),
+        expected class ``labels``) that it shows; None before any point was kept."""
+        if not self.points:
+            return None
+        shown = voxel_keys(indices[labels != 0])
+        return float(np.isin(np.concatenate(self._keys), shown).mean())

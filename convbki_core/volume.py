@@ -105,6 +105,17 @@ def voxel_indices(points: np.ndarray, resolution: float) -> np.ndarray:
     return np.floor(np.asarray(points, dtype=np.float64) / resolution).astype(np.int64)
 
 
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+
+
+def voxel_keys(indices: np.ndarray) -> np.ndarray:
+    """One int64 per global voxel index (N, 3), each axis within +-2^20 voxels: sets of voxels
+    are then sorted, searched and intersected as plain integers."""
+    shifted = np.asarray(indices, np.int64).reshape(-1, 3) + _KEY_OFFSET
+    return (shifted[:, 0] << (2 * _KEY_BITS)) | (shifted[:, 1] << _KEY_BITS) | shifted[:, 2]
+
+
 def voxel_centres(indices: np.ndarray, resolution: float) -> np.ndarray:
     """Map-frame centres (N, 3) float64 of global voxel indices (N, 3)."""
     return (np.asarray(indices, dtype=np.float64) + 0.5) * resolution

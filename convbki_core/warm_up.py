@@ -99,7 +99,8 @@ def throwaway_mapper(settings: dict, temperature: float | None = None) -> ConvBK
     ignored = tuple(sorted({FREE_CLASS, *settings.get("ignore_classes", (FREE_CLASS,))}))
     mapper = ConvBKIMapper(**{**settings, "kernel": kernel, "local_bounds": (tuple(-half), tuple(half)),
                               "ignore_classes": ignored, "track_changes": True, "free_space": True,
-                              "max_concentration": 1.0})
+                              "max_concentration": 1.0,
+                              "movable_classes": settings.get("movable_classes") or (min(1, kernel.num_classes - 1),)})
     mapper.kernel.temperature = temperature
     return mapper
 

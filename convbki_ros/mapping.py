@@ -123,7 +123,8 @@ class MappingCore:
                     "filter_size": node.param("filter_size"), "device": node.param("device"),
                     "frame_id": node.param("map_frame") or "map", "update_path": node.param("update_path"),
                     "ignore_classes": self.label_map.ignore_classes, "track_changes": True,
-                    "free_space": node.param("free_space"), "max_concentration": node.param("max_concentration")}
+                    "free_space": node.param("free_space"), "max_concentration": node.param("max_concentration"),
+                    "movable_classes": self.label_map.movable_classes if node.param("forget_movers") else ()}
         # Every kernel is compiled (or loaded) while the map's window is allocated and filled.
         with ThreadPoolExecutor(max_workers=1) as pool:
             warming = pool.submit(warm_up, settings)
@@ -416,17 +417,20 @@ class MappingCore:
         if cloud.dropped:
             self.warnings.warn("bad points " + problem_key(cloud.bad_points_text()),
                                f"{cloud.bad_points_text()}; the rest are integrated")
-        values = cloud.probabilities
+        values, moving = cloud.probabilities, None
         if values is None:
             values = self._learning_labels(cloud.labels)
             if values is None:
                 self.status.drop("unknown labels")
                 return
+            if self.node.param("label_space") == "raw" and self.node.param("moving_labels"):
+                moving = self.label_map.is_moving(cloud.labels)
+                moving = moving if moving.any() else None
         with self.map_lock:
             if decision.pending.generation != self.queue.generation:  # a reset came while it was decoded
                 self.status.drop("map reset")
                 return
-            result = self.mapper.integrate(cloud.points, values, sensor_pose)
+            result = self.mapper.integrate(cloud.points, values, sensor_pose, moving)
             self.map_version += 1
             self.last_stamp = msg.header.stamp
             self.position = sensor_pose[:3, 3]

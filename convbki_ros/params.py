@@ -95,6 +95,12 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("max_concentration", 300.0, "with free_space: a voxel that rays first find empty while its concentrations "
          "sum to more than this is scaled down to it, so a bounded number of rays can empty what a mover left "
          "(OctoMap's clamping); 0 = never; unitless (points of evidence)", 0.0, 1e12),
+    Spec("forget_movers", True, "with free_space: the voxels of movable classes (car, person, ...) forget their "
+         "evidence where a return shows another class, and empty where they float over space the rays found "
+         "empty (the top of a bus that has gone); false: free space alone; bool"),
+    Spec("moving_labels", True, "with label_space raw: points whose label is a moving id (SemanticKITTI's "
+         "252-259, from a multi-scan segmentation network) are evidence for their own scan only and stay out "
+         "of the map, so what moves leaves no trail; false: they are mapped as their static classes; bool"),
     Spec("device", "auto", "torch device: auto (CUDA when present, else CPU), cpu, cuda[:N]"),
     Spec("update_path", "auto", "how the update runs: auto (fast on the CPU, torch on CUDA), fast (compiled "
          "sparse scatter, CPU), torch (the window resident on the torch device, any device) or dense "

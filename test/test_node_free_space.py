@@ -84,3 +84,35 @@ def test_the_rays_empty_a_car_that_has_gone_and_the_updates_say_so(tmp_path):
     finally:
         output = rig.close()
     assert "Traceback" not in output, output
+
+
+def test_points_labelled_moving_stay_out_of_the_map_unless_moving_labels_is_off(tmp_path):
+    """A multi-scan network's moving-car label (raw 252) on the car's points: with the default
+    moving_labels the node's map never holds the car (no trail, whatever rays follow); with
+    moving_labels:=false the same points are mapped as car."""
+    from mapper_rig import odometry
+
+    from convbki_core.io.map_file import read_map
+    from convbki_ros.cloud_encoding import encode_cloud
+
+    points, labels = street(with_car=True)
+    labels = np.where(labels == 10, 252, labels).astype(np.uint32)
+    counts = {}
+    for moving_labels in (True, False):
+        rig = Rig(tmp_path / str(moving_labels), "-p", f"moving_labels:={str(moving_labels).lower()}")
+        try:
+            for scan in range(2):
+                stamp = rig.next_stamp()
+                rig.publish(odometry(stamp), encode_cloud(stamp, "velo_link", fields(points, labels)))
+                rig.wait_stats(lambda s, scan=scan: s.integrated == scan + 1)
+            saved = rig.call("save_map")
+            assert saved.success, saved.message
+            _, _, alpha = read_map(rig.map_file)
+            alpha[:, 0] = 0.0  # the class of the surface, as the map's queries read it
+            label = alpha.argmax(axis=1)
+            counts[moving_labels] = (int(np.count_nonzero(label == CAR)), int(np.count_nonzero(label == 13)))
+        finally:
+            output = rig.close()
+        assert "Traceback" not in output, output
+    assert counts[True][0] == 0 and counts[True][1] > 100, counts  # no car; the house is there
+    assert counts[False][0] > 100, counts

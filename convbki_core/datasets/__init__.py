@@ -36,6 +36,16 @@ class Frame:
     ground_truth: np.ndarray | None = None  # (N,) int64 learning ids
     raw_input_labels: np.ndarray | None = None  # (N,) uint32 label words as stored
     moving: np.ndarray | None = None  # (N,) bool: the ground truth marks the point as a moving object
+    moving_raw_ids: np.ndarray | None = None  # (65536,) bool: the label map's moving raw ids (None: none)
+
+    @property
+    def input_moving(self) -> np.ndarray | None:
+        """(N,) bool: the input segmentation marks the point as a moving object (a moving raw
+        id, e.g. SemanticKITTI's 252-259); None when the input is not raw labels or marks none."""
+        if self.raw_input_labels is None or self.moving_raw_ids is None:
+            return None
+        moving = self.moving_raw_ids[self.raw_input_labels.astype(np.int64) & 0xFFFF]
+        return moving if moving.any() else None
 
     @property
     def input_values(self) -> np.ndarray:

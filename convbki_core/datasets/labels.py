@@ -28,6 +28,7 @@ class LabelMap:
     ignore_classes: tuple[int, ...]
     known_raw: np.ndarray  # (65536,) bool: raw ids listed in the learning map
     moving_raw: np.ndarray | None = None  # (65536,) bool: raw ids of moving objects (None: not marked)
+    ground_classes: tuple[int, ...] = ()  # learning classes of the ground (road, sidewalk, ...)
 
     @property
     def movable_classes(self) -> tuple[int, ...]:
@@ -90,7 +91,8 @@ def load_label_map_file(path: str | Path) -> LabelMap:
         moving = np.zeros(0x10000, bool)
         moving[[int(raw_id) for raw_id in data["moving_raw_ids"]]] = True
     return LabelMap(str(data.get("name", path.stem)), forward, inverse, tuple(names), colors,
-                    tuple(int(c) for c in data.get("ignore_classes", [0])), known, moving)
+                    tuple(int(c) for c in data.get("ignore_classes", [0])), known, moving,
+                    tuple(int(c) for c in data.get("ground_classes", [])))
 
 
 @cache

@@ -234,6 +234,7 @@ class SemanticKittiSequence:
             frame.moving = self.label_map.is_moving(words)
         if self.predictions_folder is not None:
             frame.raw_input_labels = self._labels(self.predictions_folder / f"{name}.label", count)
+            frame.moving_raw_ids = self.label_map.moving_raw
             frame.input_labels = self.label_map.to_learning(frame.raw_input_labels)
         if self.probabilities_folder is not None:
             frame.probabilities = self._probabilities(self.probabilities_folder / f"{name}.npy", count)

@@ -8,7 +8,11 @@ the scans are written.
 
 With ``movers`` > 0 the drive also has moving road users (``traffic`` plans them, ``movers``
 poses and casts them, and writes ``movers.json``); with 0, the default, none of that runs:
-the scene, the scans and every file are those of the static drive, byte for byte.
+the scene, the scans and every file are those of the static drive, byte for byte. The options
+added later keep to the same rule: ``traffic`` other than ``classic`` (movers that stop, crawl
+or pass close) and ``moving_labels`` (predictions with the moving raw ids, as a multi-scan
+segmentation network gives them) change the drive only when set, and only then appear in
+synth.yaml.
 """
 
 from __future__ import annotations
@@ -67,6 +71,8 @@ class DriveConfig:
     range_noise: float = 0.02  # sigma, m
     force: bool = False
     movers: int = 0  # moving road users planned over the drive
+    traffic: str = "classic"  # the movers' behaviour mix, a key of traffic.TRAFFIC
+    moving_labels: bool = False  # predictions of correctly classified mover points carry moving raw ids
 
 
 @dataclass
@@ -117,7 +123,7 @@ def _traffic(config: DriveConfig) -> Callable[[StreetLayout], list[movers.Mover]
     def plan(layout: StreetLayout) -> list[movers.Mover]:
         ego = drive(layout.route_, config.frames, config.speed, layout.start_s,
                     np.random.default_rng([config.seed, 0xD21]))
-        return traffic.plan(layout, ego, config.movers, config.seed, config.speed)
+        return traffic.plan(layout, ego, config.movers, config.seed, config.speed, config.traffic)
     return plan
 
 
@@ -218,6 +224,8 @@ def generate_drive(config: DriveConfig, progress: Callable[[int], None] | None =
     pre-pass, then on to 2 * ``frames`` in the writing pass (only the latter without calibration).
     """
     lidar.require_numba()
+    if config.traffic not in traffic.TRAFFIC:
+        raise SynthError(f"unknown traffic {config.traffic!r} (one of: {', '.join(traffic.TRAFFIC)})")
     say = status or (lambda _text: None)
     try:
         seq = writer.prepare_sequence(Path(config.out), config.sequence, config.force, config.probabilities)
@@ -267,7 +275,10 @@ def generate_drive(config: DriveConfig, progress: Callable[[int], None] | None =
         scan = sim.scan(trajectory.poses[k], k, beams)
         pred = model.predict(scan.noise, strength)
         probs = model.probabilities(scan.noise, pred, k) if config.probabilities else None
-        writer.write_scan(seq, k, scan.points, scan.remission, scan.label_words, labels.to_raw(pred), probs)
+        predicted_raw = labels.to_raw(pred)
+        if config.moving_labels:
+            predicted_raw = movers.with_moving_ids(predicted_raw, pred, scan.label_words, labels.learning_map)
+        writer.write_scan(seq, k, scan.points, scan.remission, scan.label_words, predicted_raw, probs)
         matrix.add(scan.truth, pred)
         class_points += np.bincount(scan.truth, minlength=labels.num_classes)
         counts.append(len(scan.points))
@@ -302,6 +313,7 @@ def _record(config: DriveConfig, result: DriveResult, names: tuple[str, ...], tr
                   "range_noise_m": config.range_noise, "sensor_height_m": 1.73, "rate_hz": 10},
         "speed_mps": {"cruise": config.speed, "mean": round(float(np.mean(trajectory.speed)), 3)},
         "probabilities": config.probabilities,
+        **({"moving_labels": True} if config.moving_labels else {}),  # absent when not set, as before it existed
         "scene": result.info,
         "world_from_scene": [[round(float(v), 9) for v in row] for row in world_from_scene(config.seed)],
         "noise": {
@@ -322,8 +334,11 @@ def _record(config: DriveConfig, result: DriveResult, names: tuple[str, ...], tr
             "requested": config.movers,
             "planned": len(result.placed_movers),
             "classes": {name: kinds.count(name) for name in sorted(set(kinds))},
-            "behaviours": {b: sum(m.behaviour == b for m in result.placed_movers) for b in traffic.BEHAVIOURS},
+            "behaviours": {b: sum(m.behaviour == b for m in result.placed_movers)
+                           for b in traffic.TRAFFIC[config.traffic]},
             "moving_points_per_frame_mean": round(float(np.mean(result.moving_points)), 1),
             "sidecar": "movers.json",
         }
+        if config.traffic != "classic":  # a classic drive's record stays as it always was
+            record["movers"]["traffic"] = config.traffic
     return record

@@ -7,7 +7,10 @@ the origin at the centre of its footprint on the surface it stands on. Every pri
 mover carries the mover's *moving* raw id (252 moving-car, 253 moving-bicyclist, 254
 moving-person, 255 moving-motorcyclist, 257 moving-bus, 258 moving-truck), which the label
 map sends to the same learning class as the static one: the ground truth says "moving-car",
-the segmentation noise (which works on learning classes) predicts "car", as a network does.
+the segmentation noise (which works on learning classes) predicts "car", as a single-scan
+network does. With ``synth --moving-labels`` the predictions are those of a multi-scan network
+instead (``with_moving_ids``): a mover's point predicted as the mover's class gets the moving
+raw id ("moving-car"), every other prediction stays as it was.
 ``traffic`` plans where the movers go; each has one pose per scan (x, y, ground height, yaw,
 scene frame) over a contiguous run of scans, and is absent outside it. A scan sees a mover
 where it is at that scan's time (no rolling-shutter smear), in front of whatever static
@@ -23,7 +26,9 @@ SemanticKITTI has no such file, so readers must treat it as optional)::
        {"instance": 2467,       # instance id in labels/ (label >> 16), unique in the drive
         "raw": 252,             # moving raw id in labels/ (label & 0xFFFF)
         "class": "moving-car",
-        "behaviour": "oncoming", # oncoming | lead | crossing | cross-traffic
+        "behaviour": "oncoming", # oncoming | lead | crossing | cross-traffic, and with
+                                 # --traffic varied also stop-and-go | kerb-cyclist |
+                                 # close-pass | sidewalk-pause (see traffic)
         "size": [4.52, 1.83, 1.49],   # box length (along yaw), width, height, m
         "first_frame": 12, "last_frame": 97,
         "poses": [[x, y, z, yaw], ...]}]}  # box centre (m) and heading (rad, about z),
@@ -156,6 +161,20 @@ def frame_of(movers: list[Mover], frame: int, tints: list[np.ndarray]) -> MoverF
         np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
         np.asarray(bounds, np.float64),
     )
+
+
+def with_moving_ids(predicted_raw: np.ndarray, predicted_class: np.ndarray, truth_words: np.ndarray,
+                    learning_map: np.ndarray) -> np.ndarray:
+    """Predicted raw ids as a multi-scan network gives them: where the ground truth is a mover
+    (a moving raw id) and the prediction is the mover's learning class, the mover's moving raw
+    id; elsewhere ``predicted_raw`` unchanged. A wrong class stays wrong and static: the network
+    tells motion only of what it recognises."""
+    truth_raw = np.asarray(truth_words).astype(np.int64) & 0xFFFF
+    moving = (truth_raw >= MOVING_RAW.start) & (truth_raw < MOVING_RAW.stop)
+    agree = moving & (learning_map[truth_raw].astype(np.int64) == np.asarray(predicted_class, np.int64))
+    out = np.array(predicted_raw, np.uint32, copy=True)
+    out[agree] = truth_raw[agree]
+    return out
 
 
 def tints(movers: list[Mover], salt: int) -> list[np.ndarray]:

@@ -1,7 +1,8 @@
 """Where the movers go: traffic planned around the ego vehicle's drive.
 
 Each mover is planned relative to the ego vehicle at a random *meeting time* of the drive, so
-that the LiDAR sees it over many scans:
+that the LiDAR sees it over many scans. The ``classic`` traffic (``BEHAVIOURS``, the default)
+has four behaviours, all at constant speeds:
 
 - ``oncoming``: a car, truck, bus, motorcyclist or cyclist in the opposite lane of the street
   the ego vehicle is on, passing it;
@@ -11,14 +12,35 @@ that the LiDAR sees it over many scans:
   of it, and on along the far sidewalk;
 - ``cross-traffic``: a vehicle or cyclist on a cross street, through the intersection ahead.
 
+The ``varied`` traffic (``VARIED_BEHAVIOURS``) keeps those and adds movers that change speed or
+come close:
+
+- ``stop-and-go``: a car, truck or bus that drives, brakes to a standstill at the stop line of
+  an intersection (a red traffic light) for ``STOP_SCANS`` scans, then speeds up and drives on:
+  on a cross street ahead while the ego vehicle passes, ahead of it in its own lane, or in the
+  opposite lane;
+- ``kerb-cyclist``: a slow bicyclist (``KERB_CYCLIST_SPEED``) along the right edge of the outer
+  lane, by the kerb, in the ego vehicle's direction (ahead of it, or behind it at the start) or
+  in the opposite one;
+- ``close-pass``: a vehicle passing the ego vehicle with a lateral gap of ``CLOSE_PASS_GAP``
+  between the two boxes: oncoming, or overtaking it on the left (pulling out of the ego
+  vehicle's lane behind it and back in ahead of it);
+- ``sidewalk-pause``: a pedestrian walking along a sidewalk who stands still for
+  ``PAUSE_SCANS`` scans, then walks on.
+
+A stop is planned only where the drive shows it whole: the mover is in view for
+``SHOWN_MOTION`` of driving (walking) before it stops and after it goes on.
+
 Vehicles keep to the centre of their lane (cyclists near its right edge) and drive straight
-along the street grid at a constant speed, through intersections; pedestrians step up on the
-sidewalk (``CURB_HEIGHT``). A mover is present while it is within ``ACTIVE_RANGE`` of the ego
-vehicle around its meeting time (beyond the LiDAR's range, so it appears and leaves unseen),
-and inside the scene. A candidate whose box would come close to the ego vehicle's or to a
-mover already planned (checked every 0.02 s) is dropped and another one drawn, up to
-``TRIES`` times, so fewer movers than asked may result on a short or crowded drive.
-``swept_height`` rasterises the space the movers sweep; ``scene`` removes static objects from it.
+along the street grid, through intersections; pedestrians step up on the sidewalk
+(``CURB_HEIGHT``). A mover is present while it is within ``ACTIVE_RANGE`` of the ego vehicle
+around its meeting time (beyond the LiDAR's range, so it appears and leaves unseen), and inside
+the scene. A candidate whose box would come close to the ego vehicle's or to a mover already
+planned (checked every 0.02 s, stopped or not) is dropped and another one drawn, up to
+``TRIES`` times, so fewer movers than asked may result on a short or crowded drive: in
+particular the ego vehicle, which never brakes for anyone, does not run into a stopped or slow
+mover ahead of it, because such a mover is not planned. ``swept_height`` rasterises the space
+the movers sweep, including where they stand still; ``scene`` removes static objects from it.
 """
 
 from __future__ import annotations
@@ -49,6 +71,23 @@ VEHICLES = {  # kind: (weight in oncoming, in cross-traffic, speed range m/s)
     "bicyclist": (0.15, 0.25, (3.5, 6.5)),
 }
 WALK_SPEED = (1.0, 1.7)  # m/s
+# The varied traffic: every classic behaviour, and those that stop, crawl or come close.
+VARIED_BEHAVIOURS = {"oncoming": 0.2, "crossing": 0.16, "cross-traffic": 0.14, "lead": 0.06, "stop-and-go": 0.16,
+                     "kerb-cyclist": 0.1, "close-pass": 0.1, "sidewalk-pause": 0.08}
+TRAFFIC = {"classic": BEHAVIOURS, "varied": VARIED_BEHAVIOURS}  # --traffic: behaviour weights
+STOP_SCANS = (15, 40)  # how long a stop-and-go vehicle stands still, scans
+PAUSE_SCANS = (15, 60)  # how long a pedestrian stands on the sidewalk, scans
+SHOWN_MOTION = 1.0  # s of motion in view before a stop and after it
+STOP_LINE_GAP = (1.5, 4.0)  # m between a waiting vehicle's front and the crossed street's kerb line
+BRAKE, ACCEL = 2.5, 2.0  # m/s^2 of a stop-and-go vehicle
+WALK_ACCEL = 1.0  # m/s^2 of a pedestrian stopping and setting off
+KERB_CYCLIST_SPEED = (1.5, 3.5)  # m/s
+KERB_GAP = (0.2, 0.5)  # m between a kerb cyclist's box and the right edge of the road
+CLOSE_PASS_GAP = (1.0, 2.0)  # m between a close-passing vehicle's box and the ego vehicle's
+OVERTAKE_SPEEDUP = (3.0, 6.0)  # m/s an overtaking vehicle is faster than the ego vehicle
+OVERTAKE_CLEARANCE = (4.0, 8.0)  # m between the two boxes, lengthwise, when it pulls out and back in
+LANE_CHANGE_TIME = 3.0  # s
+STRAIGHT_TOLERANCE = 0.02  # rad: how far the ego vehicle's heading may be off its street's for a close pass
 # The ego vehicle's body in its sensor frame (x forward): centre and half extents.
 _EGO_CENTRE = ((EGO_BOXES[0][0] + EGO_BOXES[0][1]) / 2, 0.0)
 _EGO_HALF = ((EGO_BOXES[0][1] - EGO_BOXES[0][0]) / 2, (EGO_BOXES[0][3] - EGO_BOXES[0][2]) / 2)
@@ -71,6 +110,40 @@ def _point(street: Street, along: np.ndarray, offset: np.ndarray) -> np.ndarray:
 
 def _heading(street: Street, sense: int) -> float:
     return (math.pi / 2 if sense > 0 else -math.pi / 2) if street.axis == 0 else (0.0 if sense > 0 else math.pi)
+
+
+def _along_and_offset(street: Street, xy: np.ndarray) -> tuple[float, float]:
+    """Street coordinates of a scene point: the inverse of ``_point``."""
+    if street.axis == 0:
+        return float(xy[1]), float(xy[0] - street.pos)
+    return float(xy[0]), float(xy[1] - street.pos)
+
+
+def _stop_line(crossed: Street, sense: int, half_length: float, gap: float) -> float:
+    """Where (along its own street) the centre of a mover driving in direction ``sense`` stands
+    when it waits in front of ``crossed``: its front ``gap`` short of that street's kerb line."""
+    return crossed.pos - sense * (crossed.curb(-sense) + gap + half_length)
+
+
+def _stop_and_go_progress(t: np.ndarray, t_stop: float, t_go: float, speed: float, brake: float,
+                          accel: float) -> np.ndarray:
+    """Signed distance (m) a mover has come past the place where it stops, at times ``t``: it
+    cruises at ``speed``, brakes evenly (``brake``, m/s^2) to stand still from ``t_stop`` to
+    ``t_go`` and speeds up evenly (``accel``) to ``speed`` again. Exactly zero while it stands,
+    so that its poses repeat bit for bit."""
+    t_brake, t_accel = speed / brake, speed / accel
+    before, after = t_stop - t, t - t_go
+    approach = np.where(before > t_brake, -speed * (t_brake / 2 + before - t_brake), -0.5 * brake * before ** 2)
+    leave = np.where(after > t_accel, speed * (t_accel / 2 + after - t_accel), 0.5 * accel * after ** 2)
+    return np.where(before > 0, approach, np.where(after > 0, leave, 0.0))
+
+
+def _pulled_out(time_from_level: np.ndarray, alongside: float, change: float) -> np.ndarray:
+    """Share (0..1) of an overtaking vehicle's way from its lane out to its passing line: all of
+    it while it is within ``alongside`` seconds of being level with the vehicle it overtakes,
+    none before it pulls out or after it is back, a smooth lane change of ``change`` s between."""
+    beyond = np.clip((np.abs(time_from_level) - alongside) / change, 0.0, 1.0)
+    return 0.5 * (1.0 + np.cos(np.pi * beyond))
 
 
 def _overlap(ca: np.ndarray, yaw_a: np.ndarray, half_a, cb: np.ndarray, yaw_b: np.ndarray, half_b) -> np.ndarray:
@@ -99,6 +172,10 @@ class _Candidate:
     z0: np.ndarray  # (n,) height of the surface under it, m
     meet: int  # the step at which it is near the ego vehicle by construction
     valid: np.ndarray | None = None  # (n,) bool: steps where its path exists (None: all)
+    # Drawn with the candidate when its path depends on its size (None: drawn when it is checked).
+    template: Template | None = None
+    # First and last step that must lie in the mover's run: a stop with the motion around it.
+    shown: tuple[int, int] | None = None
 
 
 class _Planner:
@@ -128,10 +205,27 @@ class _Planner:
             return street, (1 if c > 0 else -1), x
         return None
 
-    def _kind(self, column: int) -> str:
-        names = list(VEHICLES)
+    def _kind(self, column: int, exclude: tuple[str, ...] = ()) -> str:
+        names = [n for n in VEHICLES if n not in exclude]
         weights = np.array([VEHICLES[n][column] for n in names])
         return names[self.rng.choice(len(names), p=weights / weights.sum())]
+
+    def _ego_speed(self, j: int) -> float:
+        """The ego vehicle's speed (m/s) around step j."""
+        if len(self.t) < 2:
+            return self.cruise
+        a, b = max(j - 1, 0), min(j + 1, len(self.t) - 1)
+        return float(np.linalg.norm(self.ego_xy[b] - self.ego_xy[a]) / (self.t[b] - self.t[a]))
+
+    def _step(self, time: float) -> int:
+        """The conflict-check step nearest to ``time`` (s; may lie outside the drive)."""
+        return round(time / (0.1 / FINE))
+
+    def _stop_shown(self, t_stop: float, t_go: float) -> tuple[int, int] | None:
+        """The steps a stop from ``t_stop`` to ``t_go`` needs in view (``SHOWN_MOTION`` of motion on
+        either side), or None when they do not fit in the drive."""
+        first, last = self._step(t_stop - SHOWN_MOTION), self._step(t_go + SHOWN_MOTION)
+        return (first, last) if first >= 0 and last < len(self.t) else None
 
     # ---- candidates -------------------------------------------------------------------------------------
     def _straight(self, kind: str, street: Street, sense: int, along_m: float, j_m: int, offset: float,
@@ -183,13 +277,7 @@ class _Planner:
         rng = self.rng
         a_c = along + sense * rng.uniform(12, 45)
         start = 1 if rng.random() < 0.5 else -1
-
-        def walkway(side: int) -> float:
-            k = (side + 1) // 2
-            inner = street.curb(side) + street.lawn[k] + 0.15
-            return side * (inner + rng.uniform(0.3, 0.7) * max(street.curb(side) + street.sidewalk[k] - inner, 0.0))
-
-        o0, o1 = walkway(start), walkway(-start)
+        o0, o1 = self._walkway(street, start), self._walkway(street, -start)
         d0, d1 = (1 if rng.random() < 0.5 else -1), (1 if rng.random() < 0.5 else -1)
         a_far = a_c + rng.uniform(-1.5, 1.5)
         corners = _point(street, np.array([a_c - d0 * 80.0, a_c, a_far, a_far + d1 * 80.0]),
@@ -220,6 +308,147 @@ class _Planner:
         yaw = np.arctan2(path.poses[:, 1, 0], path.poses[:, 0, 0])
         return _Candidate(kind, "lead", xy, yaw, np.zeros(len(xy)), 0)
 
+    def _walkway(self, street: Street, side: int) -> float:
+        """Offset from the centre line of a pedestrian's line along the sidewalk on ``side``: on
+        the paved part, clear of the lawn strip and the curb."""
+        k = (side + 1) // 2
+        inner = street.curb(side) + street.lawn[k] + 0.15
+        return side * (inner + self.rng.uniform(0.3, 0.7) * max(street.curb(side) + street.sidewalk[k] - inner, 0.0))
+
+    # ---- candidates of the varied traffic ------------------------------------------------------------
+    def stop_and_go(self) -> _Candidate | None:
+        """A car, truck or bus that waits at an intersection's stop line, then drives on: on a cross
+        street ahead while the ego vehicle goes through, ahead of it in its lane (gone again before
+        the ego vehicle comes up: else the conflict check drops it), or in the opposite lane."""
+        rng = self.rng
+        kind = ["car", "truck", "bus"][rng.choice(3, p=[0.7, 0.15, 0.15])]
+        where = ["cross", "ahead", "opposite"][rng.choice(3, p=[0.5, 0.3, 0.2])]
+        template = Template.build(kind, rng)
+        speed = rng.uniform(*VEHICLES[kind][2])
+        wait = int(rng.integers(STOP_SCANS[0], STOP_SCANS[1] + 1)) * 0.1
+        gap = rng.uniform(*STOP_LINE_GAP)
+        j = int(rng.integers(len(self.t)))
+        here = self._ego_street(j)
+        if here is None:
+            return None
+        street, sense, along = here
+        cross = self.layout.hstreets if street.axis == 0 else self.layout.vstreets
+        half = template.size[0] / 2
+        if where == "cross":
+            ahead = [c for c in cross if 8.0 <= sense * (c.pos - along) <= 70.0]
+            if not ahead:
+                return None
+            road = ahead[int(rng.integers(len(ahead)))]
+            m_sense = 1 if rng.random() < 0.5 else -1
+            offset = _lane_offset(road, m_sense, int(rng.integers(road.lanes)))
+            stop_at = _stop_line(street, m_sense, half, gap)
+            # Red for it while the ego vehicle reaches the intersection.
+            arrive = self.t[j] + sense * (road.pos - along) / max(self._ego_speed(j), 1.0)
+            t_stop = arrive - rng.uniform(0.2, 0.8) * wait
+        else:
+            m_sense = sense if where == "ahead" else -sense
+            lo, hi = (30.0, 90.0) if where == "ahead" else (15.0, 80.0)
+            ahead = [c for c in cross if lo <= sense * (c.pos - along) <= hi]
+            if not ahead:
+                return None
+            junction = ahead[int(rng.integers(len(ahead)))]
+            road = street
+            lane = street.lanes - 1 if where == "ahead" else int(rng.integers(street.lanes))
+            offset = _lane_offset(street, m_sense, lane)
+            stop_at = _stop_line(junction, m_sense, half, gap)
+            # Ahead in the ego vehicle's lane it sets off at step j, with the ego vehicle still
+            # far enough behind; in the opposite lane it is waiting at step j.
+            t_stop = self.t[j] - (1.0 if where == "ahead" else rng.uniform(0.2, 0.8)) * wait
+        t_go = t_stop + wait
+        shown = self._stop_shown(t_stop, t_go)
+        if shown is None:
+            return None
+        progress = _stop_and_go_progress(self.t, t_stop, t_go, speed, BRAKE, ACCEL)
+        xy = _point(road, stop_at + m_sense * progress, offset)
+        meet = min(max(self._step((t_stop + t_go) / 2), 0), len(self.t) - 1)
+        return _Candidate(kind, "stop-and-go", xy, np.full(len(xy), _heading(road, m_sense)), np.zeros(len(xy)),
+                          meet, None, template, shown)
+
+    def kerb_cyclist(self) -> _Candidate | None:
+        """A slow bicyclist by the kerb of the ego vehicle's street: ahead of it in its direction,
+        behind it at the start of the drive, or towards it on the far side. The ego vehicle cannot
+        pass one in its own lane with a safe gap, so one it would catch up with is not planned."""
+        rng = self.rng
+        template = Template.build("bicyclist", rng)
+        speed = rng.uniform(*KERB_CYCLIST_SPEED)
+        way = ["ahead", "behind", "opposite"][rng.choice(3, p=[0.35, 0.25, 0.4])]
+        j = 0 if way == "behind" else int(rng.integers(len(self.t)))
+        here = self._ego_street(j)
+        if here is None:
+            return None
+        street, sense, along = here
+        m_sense = -sense if way == "opposite" else sense
+        right = math.copysign(1.0, _lane_offset(street, m_sense, 0))
+        offset = right * (street.road_half - template.size[1] / 2 - rng.uniform(*KERB_GAP))
+        start = along - sense * rng.uniform(8.0, 40.0) if way == "behind" else along + sense * rng.uniform(10.0, 60.0)
+        xy = _point(street, start + m_sense * speed * (self.t - self.t[j]), offset)
+        return _Candidate("bicyclist", "kerb-cyclist", xy, np.full(len(xy), _heading(street, m_sense)),
+                          np.zeros(len(xy)), j, None, template)
+
+    def close_pass(self) -> _Candidate | None:
+        """A vehicle that passes the ego vehicle with a gap of ``CLOSE_PASS_GAP`` between the two
+        boxes while they are level: oncoming, or overtaking it on the left."""
+        rng = self.rng
+        kind = self._kind(0, exclude=("bicyclist",))
+        template = Template.build(kind, rng)
+        overtaking = rng.random() < 0.4
+        gap = rng.uniform(*CLOSE_PASS_GAP)
+        j = int(rng.integers(len(self.t)))
+        here = self._ego_street(j)
+        if here is None:
+            return None
+        street, sense, _ = here
+        # Level with the ego vehicle on a straight stretch: the gap is measured square to the street.
+        if abs(math.remainder(self.ego_yaw[j] - _heading(street, sense), 2 * math.pi)) > STRAIGHT_TOLERANCE:
+            return None
+        along, ego_offset = _along_and_offset(street, self.ego_box[j])
+        left = -math.copysign(1.0, _lane_offset(street, sense, 0))
+        passing = ego_offset + left * (_EGO_HALF[1] + gap + template.size[1] / 2)
+        if not overtaking:
+            speed = rng.uniform(*VEHICLES[kind][2])
+            xy = _point(street, along - sense * speed * (self.t - self.t[j]), passing)
+            return _Candidate(kind, "close-pass", xy, np.full(len(xy), _heading(street, -sense)), np.zeros(len(xy)),
+                              j, None, template)
+        ego_speed = self._ego_speed(j)
+        faster = rng.uniform(*OVERTAKE_SPEEDUP)
+        clearance = (2 * _EGO_HALF[0] + template.size[0]) / 2 + rng.uniform(*OVERTAKE_CLEARANCE)
+        lane = _lane_offset(street, sense, street.lanes - 1)
+        share = _pulled_out(self.t - self.t[j], clearance / faster, LANE_CHANGE_TIME)
+        offset = lane + (passing - lane) * share
+        xy = _point(street, along + sense * (ego_speed + faster) * (self.t - self.t[j]), offset)
+        velocity = np.gradient(xy, self.t, axis=0) if len(xy) > 1 else np.zeros_like(xy)
+        yaw = np.where(np.hypot(*velocity.T) > 0, np.arctan2(velocity[:, 1], velocity[:, 0]), _heading(street, sense))
+        return _Candidate(kind, "close-pass", xy, yaw, np.zeros(len(xy)), j, None, template)
+
+    def sidewalk_pause(self) -> _Candidate | None:
+        """A pedestrian walking along a sidewalk of the ego vehicle's street who stands still for
+        ``PAUSE_SCANS`` scans (around step j), then walks on."""
+        rng = self.rng
+        template = Template.build("person", rng)
+        j = int(rng.integers(len(self.t)))
+        here = self._ego_street(j)
+        if here is None:
+            return None
+        street, sense, along = here
+        offset = self._walkway(street, 1 if rng.random() < 0.5 else -1)
+        m_sense = 1 if rng.random() < 0.5 else -1
+        speed = rng.uniform(*WALK_SPEED)
+        wait = int(rng.integers(PAUSE_SCANS[0], PAUSE_SCANS[1] + 1)) * 0.1
+        stop_at = along + sense * rng.uniform(5.0, 50.0)
+        t_stop = self.t[j] - rng.uniform(0.1, 0.9) * wait
+        shown = self._stop_shown(t_stop, t_stop + wait)
+        if shown is None:
+            return None
+        xy = _point(street, stop_at + m_sense * _stop_and_go_progress(self.t, t_stop, t_stop + wait, speed,
+                                                                      WALK_ACCEL, WALK_ACCEL), offset)
+        return _Candidate("person", "sidewalk-pause", xy, np.full(len(xy), _heading(street, m_sense)),
+                          self._ground(xy), j, None, template, shown)
+
     def _ground(self, xy: np.ndarray) -> np.ndarray:
         """Height of the surface under each (x, y): the sidewalk top on sidewalks and lawn strips."""
         raster: RasterSpec = self.layout.raster
@@ -233,7 +462,7 @@ class _Planner:
         if candidate is None:
             return False
         xy, yaw, j_m = candidate.xy, candidate.yaw, candidate.meet
-        template = Template.build(candidate.kind, self.rng)
+        template = candidate.template if candidate.template is not None else Template.build(candidate.kind, self.rng)
         x0, x1, y0, y1 = self.layout.extent
         near = (np.linalg.norm(xy - self.ego_xy, axis=1) < ACTIVE_RANGE) & (xy[:, 0] > x0 + 5) & (
             xy[:, 0] < x1 - 5) & (xy[:, 1] > y0 + 5) & (xy[:, 1] < y1 - 5)
@@ -247,6 +476,8 @@ class _Planner:
         hi = off[off > j_m].min(initial=len(near))
         active = np.zeros(len(near), bool)
         active[lo:hi] = True
+        if candidate.shown is not None and not (lo <= candidate.shown[0] and candidate.shown[1] < hi):
+            return False
         frame_active = active[::FINE]
         if frame_active.sum() < min(5, self.frames):
             return False
@@ -266,18 +497,22 @@ class _Planner:
         return True
 
 
-def plan(layout: StreetLayout, ego: Trajectory, count: int, seed: int, cruise: float) -> list[Mover]:
-    """Up to ``count`` movers around the ego trajectory ``ego`` (scene frame), deterministic in ``seed``."""
+def plan(layout: StreetLayout, ego: Trajectory, count: int, seed: int, cruise: float,
+         traffic: str = "classic") -> list[Mover]:
+    """Up to ``count`` movers around the ego trajectory ``ego`` (scene frame), deterministic in ``seed``,
+    with the behaviours of ``traffic`` (a key of ``TRAFFIC``). The classic traffic draws exactly
+    what it always has, so the drives of existing seeds stay as they were."""
     planner = _Planner(layout, ego, seed, cruise)
-    names = list(BEHAVIOURS)
-    weights = np.array(list(BEHAVIOURS.values()))
+    behaviours = TRAFFIC[traffic]
+    names = list(behaviours)
+    weights = np.array(list(behaviours.values()))
     wanted = [names[k] for k in planner.rng.choice(len(names), size=count, p=weights / weights.sum())]
     # One lead vehicle at most (a second one would mostly sit behind the first), planned first:
     # it is tied to the start of the drive, the others can go around it.
     if "lead" in wanted:
         wanted = ["lead"] + ["oncoming" if b == "lead" else b for b in wanted[1:]]
     # Pedestrians fit in more easily than vehicles: each mover gets its drawn behaviour if any
-    # of a number of tries fits, so the mix follows BEHAVIOURS rather than what fits first.
+    # of a number of tries fits, so the mix follows the weights rather than what fits first.
     for behaviour in wanted:
         for _ in range(TRIES):
             if planner.try_add(getattr(planner, behaviour.replace("-", "_"))()):
@@ -287,8 +522,8 @@ def plan(layout: StreetLayout, ego: Trajectory, count: int, seed: int, cruise: f
 
 def swept_height(movers: list[Mover], raster: RasterSpec) -> np.ndarray:
     """(ny, nx) float32 raster: the highest top (m above z = 0) of a mover box that swept each
-    cell (0: none), from the movers' poses in every scan plus poses interpolated between them
-    every ``SWEEP_STEP`` m."""
+    cell (0: none), from the movers' poses in every scan (those where a mover stands still too)
+    plus poses interpolated between them every ``SWEEP_STEP`` m."""
     out = np.zeros((raster.ny, raster.nx), np.float32)
     for m in movers:
         first, last = m.frames

@@ -2,9 +2,10 @@
 
 Layout: ``ROOT/sequences/SS/`` with ``velodyne/NNNNNN.bin`` (float32
 x, y, z, remission; sensor frame, m), ``labels/NNNNNN.label`` and ``predictions/NNNNNN.label``
-(uint32: raw semantic id | instance << 16), optionally ``probabilities/NNNNNN.npy`` (float16,
-(N, 20)), and ``calib.txt``, ``poses.txt``, ``times.txt``, ``synth.yaml``, and with movers
-``movers.json`` (format in ``movers``).
+(uint32: raw semantic id | instance << 16; the predictions have no instances, and moving raw
+ids only in a drive made with ``moving_labels``), optionally ``probabilities/NNNNNN.npy``
+(float16, (N, 20)), and ``calib.txt``, ``poses.txt``, ``times.txt``, ``synth.yaml``, and with
+movers ``movers.json`` (format in ``movers``).
 """
 
 from __future__ import annotations

@@ -45,7 +45,7 @@ from convbki_core.tools.cli import (
     sequence_arg,
     window_bounds,
 )
-from convbki_core.trails import SweptSpace
+from convbki_core.trails import StaticCoverage, SweptSpace
 from convbki_core.volume import tempers, transform_points
 from convbki_core.warm_up import warm_up
 
@@ -65,6 +65,11 @@ class KernelRun:
     query_ms: list[float] = field(default_factory=list)
     mapper: ConvBKIMapper | None = None
     trail_voxels: int | None = None  # None: the ground truth marks no moving objects
+    static_coverage: float | None = None  # share of every tenth scan's static points the final map shows
+    moving_labels_used: bool = False  # some frame's input marked moving points, and they were used
+    # The same protocol on the points the ground truth marks as moving only: input and map.
+    moving_input_scores: ConfusionMatrix | None = None
+    moving_map_scores: ConfusionMatrix | None = None
     calibration: MapCalibration | None = None  # the map's uncertainty on the scored points
 
 
@@ -82,7 +87,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
                     show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto",
                     free_space: bool = True, input_calibration: CalibrationStats | None = None,
                     tempered_calibration: CalibrationStats | None = None,
-                    max_concentration: float = DEFAULT_LIMIT, truth_voxels=None) -> KernelRun:
+                    max_concentration: float = DEFAULT_LIMIT, truth_voxels=None,
+                    moving_labels: bool = True, forget_movers: bool = True) -> KernelRun:
     """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
 
     ``input_scores`` (when given) also receives the input segmentation's confusion counts, and
@@ -93,7 +99,10 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
     Where the ground truth marks moving objects, the run also counts the map's trail voxels.
     ``max_concentration``: the clamping limit with free space (``ConvBKIMapper``).
     ``truth_voxels`` (a ``costmap_eval.GroundTruthVoxels``, when given) receives every frame's
-    ground-truth points, for the costmap's report.
+    ground-truth points, for the costmap's report. ``moving_labels``: where the input marks
+    moving points (raw ids such as 252-259), they are evidence for their scan only
+    (``present_movers``); False maps them as their static classes. ``forget_movers``: with
+    free space, the movable classes' rules (``forgetting``).
     """
     config = load_kernel_file(kernel_file)
     label_map = dataset.label_map
@@ -101,13 +110,15 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
         raise UserError(f"{kernel_file}: kernel has {config.num_classes} classes, the dataset {label_map.num_classes}")
     mapper = ConvBKIMapper(config, local_bounds=local_bounds, prior=prior, device=device,
                            ignore_classes=label_map.ignore_classes, update_path=update_path, free_space=free_space,
-                           max_concentration=max_concentration)
+                           max_concentration=max_concentration,
+                           movable_classes=label_map.movable_classes if forget_movers else ())
     warm_up(mapper)  # every kernel compiled (or loaded) before the first timed frame
     run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
                                                                              label_map.ignore_classes), mapper=mapper)
     run_result.calibration = MapCalibration(label_map.num_classes, label_map.ignore_classes, free_space=free_space)
     out_folder = labels_folder
     swept = SweptSpace(mapper.resolution)
+    coverage = StaticCoverage(mapper.resolution)
     frames = (dataset[position] for position in positions)
     if show_progress:
         frames = progress(frames, total=len(positions), description=f"{Path(kernel_file).stem}")
@@ -115,7 +126,9 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
         if frame.ground_truth is None:
             raise DatasetError(f"{dataset.folder}: no labels/ folder, so there is no ground truth to score against")
         input_labels = frame.input_labels if frame.input_labels is not None else frame.probabilities.argmax(axis=1)
-        result = mapper.integrate(frame.points, frame.input_values, frame.pose)
+        moving = frame.input_moving if moving_labels else None
+        run_result.moving_labels_used |= moving is not None
+        result = mapper.integrate(frame.points, frame.input_values, frame.pose, moving)
         started = time.perf_counter()
         predicted = map_frame_labels(mapper, frame.points, frame.pose, input_labels)
         labelling_ms = 1e3 * (time.perf_counter() - started)
@@ -135,11 +148,18 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
             write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
         if frame.moving is not None and label_map.movable_classes:
             swept.add(points_map, frame.moving)
+            if run_result.moving_map_scores is None:
+                run_result.moving_input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
+                run_result.moving_map_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
+            run_result.moving_input_scores.add(frame.ground_truth[frame.moving], input_labels[frame.moving])
+            run_result.moving_map_scores.add(frame.ground_truth[frame.moving], predicted[frame.moving])
+        coverage.add(points_map, frame.ground_truth, frame.moving)
         if truth_voxels is not None:
             truth_voxels.add(points_map, frame.ground_truth, frame.moving, frame.pose[:3, 3], local_bounds)
+    voxels = mapper.voxels()
     if swept.moving_points:
-        voxels = mapper.voxels()
         run_result.trail_voxels = swept.trail_voxels(voxels.indices, voxels.label, label_map.movable_classes)
+    run_result.static_coverage = coverage.coverage(voxels.indices, voxels.label)
     return run_result
 
 
@@ -159,13 +179,31 @@ def format_table(class_names: Sequence[str], input_scores: ConfusionMatrix, runs
 
 def build_report(sequence: str, frame_count: int, class_names: Sequence[str], input_scores: ConfusionMatrix,
                  runs: Sequence[KernelRun], input_calibration: CalibrationStats | None = None,
-                 tempered: tuple[float, CalibrationStats] | None = None) -> dict:
+                 tempered: tuple[float, CalibrationStats] | None = None,
+                 movable_classes: Sequence[int] = ()) -> dict:
     """report.json (docs/evaluation.md): the first kernel at the top level, every kernel under "runs".
 
     ``input_calibration``: the input's probabilities measured (None: labels only, so the input's
     ECE, NLL and Brier score are null); ``tempered``: (the first kernel's temperature, the input's
-    probabilities measured after calibration by it), when that temperature is not 1.
+    probabilities measured after calibration by it), when that temperature is not 1;
+    ``movable_classes``: where the ground truth marks movers, the classes that move, whose IoU
+    the report gives for the input and the map side by side.
     """
+
+    def recall(scores: ConfusionMatrix | None, c: int) -> float | None:
+        if scores is None or not scores.counts[c].sum():
+            return None
+        return float(scores.counts[c, c] / scores.counts[c].sum())
+
+    def movable_entry(run_result: KernelRun) -> dict:
+        """Per movable class: IoU of input and map over all points, and the share of the
+        moving points (ground truth) that each labels right."""
+        input_iou, map_iou = input_scores.iou(), run_result.map_scores.iou()
+        return {class_names[c]: {"input_iou": float(input_iou[c]), "map_iou": float(map_iou[c]),
+                                 "map_minus_input": float(map_iou[c] - input_iou[c]),
+                                 "moving_points_input_recall": recall(run_result.moving_input_scores, c),
+                                 "moving_points_map_recall": recall(run_result.moving_map_scores, c)}
+                for c in movable_classes if input_scores.present[c]}
 
     def run_entry(run_result: KernelRun) -> dict:
         scores = run_result.map_scores.summary(class_names)
@@ -173,8 +211,12 @@ def build_report(sequence: str, frame_count: int, class_names: Sequence[str], in
             scores.update(run_result.calibration.summary())
         if run_result.trail_voxels is not None:
             scores["trail_voxels"] = run_result.trail_voxels
+        scores["static_coverage"] = run_result.static_coverage
+        if movable_classes:
+            scores["movable_classes"] = movable_entry(run_result)
         return {"kernel": run_result.kernel, "kernel_file": run_result.kernel_file,
-                "free_space": run_result.mapper.free_space,
+                "free_space": run_result.mapper.free_space, "moving_labels": run_result.moving_labels_used,
+                "forget_movers": run_result.mapper.forgetting is not None,
                 "max_concentration": run_result.mapper.max_concentration, "map": scores,
                 "timing_ms": {"update_median": float(np.median(run_result.update_ms)),
                               "query_median": float(np.median(run_result.query_ms))}}
@@ -250,6 +292,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "left; 0 = never (default: %(default)s, as the node)")
     p.add_argument("--prior", default=DEFAULT_PRIOR, type=float,
                    help="initial concentration of every class in a new voxel (default: %(default)s)")
+    p.add_argument("--no-forget-movers", dest="forget_movers", action="store_false",
+                   help="with free space: keep the movable classes' evidence as free space leaves it (by default "
+                        "it is forgotten where a return shows another class and where it floats over empty space)")
+    p.add_argument("--ignore-moving-labels", dest="moving_labels", action="store_false",
+                   help="map points the input marks as moving (raw ids 252-259) as their static classes; by "
+                        "default they are evidence for their own scan only and stay out of the map")
     p.add_argument("--costmap-report", default=None, metavar="JSON",
                    help="also score the final map's traversability costmap (the node's semantic_map/costmap) "
                    "against the ground truth's, with the projected-occupancy baseline and a planning check; "
@@ -346,9 +394,11 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                                     max_concentration=args.max_concentration,
                                     input_calibration=input_calibration if number == 0 else None,
                                     tempered_calibration=tempered[1] if number == 0 and tempered else None,
-                                    truth_voxels=truth_voxels if number == 0 else None))
+                                    truth_voxels=truth_voxels if number == 0 else None,
+                                    moving_labels=args.moving_labels, forget_movers=args.forget_movers))
+    movable = label_map.movable_classes if any(run.trail_voxels is not None for run in runs) else ()
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,
-                          input_calibration, tempered)
+                          input_calibration, tempered, movable)
 
     from convbki_core.tools.plots import save_map_picture, save_reliability_diagram
 
@@ -393,7 +443,17 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
               f"{input_scores.miou():.4f} ({run_result.map_scores.miou() - input_scores.miou():+.4f}); "
               f"update {np.median(run_result.update_ms):.1f} ms, query {np.median(run_result.query_ms):.1f} ms "
               f"(median), {len(run_result.mapper)} voxels"
-              + ("" if run_result.trail_voxels is None else f", {run_result.trail_voxels} trail voxels"))
+              + ("" if run_result.trail_voxels is None else f", {run_result.trail_voxels} trail voxels")
+              + ("" if run_result.static_coverage is None
+                 else f", static coverage {100 * run_result.static_coverage:.1f} %")
+              + (", the input's moving labels used" if run_result.moving_labels_used else ""))
+        if movable:
+            entry = (report["runs"][runs.index(run_result)] if "runs" in report else report)["map"]["movable_classes"]
+            print("  movable classes, IoU % input -> map (moving points labelled right, % input -> map): " + ", ".join(
+                f"{name} {100 * v['input_iou']:.1f} -> {100 * v['map_iou']:.1f}"
+                + ("" if v["moving_points_map_recall"] is None else
+                   f" ({100 * v['moving_points_input_recall']:.1f} -> {100 * v['moving_points_map_recall']:.1f})")
+                for name, v in entry.items()))
         calibration = run_result.calibration.summary()
         line = (f"  uncertainty on {calibration['calibration_points']} scored points with map evidence "
                 f"({calibration['points_without_evidence']} without): map ECE {_number(calibration['ece'])}, "

@@ -5,11 +5,14 @@ fences, hedges, street trees, poles, traffic signs, parked cars, trucks, buses, 
 motorcycles, people, cyclists; all static) is scanned by a simulated Velodyne HDL-64E on a
 car driving a loop of city blocks at 10 Hz. With ``--movers N`` it also has N moving road
 users (cars, trucks, buses, cyclists, motorcyclists, pedestrians), labelled with the moving
-raw ids (252-259) and their own instance ids. Output: ROOT/sequences/SS/ with velodyne/,
-labels/ (ground truth with instance ids), predictions/ (the ground truth with realistic,
-calibrated segmentation noise: the input segmentation), optionally probabilities/, and
-calib.txt, poses.txt, times.txt, synth.yaml (the settings and what was measured), plus
-movers.json with movers (their boxes, scan by scan; format in convbki_core.synth.movers).
+raw ids (252-259) and their own instance ids; ``--traffic varied`` adds movers that stop and
+go on, slow cyclists by the kerb, close passes and pedestrians pausing on the sidewalk. Output:
+ROOT/sequences/SS/ with velodyne/, labels/ (ground truth with instance ids), predictions/ (the
+ground truth with realistic, calibrated segmentation noise: the input segmentation; with
+``--moving-labels`` it tells moving from static as a multi-scan network does), optionally
+probabilities/, and calib.txt, poses.txt, times.txt, synth.yaml (the settings and what was
+measured), plus movers.json with movers (their boxes, scan by scan; format in
+convbki_core.synth.movers).
 See convbki_core/synth/ for the models.
 """
 
@@ -23,6 +26,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 PROG = "synth"
+# The behaviour mixes of --traffic: the keys of convbki_core.synth.traffic.TRAFFIC (not imported
+# here, so that --help needs no numpy).
+TRAFFIC_CHOICES = ("classic", "varied")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -137,6 +143,16 @@ def build_parser() -> argparse.ArgumentParser:
                    "moving-car, moving-person, ... (raw ids 252-259) with their own instance ids, predicted as the "
                    "static class; their boxes, scan by scan, go to movers.json. Fewer are placed when a short "
                    "drive has no room for them (default: %(default)s: a static scene)")
+    p.add_argument("--traffic", default="classic", choices=TRAFFIC_CHOICES,
+                   help="behaviours of the movers: classic (oncoming, lead, crossing pedestrians, cross traffic, "
+                   "all at constant speed; the drives of earlier versions) or varied (those, and vehicles that "
+                   "stop at an intersection for 1.5-4 s and drive on, slow cyclists by the kerb, vehicles "
+                   "passing the car 1-2 m away, pedestrians pausing on the sidewalk; named in movers.json's "
+                   "behaviour field) (default: %(default)s)")
+    p.add_argument("--moving-labels", action="store_true",
+                   help="predict moving objects as a multi-scan network does: a mover's point whose predicted "
+                   "class is the mover's gets the moving raw id (252 moving-car instead of 10 car, ...); all "
+                   "other predictions stay as without the option")
     p.add_argument("--force", action="store_true",
                    help="write into an existing non-empty sequence folder, replacing its scans")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
@@ -182,7 +198,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                          input_miou=args.input_miou, noise_strength=args.noise_strength,
                          probabilities=args.probabilities, beams=args.beams, azimuth_steps=args.azimuth_steps,
                          speed=args.speed, max_range=args.max_range, range_noise=args.range_noise, force=args.force,
-                         movers=args.movers)
+                         movers=args.movers, traffic=args.traffic, moving_labels=args.moving_labels)
     bar = None
     # The top-most folder of ROOT/sequences/SS that this run creates: removed again on failure.
     sequence_folder = Path(args.out) / "sequences" / args.sequence

@@ -1,0 +1,337 @@
+"""Forgetting what moved: two rules for the voxels of the movable classes (car, person, ...).
+
+Free space empties a voxel once rays cross it, but two kinds of mover evidence are out of
+the rays' reach, and the Dirichlet sum keeps them for as long as the drive lasts:
+
+1. **A return that contradicts a mover.** A truck drives down a lane; the car behind it
+   arrives in voxels that still hold the truck's evidence, and the query of the car's returns
+   answers "truck" until the car has out-counted it. A road point where a bus stood meets
+   the same. A movable class is the state of a voxel at one time, not what the voxel is, so
+   a return of another class in it says that the object has gone. For each voxel v holding
+   this scan's returns, with F[c, v] their class evidence, before the scan's update:
+
+       if  m = argmax_{c >= 1} alpha[c, v]  is a movable class, v holds class evidence
+       (sum_{c >= 1} alpha[c, v] > C_1 a0), and  argmax_c F[c, v] != m:
+           alpha[c, v] <- a0   for c = 1 .. C-1        (class 0, the free evidence, is kept)
+
+   Static classes keep the paper's sum: a wall that the input calls "fence" in one scan
+   is out-voted, not reset.
+
+2. **A mover needs support.** Vehicles and people stand on the ground. Rays cross the lower
+   part of the space a bus swept, but no ray passes through its upper part once it has gone
+   (the beams above the sensor's height end nowhere, and LiDARs send no return from the
+   sky), so the top of the bus would stay. In each column of the window, walking up from
+   its bottom: the column is *over empty space* from an empty voxel (class 0 holds more than
+   half of its concentration) until an occupied voxel of a static class. A voxel of a movable
+   class met while the column is over empty space, that this scan's class evidence did not
+   reach, is a trail and becomes empty space:
+
+       alpha[0, v] <- max(alpha[0, v], sum_{c >= 1} alpha[c, v] + 1)
+
+   A mover that is there is seen (its voxels receive this scan's evidence) and stays; a
+   parked car stands on the road, whose voxels are seen every scan, so nothing empty lies
+   between them. The rule reads the emptiness the rays left up to the previous scan (it
+   runs between this scan's update, which marks what the scan reached, and its rays), so a
+   trail goes one scan after the space under it was found empty.
+
+Both run only with free space (class 0 holds the rays' evidence) and only for the classes a
+label map marks as movable. Like clamping, they are not sums: maps made with them merge as
+evidence, and the merge differs from mapping the whole drive where one part's rays would
+have emptied what the other part saw (the docs measure it). The rule of 2 reads whole
+columns, so the mapper keeps, per column of the window, whether it may hold a movable
+voxel (flagged around this scan's movable returns, and where the window brought in voxels
+from the store); a column found without one is unflagged, so the rule visits only where
+movers have been.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.volume import SparseVolume, unravel_linear
+from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
+
+if HAVE_NUMBA:
+    from convbki_core.native import njit, prange
+
+FREE_CLASS = 0
+EMPTY_SHARE = 0.5  # a voxel is empty space when class 0 holds more than this share of its concentration
+# A mask bit that lives only inside ``unsupported``: the voxel holds one of this scan's returns.
+_RETURNS = 16
+
+
+class MoverForgetting:
+    """The two rules for one mapper's window (``RollingWindow``: numpy arrays, or
+    ``TorchWindow``: torch tensors); ``movable_classes`` of the label map, ``reach`` the
+    kernel's half width in voxels (how far a return's evidence spreads)."""
+
+    def __init__(self, movable_classes, num_classes: int, prior: float, dims: np.ndarray, reach: int):
+        self.movable = np.zeros(num_classes, np.bool_)
+        self.movable[list(movable_classes)] = True
+        self.movable[FREE_CLASS] = False
+        self.prior = float(prior)
+        self.dims = np.asarray(dims, np.int64)
+        self.reach = int(reach)
+        # Per torus column: it may hold a voxel of a movable class (the rule of 2 visits it).
+        self.columns = np.zeros(tuple(self.dims[:2]), np.uint8)
+        self.origin: np.ndarray | None = None
+        self.reset_voxels = 0  # totals over the drive, for reports
+        self.emptied_voxels = 0
+        self._returns = np.zeros((0, 3), np.int64)  # physical voxels of this scan's returns
+
+    @property
+    def active(self) -> bool:
+        return bool(self.movable.any())
+
+    def clear(self) -> None:
+        self.columns[:] = 0
+        self.origin = None
+
+    # -- 1. returns that contradict a mover ----------------------------------------------------
+    def contradicted(self, volume: SparseVolume, window) -> int:
+        """Reset the class evidence of the voxels of this scan's returns (``volume``) whose
+        movable class they contradict; flag the columns around movable returns. Call after the
+        window moved to the scan's origin and before the update."""
+        if not volume.num_voxels:
+            self._returns = np.zeros((0, 3), np.int64)
+            return 0
+        physical = np.mod(unravel_linear(volume.linear, volume.dims) + volume.origin, self.dims)
+        self._returns = physical
+        seen = volume.features.argmax(axis=1)
+        if isinstance(window.alpha, torch.Tensor):
+            count = _contradicted_torch(window.alpha, physical, seen, self.movable, self.prior)
+        elif HAVE_NUMBA:
+            count = int(_contradicted_numba(window.alpha, physical, seen, self.movable, np.float32(self.prior)))
+        else:
+            count = _contradicted_numpy(window.alpha, physical, seen, self.movable, self.prior)
+        self._flag_around(physical[self.movable[seen]])
+        self.reset_voxels += count
+        return count
+
+    def _flag_around(self, physical: np.ndarray) -> None:
+        if not len(physical):
+            return
+        columns = np.unique(physical[:, 0] * self.dims[1] + physical[:, 1])
+        x, y = columns // self.dims[1], columns % self.dims[1]
+        steps = np.arange(-self.reach, self.reach + 1)
+        xs = np.mod(x[:, None, None] + steps[None, :, None], self.dims[0])
+        ys = np.mod(y[:, None, None] + steps[None, None, :], self.dims[1])
+        self.columns[np.broadcast_to(xs, (len(x), len(steps), len(steps))).reshape(-1),
+                     np.broadcast_to(ys, (len(x), len(steps), len(steps))).reshape(-1)] = 1
+
+    def window_moved(self, origin: np.ndarray, mask) -> None:
+        """The window now starts at global ``origin``: the columns it brought in (new x or y
+        rows; every column holding evidence when it moved along z, whose new layer came from
+        the store) may hold movers seen before."""
+        origin = np.asarray(origin, np.int64)
+        if self.origin is None:  # a new window (or one loaded from a map file): look everywhere once
+            self.columns[:] = 1
+        elif not np.array_equal(origin, self.origin):
+            for axis in (0, 1):
+                shift = int(origin[axis] - self.origin[axis])
+                if shift:
+                    rows = np.arange(min(abs(shift), int(self.dims[axis])))
+                    new = (origin[axis] + (self.dims[axis] - 1 - rows if shift > 0 else rows)) % self.dims[axis]
+                    if axis == 0:
+                        self.columns[new, :] = 1
+                    else:
+                        self.columns[:, new] = 1
+            if origin[2] != self.origin[2] and isinstance(mask, np.ndarray):
+                self.columns |= ((mask & EVIDENCE) != 0).any(axis=2).astype(np.uint8)
+        self.origin = origin.copy()
+
+    # -- 2. a mover needs support --------------------------------------------------------------
+    def unsupported(self, window) -> int:
+        """Empty the movable voxels of the flagged columns that float over empty space and this
+        scan's evidence did not reach. Call after the update (the ``TOUCHED`` bits set) and
+        before free space (which clears them)."""
+        x, y, z = self._returns.T
+        if isinstance(window.alpha, torch.Tensor):
+            index = torch.as_tensor(self._returns, device=window.mask.device).T
+            window.mask[index[0], index[1], index[2]] |= _RETURNS
+            count = _unsupported_torch(window.alpha, window.mask, window.origin, self.movable)
+            window.mask[index[0], index[1], index[2]] &= 0xFF & ~_RETURNS
+        else:
+            window.mask[x, y, z] |= np.uint8(_RETURNS)
+            if HAVE_NUMBA:
+                with parallel_region():
+                    count = int(_unsupported_numba(window.alpha, window.mask, np.asarray(window.origin, np.int64),
+                                                   self.movable, self.columns))
+            else:
+                count = _unsupported_numpy(window.alpha, window.mask, np.asarray(window.origin, np.int64),
+                                           self.movable, self.columns)
+            window.mask[x, y, z] &= np.uint8(0xFF & ~_RETURNS)
+        self.emptied_voxels += count
+        return count
+
+
+def _contradicted_numpy(alpha, physical, seen, movable, prior) -> int:
+    x, y, z = physical.T
+    values = alpha[:, x, y, z]  # (C, M)
+    occupied = values[1:]
+    held = occupied.argmax(axis=0) + 1
+    has_evidence = occupied.sum(axis=0) > prior * occupied.shape[0] * (1 + 1e-6)
+    reset = movable[held] & has_evidence & (seen != held)
+    if reset.any():
+        alpha[1:, x[reset], y[reset], z[reset]] = prior
+    return int(reset.sum())
+
+
+def _contradicted_torch(alpha, physical, seen, movable, prior) -> int:
+    index = torch.as_tensor(physical, device=alpha.device)
+    x, y, z = index[:, 0], index[:, 1], index[:, 2]
+    occupied = alpha[1:, x, y, z]
+    held = occupied.argmax(dim=0) + 1
+    has_evidence = occupied.sum(dim=0) > prior * occupied.shape[0] * (1 + 1e-6)
+    seen_t = torch.as_tensor(seen, device=alpha.device)
+    reset = torch.as_tensor(movable, device=alpha.device)[held] & has_evidence & (seen_t != held)
+    if bool(reset.any()):
+        alpha[1:, x[reset], y[reset], z[reset]] = prior
+    return int(reset.sum())
+
+
+def _unsupported_numpy(alpha, mask, origin, movable, columns) -> int:
+    """The rule of 2 over the flagged columns, vectorised across them (the no-numba path)."""
+    xs, ys = np.nonzero(columns)
+    if not len(xs):
+        return 0
+    size_z = mask.shape[2]
+    over_empty = np.zeros(len(xs), bool)
+    on_ground = np.zeros(len(xs), bool)  # the voxel just below is occupied by a static class
+    still_movable = np.zeros(len(xs), bool)
+    count = 0
+    for step in range(size_z):
+        z = (origin[2] + step) % size_z
+        marks = mask[xs, ys, z]
+        values = alpha[:, xs, ys, z]
+        evident = (marks & EVIDENCE) != 0
+        total = values.sum(axis=0)
+        empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * total)
+        occupied = values[1:]
+        is_movable = evident & ~empty & movable[occupied.argmax(axis=0) + 1]
+        trail = is_movable & over_empty & ((marks & TOUCHED) == 0)
+        unseen = is_movable & ~trail & on_ground & ((marks & (TOUCHED | _RETURNS)) == TOUCHED)
+        if unseen.any():  # reached only by other returns' spread: the rays decide (see the module)
+            mask[xs[unseen], ys[unseen], z] &= np.uint8(0xFF & ~TOUCHED)
+        if trail.any():
+            rest = occupied[:, trail].sum(axis=0)
+            alpha[FREE_CLASS, xs[trail], ys[trail], z] = np.maximum(values[FREE_CLASS, trail], rest + 1.0)
+            mask[xs[trail], ys[trail], z] |= np.uint8(CHANGED)
+            count += int(trail.sum())
+        still_movable |= is_movable & ~trail
+        over_empty = (over_empty | empty) & ~(evident & ~empty & ~is_movable)
+        on_ground = evident & ~empty & ~is_movable
+    columns[xs[~still_movable], ys[~still_movable]] = 0
+    return count
+
+
+def _unsupported_torch(alpha, mask, origin, movable) -> int:
+    """The rule of 2 over every column of a device window (a GPU does the whole window at once)."""
+    size_z = mask.shape[2]
+    movable_t = torch.as_tensor(movable, device=alpha.device)
+    over_empty = torch.zeros(mask.shape[:2], dtype=torch.bool, device=alpha.device)
+    on_ground = torch.zeros_like(over_empty)
+    count = 0
+    for step in range(size_z):
+        z = int((origin[2] + step) % size_z)
+        marks = mask[:, :, z]
+        values = alpha[:, :, :, z]
+        evident = (marks & EVIDENCE) != 0
+        total = values.sum(dim=0)
+        empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * total)
+        occupied = values[1:]
+        is_movable = evident & ~empty & movable_t[occupied.argmax(dim=0) + 1]
+        trail = is_movable & over_empty & ((marks & TOUCHED) == 0)
+        unseen = is_movable & ~trail & on_ground & ((marks & (TOUCHED | _RETURNS)) == TOUCHED)
+        mask[:, :, z] &= ~(unseen.to(torch.uint8) * TOUCHED)
+        if bool(trail.any()):
+            rest = occupied.sum(dim=0)
+            alpha[FREE_CLASS, :, :, z] = torch.where(trail, torch.maximum(values[FREE_CLASS], rest + 1.0),
+                                                     values[FREE_CLASS])
+            mask[:, :, z] |= trail.to(torch.uint8) * CHANGED
+            count += int(trail.sum())
+        over_empty = (over_empty | empty) & ~(evident & ~empty & ~is_movable)
+        on_ground = evident & ~empty & ~is_movable
+    return count
+
+
+if HAVE_NUMBA:
+
+    @njit(nogil=True)
+    def _contradicted_numba(alpha, physical, seen, movable, prior):  # pragma: no cover - compiled
+        classes = alpha.shape[0]
+        floor = prior * np.float32(classes - 1) * np.float32(1 + 1e-6)
+        count = 0
+        for i in range(physical.shape[0]):
+            x, y, z = physical[i, 0], physical[i, 1], physical[i, 2]
+            held = 1
+            best = alpha[1, x, y, z]
+            total = np.float32(0.0)
+            for c in range(1, classes):
+                value = alpha[c, x, y, z]
+                total += value
+                if value > best:
+                    best, held = value, c
+            if movable[held] and total > floor and seen[i] != held:
+                for c in range(1, classes):
+                    alpha[c, x, y, z] = prior
+                count += 1
+        return count
+
+    @njit(parallel=True, nogil=True)
+    def _unsupported_numba(alpha, mask, origin, movable, columns):  # pragma: no cover - compiled
+        """The rule of 2 over the flagged columns; each class's run of a column is read in one
+        pass (contiguous in z), as the costmap reads the window."""
+        size_x, size_y, size_z = mask.shape
+        classes = alpha.shape[0]
+        counts = np.zeros(size_x, np.int64)
+        for x in prange(size_x):
+            rest = np.empty(size_z, np.float32)  # sum of the classes 1 .. C-1 per voxel
+            best = np.empty(size_z, np.float32)
+            held = np.empty(size_z, np.int64)
+            for y in range(size_y):
+                if columns[x, y] == 0:
+                    continue
+                for z in range(size_z):
+                    rest[z] = 0.0
+                    best[z] = alpha[1, x, y, z]
+                    held[z] = 1
+                for c in range(1, classes):
+                    for z in range(size_z):
+                        value = alpha[c, x, y, z]
+                        rest[z] += value
+                        if value > best[z]:
+                            best[z] = value
+                            held[z] = c
+                over_empty = False
+                on_ground = False  # the voxel just below is occupied by a static class
+                still_movable = False
+                for step in range(size_z):
+                    z = (origin[2] + step) % size_z
+                    marks = mask[x, y, z]
+                    if marks & EVIDENCE == 0:
+                        on_ground = False
+                        continue
+                    free = alpha[0, x, y, z]
+                    if free > EMPTY_SHARE * (free + rest[z]):
+                        over_empty = True
+                        on_ground = False
+                        continue
+                    if not movable[held[z]]:
+                        over_empty = False
+                        on_ground = True
+                        continue
+                    if over_empty and marks & TOUCHED == 0:
+                        alpha[0, x, y, z] = max(free, rest[z] + np.float32(1.0))
+                        mask[x, y, z] = marks | CHANGED
+                        counts[x] += 1
+                    else:
+                        if on_ground and marks & (TOUCHED | _RETURNS) == TOUCHED:
+                            mask[x, y, z] = marks & ~TOUCHED  # reached by the ground's spread only: rays decide
+                        still_movable = True
+                    on_ground = False
+                if not still_movable:
+                    columns[x, y] = 0
+        return counts.sum()

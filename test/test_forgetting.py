@@ -1,0 +1,186 @@
+"""The movers' rules (``forgetting``) on scenes cast by a simple LiDAR: what moved is forgotten
+within a bounded number of scans however long the drive was, what stays stays, and the three
+implementations (compiled, numpy, torch) agree."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_free_space import BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
+
+from convbki_core import ConvBKIMapper
+from convbki_core.forgetting import (
+    _contradicted_numba,
+    _contradicted_numpy,
+    _unsupported_numba,
+    _unsupported_numpy,
+)
+from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
+
+TRUCK, BICYCLIST = 4, 7
+MOVABLE = (1, 4, 5, 6, 7, 8)  # SemanticKITTI's: car, truck, other-vehicle, person, bicyclist, motorcyclist
+KERNEL = "config/kernels/semantic_kitti_compound.yaml"
+BOUNDS = ((-16.0, -16.0, -3.0), (16.0, 16.0, 3.0))
+PARKED = (np.array([4.0, 5.0, 0.35]), np.array([8.5, 6.8, 1.5]), CAR)  # a car parked at the kerb, all along
+LOW_WALL = (np.array([13.0, -12.0, 0.0]), np.array([13.5, 12.0, 1.0]), BUILDING)  # nothing tall behind the lane
+
+
+def mapper(forget: bool = True, **options) -> ConvBKIMapper:
+    return ConvBKIMapper(KERNEL, local_bounds=BOUNDS, free_space=True, device="cpu",
+                         movable_classes=MOVABLE if forget else (), **options)
+
+
+def scan(m: ConvBKIMapper, sensor: np.ndarray, boxes, max_range: float = 16.0):
+    points, labels = cast(sensor, boxes, max_range)
+    pose = np.eye(4)
+    pose[:3, 3] = sensor
+    m.integrate(points - sensor, labels, pose)
+    return points, labels
+
+
+def count_in(m: ConvBKIMapper, label: int, low: np.ndarray, high: np.ndarray) -> int:
+    voxels = m.voxels()
+    inside = ((voxels.centres > low) & (voxels.centres < high)).all(axis=1)
+    return int(np.count_nonzero(inside & (voxels.label == label)))
+
+
+def creeping(scan_number: int) -> np.ndarray:
+    return np.array([0.02 * scan_number, 0.05, 1.73])  # the ego vehicle creeps along x
+
+
+@pytest.mark.parametrize("forget", [True, False])
+def test_a_truck_that_waits_at_a_light_leaves_no_trail_and_a_parked_car_stays(forget):
+    """A truck waits 30 scans in the lane ahead, then drives off out of view; 20 scans follow.
+    Behind it is only a low wall, so no ray with a return crosses the truck's upper part once
+    it has gone: free space empties its lower part, and only the support rule its top. The car
+    parked at the kerb stays whole."""
+    m = mapper(forget)
+    waiting = (np.array([6.0, -2.0, 0.35]), np.array([10.5, -0.2, 3.2]), TRUCK)
+    for number in range(60):
+        boxes = [LOW_WALL, PARKED]
+        if number < 30:
+            boxes.append(waiting)
+        elif number < 40:  # driving off along -y, out of the window
+            shift = np.array([0.0, -1.5 * (number - 29), 0.0])
+            boxes.append((waiting[0] + shift, waiting[1] + shift, TRUCK))
+        scan(m, creeping(number), boxes)
+    swept = count_in(m, TRUCK, waiting[0], waiting[1])
+    top = count_in(m, TRUCK, waiting[0] + [0, 0, 1.8], waiting[1])
+    parked = count_in(m, CAR, PARKED[0] - 0.2, PARKED[1] + 0.2)
+    if forget:
+        assert swept == 0
+    else:
+        assert top > 30  # free space alone leaves the top that no ray crosses
+    assert parked > 150  # the parked car is there, rules or not
+    assert count_in(m, BUILDING, LOW_WALL[0] - 0.2, LOW_WALL[1] + 0.2) > 100
+
+
+def scans_to_forget(static_scans: int) -> int:
+    """A bicyclist rides slowly along the kerb for 20 scans after ``static_scans`` scans of the
+    street alone, then is gone: how many scans after it left until no voxel shows it."""
+    m = mapper()
+    for _ in range(static_scans):  # the robot waits, the street alone in view
+        scan(m, creeping(0), [BUILDING_ACROSS, PARKED])
+    for step in range(20):
+        centre = np.array([5.0, -4.0 + 0.25 * step, 0.0])
+        rider = (centre - [0.3, 0.9, 0.0], centre + [0.3, 0.9, 1.8], BICYCLIST)
+        scan(m, creeping(step), [BUILDING_ACROSS, PARKED, rider])
+    region = (np.array([4.0, -6.0, -0.1]), np.array([6.0, 2.0, 2.0]))
+    for after in range(1, 40):
+        scan(m, creeping(20 + after), [BUILDING_ACROSS, PARKED])
+        if count_in(m, BICYCLIST, *region) == 0:
+            return after
+    return 10_000
+
+
+def test_a_slow_cyclist_is_forgotten_as_soon_on_a_long_drive_as_on_a_short_one():
+    short, long = scans_to_forget(20), scans_to_forget(280)
+    assert short <= 20 and long <= 20, (short, long)
+    assert abs(short - long) <= 2, (short, long)
+
+
+def test_a_car_arriving_where_a_truck_stood_reads_car_at_once():
+    """A truck stands 25 scans in a lane, leaves; a car stops in its place. In the first scan
+    that sees the car, the map answers "car" at its returns with the rules (the truck's
+    evidence there is of the past); without them, the truck's evidence out-votes much of it."""
+    shares = {}
+    for forget in (True, False):
+        m = mapper(forget)
+        spot_low, spot_high = np.array([6.0, -2.0, 0.35]), np.array([10.0, -0.2, 1.6])
+        for number in range(25):
+            scan(m, creeping(number), [BUILDING_ACROSS, PARKED, (spot_low, spot_high + [0, 0, 1.5], TRUCK)])
+        points, labels = scan(m, creeping(25), [BUILDING_ACROSS, PARKED, (spot_low, spot_high, CAR)])
+        answered, _ = m.labels_at(points[labels == CAR])
+        shares[forget] = float(np.mean(answered == CAR))
+    assert shares[True] >= 0.95 and shares[False] <= shares[True] - 0.3, shares
+
+
+def random_window(seed: int):
+    """A window's arrays with columns that exercise every branch: empty voxels, movable ones
+    over them, static ones in between, voxels this scan touched."""
+    rng = np.random.default_rng(seed)
+    classes, size = 9, (6, 5, 12)
+    alpha = np.full((classes, *size), 1e-3, np.float32)
+    held = rng.integers(1, classes, size)
+    strength = rng.uniform(0.0, 20.0, size).astype(np.float32)
+    for c in range(1, classes):
+        alpha[c][held == c] += strength[held == c]
+    alpha[0] += np.where(rng.uniform(size=size) < 0.35, rng.uniform(0, 60, size), rng.uniform(0, 2, size)).astype(
+        np.float32)
+    mask = np.where(rng.uniform(size=size) < 0.8, EVIDENCE, 0).astype(np.uint8)
+    mask |= np.where(rng.uniform(size=size) < 0.2, TOUCHED, 0).astype(np.uint8) & (mask * 0xFF)
+    return alpha, mask
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_rules_equal_the_numpy_rules(seed):
+    movable = np.zeros(9, np.bool_)
+    movable[[1, 4, 5]] = True
+    origin = np.array([3, -2, 7], np.int64)
+    alpha, mask = random_window(seed)
+    columns = np.ones(mask.shape[:2], np.uint8)
+    compiled_alpha, compiled_mask, compiled_columns = alpha.copy(), mask.copy(), columns.copy()
+    emptied = _unsupported_numpy(alpha, mask, origin, movable, columns)
+    assert emptied == _unsupported_numba(compiled_alpha, compiled_mask, origin, movable, compiled_columns)
+    assert emptied > 5  # the random columns hold trails
+    np.testing.assert_allclose(compiled_alpha, alpha, rtol=1e-6)
+    np.testing.assert_array_equal(compiled_mask, mask)
+    np.testing.assert_array_equal(compiled_columns, columns)
+    assert ((mask & CHANGED) != 0).sum() == emptied
+    rng = np.random.default_rng(seed)
+    physical = np.stack([rng.integers(0, n, 40) for n in mask.shape], axis=1)
+    physical = np.unique(physical, axis=0)
+    seen = rng.integers(0, 9, len(physical))
+    compiled = alpha.copy()
+    reset = _contradicted_numpy(alpha, physical, seen, movable, 1e-3)
+    assert reset == _contradicted_numba(compiled, physical, seen, movable, np.float32(1e-3)) and reset > 0
+    np.testing.assert_array_equal(compiled, alpha)
+
+
+def test_the_torch_path_forgets_as_the_fast_path():
+    maps = {}
+    for path in ("fast", "torch"):
+        m = mapper(update_path=path)
+        for number in range(12):
+            boxes = [BUILDING_ACROSS, PARKED]
+            if number < 6:
+                boxes.append((np.array([6.0, -2.0, 0.0]), np.array([10.5, -0.2, 3.0]), TRUCK))
+            elif number < 8:
+                boxes.append((np.array([6.0, -2.0, 0.35]), np.array([10.0, -0.2, 1.6]), CAR))
+            scan(m, creeping(number), boxes)
+        indices, alpha = m.items()
+        order = np.lexsort(indices.T[::-1])
+        maps[path] = (indices[order], alpha[order], m.forgetting.reset_voxels, m.forgetting.emptied_voxels)
+    assert np.array_equal(maps["fast"][0], maps["torch"][0])
+    np.testing.assert_allclose(maps["torch"][1], maps["fast"][1], rtol=1e-5, atol=1e-6)
+    assert maps["fast"][2:] == maps["torch"][2:] and min(maps["fast"][2:]) > 0
+
+
+def test_without_free_space_or_movable_classes_there_are_no_rules():
+    assert ConvBKIMapper(KERNEL, local_bounds=BOUNDS, device="cpu", movable_classes=MOVABLE).forgetting is None
+    assert mapper(forget=False).forgetting is None
+    m = mapper()
+    scan(m, creeping(0), [BUILDING_ACROSS])
+    m.reset()
+    assert m.forgetting.origin is None and not m.forgetting.columns.any()
+    assert ROAD not in MOVABLE
