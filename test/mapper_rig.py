@@ -55,11 +55,23 @@ def odometry(stamp: int, translation=TRANSLATION, quaternion=QUATERNION, child: 
     return msg
 
 
+def node_default_mapper(**options) -> ConvBKIMapper:
+    """The mapper object a node with the default parameters builds over BOUNDS (free space,
+    clamping and the movers' rules as their parameters' defaults say); ``options`` override."""
+    from convbki_ros.params import SPECS
+
+    label_map = load_label_map("semantic_kitti")
+    settings = {"local_bounds": (BOUNDS[:3], BOUNDS[3:]), "prior": 0.001, "device": "cpu",
+                "ignore_classes": label_map.ignore_classes, "free_space": SPECS["free_space"].default,
+                "max_concentration": SPECS["max_concentration"].default,
+                "movable_classes": label_map.movable_classes if SPECS["forget_movers"].default else (), **options}
+    return ConvBKIMapper(kernel_path("semantic_kitti_compound"), **settings)
+
+
 def offline_map(scans: int) -> ConvBKIMapper:
     """The good cloud integrated ``scans`` times at POSE by the mapper object the node uses."""
     label_map = load_label_map("semantic_kitti")
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
-                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes)
+    mapper = node_default_mapper()
     for _ in range(scans):
         mapper.integrate(POINTS, label_map.to_learning(LABELS), POSE)
     return mapper
@@ -118,7 +130,8 @@ class Rig:
         self.process = start("convbki_ros.mapper", domain, "--ros-args", *remap, "-p", f"local_bounds:={BOUNDS}",
                              "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "map_period:=0.2",
                              "-p", "diagnostics_period:=0.2",
-                             "-p", "pose_wait_timeout:=1.5", "-p", f"map_file:={self.map_file}", *parameters,
+                             "-p", "pose_wait_timeout:=1.5", "-p", f"map_file:={self.map_file}",
+                             "-p", f"ply_file:={folder / 'shown.ply'}", *parameters,
                              prefix=prefix)
         self.log = NodeLog(self.process)
         self.probe = Probe(domain)
@@ -187,6 +200,14 @@ class Rig:
 
         assert self.probe.spin_until(check, WAIT), f"counters never reached the expected state: {found[-1]}"
         return found[-1]
+
+    def shown_voxels(self) -> int:
+        """How many voxels the node's map shows now (not emptied by the rays): the count of its
+        ``export_ply``, which writes the shown voxels (to ``ply_file``, outside the maps folder)."""
+        exported = self.call("export_ply")
+        found = re.fullmatch(r"wrote (\d+) voxels to .*", exported.message)
+        assert exported.success and found, exported.message
+        return int(found.group(1))
 
     def map_message(self, voxels: int):
         """The latest /semantic_map once it holds ``voxels`` voxels."""

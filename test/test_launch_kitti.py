@@ -17,13 +17,12 @@ import numpy as np
 import pytest
 import yaml
 from kitti_fixture import pose_about_z, write_sequence
+from mapper_rig import node_default_mapper
 from ros_helpers import REPO, Probe, domain_id, ros_env
 from test_node_frames import assert_same_voxels, shown_voxels
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.mapper import ConvBKIMapper
-from convbki_core.paths import kernel_path
 from convbki_ros.tools import kitti_to_bag
 
 BOUNDS = [-20.0, -20.0, -3.0, 20.0, 20.0, 3.0]
@@ -80,8 +79,7 @@ def test_a_kitti_bag_through_ros2_launch_and_play_bag_maps_from_tf(tmp_path):
         assert "/convbki_mapper received 4 of 4 clouds, integrated 4, dropped 0" in player.stderr, player.stderr
 
         label_map = load_label_map("semantic_kitti")
-        expected = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
-                                 prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True)
+        expected = node_default_mapper(local_bounds=(BOUNDS[:3], BOUNDS[3:]))
         sequence = SemanticKittiSequence(tmp_path / "kitti", "08")
         for number, (points, _, predicted) in enumerate(frames):
             expected.integrate(points, label_map.to_learning(predicted), sequence[number].pose)

@@ -4,6 +4,7 @@ import signal
 
 import numpy as np
 import pytest
+from mapper_rig import node_default_mapper
 from ros_helpers import NodeLog, Probe, domain_id, start, stop
 
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
@@ -29,12 +30,9 @@ def drive(tmp_path_factory):
 
 def offline_map(root):
     """What ``evaluate``'s mapper object holds after the same frames, set up as the node is by
-    default (free space as the node's ``free_space`` parameter says)."""
-    from convbki_ros.params import SPECS
-
+    default (free space and the movers' rules as its parameters say)."""
     dataset = SemanticKittiSequence(root / "data", "08")
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
-                           prior=0.001, device="cpu", free_space=SPECS["free_space"].default)
+    mapper = node_default_mapper(local_bounds=(BOUNDS[:3], BOUNDS[3:]))
     for frame in dataset:
         mapper.integrate(frame.points, frame.input_labels, frame.pose)
     return mapper

@@ -6,11 +6,10 @@ odometry is the LiDAR's own pose, with the mount from ``base_to_sensor`` or from
 """
 
 import numpy as np
-from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds, odometry
+from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds, node_default_mapper, odometry
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.paths import kernel_path
 from convbki_ros.pointcloud import decode_cloud
 from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_translation_quaternion
 
@@ -28,8 +27,7 @@ def expected_map() -> ConvBKIMapper:
     """The clouds integrated offline at the LiDAR's poses (base pose x mount), with free space
     as the node has it by default: its rays start at the LiDAR, so the mount must be right."""
     label_map = load_label_map("semantic_kitti")
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
-                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True)
+    mapper = node_default_mapper(local_bounds=(BOUNDS[:3], BOUNDS[3:]))
     for base in BASE_POSES:
         mapper.integrate(POINTS, label_map.to_learning(LABELS), base @ MOUNT)
     return mapper

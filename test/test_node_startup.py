@@ -107,7 +107,7 @@ def test_output_topics_are_relative_to_the_namespace(namespace, tmp_path):
             return {name for name, _ in rig.probe.node.get_topic_names_and_types()}
 
         assert rig.probe.spin_until(lambda: wanted <= names(), WAIT), sorted(names())
-        assert rig.map_message(rig.stats().voxels).width > 0
+        assert rig.map_message(rig.shown_voxels()).width > 0
     finally:
         output = rig.close()
     assert "Traceback" not in output, output

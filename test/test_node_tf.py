@@ -8,12 +8,11 @@ loop closure) half-way through the drive.
 """
 
 import numpy as np
-from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds
+from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds, node_default_mapper
 from test_node_frames import BOUNDS, MOUNT, assert_same_voxels, shown_voxels
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.paths import kernel_path
 from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_odometry, pose_to_transform_stamped
 
 
@@ -30,8 +29,7 @@ MAP_FROM_ODOM = [yawed(0.2, -0.1, 0.02), yawed(0.2, -0.1, 0.02), yawed(1.4, 0.5,
 def expected_map() -> ConvBKIMapper:
     """The clouds integrated offline at map <- odom x odom <- base_link x base_link <- lidar_top."""
     label_map = load_label_map("semantic_kitti")
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
-                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True)
+    mapper = node_default_mapper(local_bounds=(BOUNDS[:3], BOUNDS[3:]))
     for correction, base in zip(MAP_FROM_ODOM, BASE_IN_ODOM, strict=True):
         mapper.integrate(POINTS, label_map.to_learning(LABELS), correction @ base @ MOUNT)
     return mapper
