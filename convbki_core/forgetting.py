@@ -30,7 +30,10 @@ the rays' reach, and the Dirichlet sum keeps them for as long as the drive lasts
 
    A mover that is there is seen (its voxels receive this scan's evidence) and stays; a
    parked car stands on the road, whose voxels are seen every scan, so nothing empty lies
-   between them. The rule reads the emptiness the rays left up to the previous scan (it
+   between them. A movable voxel that rests on a static occupied voxel and that this scan
+   reached only through the kernel's spread (no return of the scan lies in it: the space
+   between a car's body and the road) loses the scan's protection from free space, so the
+   rays decide whether it is empty. The rule reads the emptiness the rays left up to the previous scan (it
    runs between this scan's update, which marks what the scan reached, and its rays), so a
    trail goes one scan after the space under it was found empty.
 
@@ -151,17 +154,17 @@ class MoverForgetting:
         if isinstance(window.alpha, torch.Tensor):
             index = torch.as_tensor(self._returns, device=window.mask.device).T
             window.mask[index[0], index[1], index[2]] |= _RETURNS
-            count = _unsupported_torch(window.alpha, window.mask, window.origin, self.movable)
+            count = _unsupported_torch(window.alpha, window.mask, window.origin, self.movable, self.prior)
             window.mask[index[0], index[1], index[2]] &= 0xFF & ~_RETURNS
         else:
             window.mask[x, y, z] |= np.uint8(_RETURNS)
             if HAVE_NUMBA:
                 with parallel_region():
                     count = int(_unsupported_numba(window.alpha, window.mask, np.asarray(window.origin, np.int64),
-                                                   self.movable, self.columns))
+                                                   self.movable, self.columns, np.float32(self.prior)))
             else:
                 count = _unsupported_numpy(window.alpha, window.mask, np.asarray(window.origin, np.int64),
-                                           self.movable, self.columns)
+                                           self.movable, self.columns, np.float32(self.prior))
             window.mask[x, y, z] &= np.uint8(0xFF & ~_RETURNS)
         self.emptied_voxels += count
         return count
@@ -192,7 +195,7 @@ def _contradicted_torch(alpha, physical, seen, movable, prior) -> int:
     return int(reset.sum())
 
 
-def _unsupported_numpy(alpha, mask, origin, movable, columns) -> int:
+def _unsupported_numpy(alpha, mask, origin, movable, columns, prior) -> int:
     """The rule of 2 over the flagged columns, vectorised across them (the no-numba path)."""
     xs, ys = np.nonzero(columns)
     if not len(xs):
@@ -210,7 +213,8 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns) -> int:
         total = values.sum(axis=0)
         empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * total)
         occupied = values[1:]
-        is_movable = evident & ~empty & movable[occupied.argmax(axis=0) + 1]
+        # A voxel whose classes all hold the prior has no most likely class: it is not a mover.
+        is_movable = evident & ~empty & movable[occupied.argmax(axis=0) + 1] & (occupied.max(axis=0) > prior)
         trail = is_movable & over_empty & ((marks & TOUCHED) == 0)
         unseen = is_movable & ~trail & on_ground & ((marks & (TOUCHED | _RETURNS)) == TOUCHED)
         if unseen.any():  # reached only by other returns' spread: the rays decide (see the module)
@@ -227,7 +231,7 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns) -> int:
     return count
 
 
-def _unsupported_torch(alpha, mask, origin, movable) -> int:
+def _unsupported_torch(alpha, mask, origin, movable, prior) -> int:
     """The rule of 2 over every column of a device window (a GPU does the whole window at once)."""
     size_z = mask.shape[2]
     movable_t = torch.as_tensor(movable, device=alpha.device)
@@ -242,7 +246,7 @@ def _unsupported_torch(alpha, mask, origin, movable) -> int:
         total = values.sum(dim=0)
         empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * total)
         occupied = values[1:]
-        is_movable = evident & ~empty & movable_t[occupied.argmax(dim=0) + 1]
+        is_movable = evident & ~empty & movable_t[occupied.argmax(dim=0) + 1] & (occupied.amax(dim=0) > prior)
         trail = is_movable & over_empty & ((marks & TOUCHED) == 0)
         unseen = is_movable & ~trail & on_ground & ((marks & (TOUCHED | _RETURNS)) == TOUCHED)
         mask[:, :, z] &= ~(unseen.to(torch.uint8) * TOUCHED)
@@ -259,6 +263,14 @@ def _unsupported_torch(alpha, mask, origin, movable) -> int:
 
 if HAVE_NUMBA:
 
+    @njit(nogil=True, inline="always")
+    def _holds_movable(alpha, movable, x, y, z, prior):  # pragma: no cover - compiled
+        """A movable class of the voxel holds more than the prior."""
+        for c in range(1, alpha.shape[0]):
+            if movable[c] and alpha[c, x, y, z] > prior:
+                return True
+        return False
+
     @njit(nogil=True)
     def _contradicted_numba(alpha, physical, seen, movable, prior):  # pragma: no cover - compiled
         classes = alpha.shape[0]
@@ -266,6 +278,10 @@ if HAVE_NUMBA:
         count = 0
         for i in range(physical.shape[0]):
             x, y, z = physical[i, 0], physical[i, 1], physical[i, 2]
+            # No class ever falls below the prior, so a voxel whose movable classes all hold just
+            # the prior has a static most likely class, or no evidence: skip its other classes.
+            if not _holds_movable(alpha, movable, x, y, z, prior):
+                continue
             held = 1
             best = alpha[1, x, y, z]
             total = np.float32(0.0)
@@ -281,7 +297,7 @@ if HAVE_NUMBA:
         return count
 
     @njit(parallel=True, nogil=True)
-    def _unsupported_numba(alpha, mask, origin, movable, columns):  # pragma: no cover - compiled
+    def _unsupported_numba(alpha, mask, origin, movable, columns, prior):  # pragma: no cover - compiled
         """The rule of 2 over the flagged columns; each class's run of a column is read in one
         pass (contiguous in z), as the costmap reads the window."""
         size_x, size_y, size_z = mask.shape
@@ -293,6 +309,16 @@ if HAVE_NUMBA:
             held = np.empty(size_z, np.int64)
             for y in range(size_y):
                 if columns[x, y] == 0:
+                    continue
+                # A column none of whose voxels holds a movable class above the prior has no
+                # voxel for the rule (no class falls below it): its movable runs alone decide.
+                found = False
+                for c in range(1, classes):
+                    if movable[c]:
+                        for z in range(size_z):
+                            found |= alpha[c, x, y, z] > prior
+                if not found:
+                    columns[x, y] = 0
                     continue
                 for z in range(size_z):
                     rest[z] = 0.0
@@ -319,7 +345,7 @@ if HAVE_NUMBA:
                         over_empty = True
                         on_ground = False
                         continue
-                    if not movable[held[z]]:
+                    if not movable[held[z]] or best[z] <= prior:  # static, or no class above the prior
                         over_empty = False
                         on_ground = True
                         continue

@@ -6,10 +6,12 @@
 Each ``--drive FRAMES:MOVERS:SEED[:moving]`` is made with ``synth`` (its own streets, speeds
 and mix of behaviours; ``moving``: the predictions carry moving raw ids, as a multi-scan
 network's do) unless OUT/dSEED already holds it, then mapped twice under the paper's
-protocol with the same kernel: plain ConvBKI (no free space) and the shipped defaults (free
-space, clamping, the movers' rules, moving labels used). Prints one markdown table row per
-drive (trail voxels and their share of plain's, mIoU, static coverage) and one per movable
-class (IoU of the input, plain and the product), and writes OUT/mover_study.json.
+protocol with the same kernel: plain ConvBKI (no free space, moving labels mapped as their
+static classes), free space and clamping alone, and the shipped defaults (free space,
+clamping, the movers' rules, moving labels used). Prints one markdown table row per drive
+(trail voxels and their share of plain's, mIoU, static coverage, the median update time)
+and one per movable class (IoU of the input and of each map), and writes
+OUT/mover_study.json.
 """
 
 from __future__ import annotations
@@ -47,19 +49,22 @@ def study(root: Path) -> dict:
     names = dataset.label_map.class_names
     movable = dataset.label_map.movable_classes
     input_scores = ConfusionMatrix(dataset.label_map.num_classes, dataset.label_map.ignore_classes)
+    # Plain ConvBKI: every point is mapped as its static class, nothing is ever emptied.
     plain = evaluate_kernel(dataset, positions, kernel, "cpu", 1e-3, input_scores, None, show_progress=False,
-                            free_space=False)
+                            free_space=False, moving_labels=False)
+    # Free space and clamping alone (the defaults of the version before the movers' rules).
+    free = evaluate_kernel(dataset, positions, kernel, "cpu", 1e-3, None, None, show_progress=False,
+                           moving_labels=False, forget_movers=False)
     product = evaluate_kernel(dataset, positions, kernel, "cpu", 1e-3, None, None, show_progress=False)
-    iou_input, iou_plain, iou_product = input_scores.iou(), plain.map_scores.iou(), product.map_scores.iou()
+    runs = {"plain": plain, "free": free, "product": product}
+    iou_input = input_scores.iou()
+    ious = {name: run.map_scores.iou() for name, run in runs.items()}
     return {"frames": len(dataset), "moving_labels": product.moving_labels_used,
-            "trails": {"plain": plain.trail_voxels, "product": product.trail_voxels},
-            "miou": {"input": input_scores.miou(), "plain": plain.map_scores.miou(),
-                     "product": product.map_scores.miou()},
-            "coverage": {"plain": plain.static_coverage, "product": product.static_coverage},
-            "update_ms": {"plain": float(sorted(plain.update_ms)[len(plain.update_ms) // 2]),
-                          "product": float(sorted(product.update_ms)[len(product.update_ms) // 2])},
-            "movable": {names[c]: {"input": float(iou_input[c]), "plain": float(iou_plain[c]),
-                                   "product": float(iou_product[c])}
+            "trails": {name: run.trail_voxels for name, run in runs.items()},
+            "miou": {"input": input_scores.miou(), **{name: run.map_scores.miou() for name, run in runs.items()}},
+            "coverage": {name: run.static_coverage for name, run in runs.items()},
+            "update_ms": {name: float(sorted(run.update_ms)[len(run.update_ms) // 2]) for name, run in runs.items()},
+            "movable": {names[c]: {"input": float(iou_input[c]), **{name: float(iou[c]) for name, iou in ious.items()}}
                         for c in movable if input_scores.present[c]}}
 
 
@@ -79,15 +84,19 @@ def main(argv: list[str] | None = None) -> int:
         root = make_drive(out, frames, movers, seed, moving, args.traffic)
         results[spec] = study(root)
         r = results[spec]
-        share = r["trails"]["product"] / max(r["trails"]["plain"], 1)
+        trails, miou, coverage, times = r["trails"], r["miou"], r["coverage"], r["update_ms"]
+
+        def share(name: str, trails=trails) -> str:
+            return f"{trails[name]:,} ({100 * trails[name] / max(trails['plain'], 1):.1f} %)"
+
         worst = min((m["product"] - m["input"] for m in r["movable"].values()), default=0.0)
-        print(f"| {spec} | {r['trails']['plain']:,} | {r['trails']['product']:,} ({100 * share:.1f} %) "
-              f"| {r['miou']['input']:.3f} | {r['miou']['plain']:.3f} | {r['miou']['product']:.3f} "
-              f"| {100 * r['coverage']['plain']:.1f} | {100 * r['coverage']['product']:.1f} "
-              f"| {worst:+.3f} | {r['update_ms']['plain']:.1f} / {r['update_ms']['product']:.1f} |", flush=True)
+        print(f"| {spec} | {trails['plain']:,} | {share('free')} | {share('product')} "
+              f"| {miou['input']:.3f} | {miou['plain']:.3f} | {miou['free']:.3f} | {miou['product']:.3f} "
+              f"| {100 * coverage['plain']:.1f} | {100 * coverage['free']:.1f} | {100 * coverage['product']:.1f} "
+              f"| {worst:+.3f} | {times['plain']:.1f} / {times['free']:.1f} / {times['product']:.1f} |", flush=True)
         for name, m in r["movable"].items():
-            print(f"|   {name} | input {m['input']:.3f} | plain {m['plain']:.3f} | product {m['product']:.3f} "
-                  f"| {m['product'] - m['input']:+.3f} |", flush=True)
+            print(f"|   {name} | input {m['input']:.3f} | plain {m['plain']:.3f} | free {m['free']:.3f} "
+                  f"| product {m['product']:.3f} | {m['product'] - m['input']:+.3f} |", flush=True)
         atomic_write_bytes(out / "mover_study.json", json.dumps(results, indent=2).encode())
     return 0
 

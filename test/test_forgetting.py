@@ -123,6 +123,7 @@ def random_window(seed: int):
     alpha = np.full((classes, *size), 1e-3, np.float32)
     held = rng.integers(1, classes, size)
     strength = rng.uniform(0.0, 20.0, size).astype(np.float32)
+    strength[rng.uniform(size=size) < 0.1] = 0.0  # voxels whose classes all hold the prior: no mover
     for c in range(1, classes):
         alpha[c][held == c] += strength[held == c]
     alpha[0] += np.where(rng.uniform(size=size) < 0.35, rng.uniform(0, 60, size), rng.uniform(0, 2, size)).astype(
@@ -140,8 +141,9 @@ def test_the_compiled_rules_equal_the_numpy_rules(seed):
     alpha, mask = random_window(seed)
     columns = np.ones(mask.shape[:2], np.uint8)
     compiled_alpha, compiled_mask, compiled_columns = alpha.copy(), mask.copy(), columns.copy()
-    emptied = _unsupported_numpy(alpha, mask, origin, movable, columns)
-    assert emptied == _unsupported_numba(compiled_alpha, compiled_mask, origin, movable, compiled_columns)
+    prior = np.float32(1e-3)
+    emptied = _unsupported_numpy(alpha, mask, origin, movable, columns, prior)
+    assert emptied == _unsupported_numba(compiled_alpha, compiled_mask, origin, movable, compiled_columns, prior)
     assert emptied > 5  # the random columns hold trails
     np.testing.assert_allclose(compiled_alpha, alpha, rtol=1e-6)
     np.testing.assert_array_equal(compiled_mask, mask)
