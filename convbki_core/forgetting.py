@@ -30,10 +30,7 @@ the rays' reach, and the Dirichlet sum keeps them for as long as the drive lasts
 
    A mover that is there is seen (its voxels receive this scan's evidence) and stays; a
    parked car stands on the road, whose voxels are seen every scan, so nothing empty lies
-   between them. A movable voxel that rests on a static occupied voxel and that this scan
-   reached only through the kernel's spread (no return of the scan lies in it: the space
-   between a car's body and the road) loses the scan's protection from free space, so the
-   rays decide whether it is empty. The rule reads the emptiness the rays left up to the previous scan (it
+   between them. The rule reads the emptiness the rays left up to the previous scan (it
    runs between this scan's update, which marks what the scan reached, and its rays), so a
    trail goes one scan after the space under it was found empty.
 
@@ -60,9 +57,10 @@ if HAVE_NUMBA:
     from convbki_core.native import njit, prange
 
 FREE_CLASS = 0
+# Bits of ``MoverForgetting.columns``: the column may hold a movable voxel (the support rule
+# visits it); a movable return of this scan lies within the kernel's reach of it.
+_FLAGGED, _NEAR_MOVERS = 1, 2
 EMPTY_SHARE = 0.5  # a voxel is empty space when class 0 holds more than this share of its concentration
-# A mask bit that lives only inside ``unsupported``: the voxel holds one of this scan's returns.
-_RETURNS = 16
 
 
 class MoverForgetting:
@@ -82,7 +80,6 @@ class MoverForgetting:
         self.origin: np.ndarray | None = None
         self.reset_voxels = 0  # totals over the drive, for reports
         self.emptied_voxels = 0
-        self._returns = np.zeros((0, 3), np.int64)  # physical voxels of this scan's returns
 
     @property
     def active(self) -> bool:
@@ -97,11 +94,10 @@ class MoverForgetting:
         """Reset the class evidence of the voxels of this scan's returns (``volume``) whose
         movable class they contradict; flag the columns around movable returns. Call after the
         window moved to the scan's origin and before the update."""
+        self.columns &= np.uint8(_FLAGGED)  # the movable returns near a column are this scan's
         if not volume.num_voxels:
-            self._returns = np.zeros((0, 3), np.int64)
             return 0
         physical = np.mod(unravel_linear(volume.linear, volume.dims) + volume.origin, self.dims)
-        self._returns = physical
         seen = volume.features.argmax(axis=1)
         if isinstance(window.alpha, torch.Tensor):
             count = _contradicted_torch(window.alpha, physical, seen, self.movable, self.prior)
@@ -122,7 +118,7 @@ class MoverForgetting:
         xs = np.mod(x[:, None, None] + steps[None, :, None], self.dims[0])
         ys = np.mod(y[:, None, None] + steps[None, None, :], self.dims[1])
         self.columns[np.broadcast_to(xs, (len(x), len(steps), len(steps))).reshape(-1),
-                     np.broadcast_to(ys, (len(x), len(steps), len(steps))).reshape(-1)] = 1
+                     np.broadcast_to(ys, (len(x), len(steps), len(steps))).reshape(-1)] = _FLAGGED | _NEAR_MOVERS
 
     def window_moved(self, origin: np.ndarray, mask) -> None:
         """The window now starts at global ``origin``: the columns it brought in (new x or y
@@ -130,7 +126,7 @@ class MoverForgetting:
         the store) may hold movers seen before."""
         origin = np.asarray(origin, np.int64)
         if self.origin is None:  # a new window (or one loaded from a map file): look everywhere once
-            self.columns[:] = 1
+            self.columns[:] = _FLAGGED
         elif not np.array_equal(origin, self.origin):
             for axis in (0, 1):
                 shift = int(origin[axis] - self.origin[axis])
@@ -138,9 +134,9 @@ class MoverForgetting:
                     rows = np.arange(min(abs(shift), int(self.dims[axis])))
                     new = (origin[axis] + (self.dims[axis] - 1 - rows if shift > 0 else rows)) % self.dims[axis]
                     if axis == 0:
-                        self.columns[new, :] = 1
+                        self.columns[new, :] |= _FLAGGED
                     else:
-                        self.columns[:, new] = 1
+                        self.columns[:, new] |= _FLAGGED
             if origin[2] != self.origin[2] and isinstance(mask, np.ndarray):
                 self.columns |= ((mask & EVIDENCE) != 0).any(axis=2).astype(np.uint8)
         self.origin = origin.copy()
@@ -150,22 +146,16 @@ class MoverForgetting:
         """Empty the movable voxels of the flagged columns that float over empty space and this
         scan's evidence did not reach. Call after the update (the ``TOUCHED`` bits set) and
         before free space (which clears them)."""
-        x, y, z = self._returns.T
         if isinstance(window.alpha, torch.Tensor):
-            index = torch.as_tensor(self._returns, device=window.mask.device).T
-            window.mask[index[0], index[1], index[2]] |= _RETURNS
-            count = _unsupported_torch(window.alpha, window.mask, window.origin, self.movable, self.prior)
-            window.mask[index[0], index[1], index[2]] &= 0xFF & ~_RETURNS
+            near = torch.as_tensor((self.columns & _NEAR_MOVERS) != 0, device=window.alpha.device)
+            count = _unsupported_torch(window.alpha, window.mask, window.origin, self.movable, self.prior, near)
+        elif HAVE_NUMBA:
+            with parallel_region():
+                count = int(_unsupported_numba(window.alpha, window.mask, np.asarray(window.origin, np.int64),
+                                               self.movable, self.columns, np.float32(self.prior)))
         else:
-            window.mask[x, y, z] |= np.uint8(_RETURNS)
-            if HAVE_NUMBA:
-                with parallel_region():
-                    count = int(_unsupported_numba(window.alpha, window.mask, np.asarray(window.origin, np.int64),
-                                                   self.movable, self.columns, np.float32(self.prior)))
-            else:
-                count = _unsupported_numpy(window.alpha, window.mask, np.asarray(window.origin, np.int64),
-                                           self.movable, self.columns, np.float32(self.prior))
-            window.mask[x, y, z] &= np.uint8(0xFF & ~_RETURNS)
+            count = _unsupported_numpy(window.alpha, window.mask, np.asarray(window.origin, np.int64),
+                                       self.movable, self.columns, np.float32(self.prior))
         self.emptied_voxels += count
         return count
 
@@ -201,6 +191,7 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior) -> int:
     if not len(xs):
         return 0
     size_z = mask.shape[2]
+    near = (columns[xs, ys] & _NEAR_MOVERS) != 0
     over_empty = np.zeros(len(xs), bool)
     on_ground = np.zeros(len(xs), bool)  # the voxel just below is occupied by a static class
     still_movable = np.zeros(len(xs), bool)
@@ -216,9 +207,9 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior) -> int:
         # A voxel whose classes all hold the prior has no most likely class: it is not a mover.
         is_movable = evident & ~empty & movable[occupied.argmax(axis=0) + 1] & (occupied.max(axis=0) > prior)
         trail = is_movable & over_empty & ((marks & TOUCHED) == 0)
-        unseen = is_movable & ~trail & on_ground & ((marks & (TOUCHED | _RETURNS)) == TOUCHED)
-        if unseen.any():  # reached only by other returns' spread: the rays decide (see the module)
-            mask[xs[unseen], ys[unseen], z] &= np.uint8(0xFF & ~TOUCHED)
+        fringe = is_movable & ~trail & on_ground & ~near & ((marks & TOUCHED) != 0)
+        if fringe.any():  # reached by the ground's spread, no mover near: the rays decide
+            mask[xs[fringe], ys[fringe], z] &= np.uint8(0xFF & ~TOUCHED)
         if trail.any():
             rest = occupied[:, trail].sum(axis=0)
             alpha[FREE_CLASS, xs[trail], ys[trail], z] = np.maximum(values[FREE_CLASS, trail], rest + 1.0)
@@ -231,7 +222,7 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior) -> int:
     return count
 
 
-def _unsupported_torch(alpha, mask, origin, movable, prior) -> int:
+def _unsupported_torch(alpha, mask, origin, movable, prior, near) -> int:
     """The rule of 2 over every column of a device window (a GPU does the whole window at once)."""
     size_z = mask.shape[2]
     movable_t = torch.as_tensor(movable, device=alpha.device)
@@ -248,8 +239,8 @@ def _unsupported_torch(alpha, mask, origin, movable, prior) -> int:
         occupied = values[1:]
         is_movable = evident & ~empty & movable_t[occupied.argmax(dim=0) + 1] & (occupied.amax(dim=0) > prior)
         trail = is_movable & over_empty & ((marks & TOUCHED) == 0)
-        unseen = is_movable & ~trail & on_ground & ((marks & (TOUCHED | _RETURNS)) == TOUCHED)
-        mask[:, :, z] &= ~(unseen.to(torch.uint8) * TOUCHED)
+        fringe = is_movable & ~trail & on_ground & ~near & ((marks & TOUCHED) != 0)
+        mask[:, :, z] &= ~(fringe.to(torch.uint8) * TOUCHED)
         if bool(trail.any()):
             rest = occupied.sum(dim=0)
             alpha[FREE_CLASS, :, :, z] = torch.where(trail, torch.maximum(values[FREE_CLASS], rest + 1.0),
@@ -266,10 +257,10 @@ if HAVE_NUMBA:
     @njit(nogil=True, inline="always")
     def _holds_movable(alpha, movable, x, y, z, prior):  # pragma: no cover - compiled
         """A movable class of the voxel holds more than the prior."""
+        found = False
         for c in range(1, alpha.shape[0]):
-            if movable[c] and alpha[c, x, y, z] > prior:
-                return True
-        return False
+            found |= movable[c] and alpha[c, x, y, z] > prior
+        return found
 
     @njit(nogil=True)
     def _contradicted_numba(alpha, physical, seen, movable, prior):  # pragma: no cover - compiled
@@ -331,6 +322,7 @@ if HAVE_NUMBA:
                         if value > best[z]:
                             best[z] = value
                             held[z] = c
+                near = columns[x, y] & _NEAR_MOVERS != 0
                 over_empty = False
                 on_ground = False  # the voxel just below is occupied by a static class
                 still_movable = False
@@ -354,8 +346,8 @@ if HAVE_NUMBA:
                         mask[x, y, z] = marks | CHANGED
                         counts[x] += 1
                     else:
-                        if on_ground and marks & (TOUCHED | _RETURNS) == TOUCHED:
-                            mask[x, y, z] = marks & ~TOUCHED  # reached by the ground's spread only: rays decide
+                        if on_ground and not near and marks & TOUCHED != 0:
+                            mask[x, y, z] = marks & ~TOUCHED  # the ground's spread only: the rays decide
                         still_movable = True
                     on_ground = False
                 if not still_movable:
