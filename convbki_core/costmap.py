@@ -137,27 +137,41 @@ def _moment_weights(profile: TraversabilityProfile) -> np.ndarray:
     return np.ascontiguousarray(np.stack([np.ones(len(costs)), costs, costs ** 2, ground, empty]))
 
 
-def _moments(alpha: np.ndarray, profile: TraversabilityProfile) -> np.ndarray:
+def _prior_moments(weights: np.ndarray, prior: float) -> np.ndarray:
+    """(5,) float64: the moments of a voxel whose every class holds the prior, summed in class order."""
+    base = np.zeros(weights.shape[0])
+    prior = float(np.float32(prior))  # the window's float32 prior
+    for c in range(weights.shape[1]):
+        base += prior * weights[:, c]
+    return base
+
+
+def _moments(alpha: np.ndarray, profile: TraversabilityProfile, prior: float) -> np.ndarray:
     """Per voxel: alpha0, sum alpha c, sum alpha c^2, the ground classes' alpha, class 0's
-    alpha; float64 (N, 5), summed in class order in float64, the same arithmetic as the
-    window's kernel below, so a grid from the window equals the grid of the same voxels saved."""
+    alpha; float64 (N, 5). Written as the prior's moments plus those of the evidence above
+    it, class by class in float64: a class at the prior adds exactly nothing, so the window's
+    kernel below skips it and computes the same sums, and a grid from the window equals the
+    grid of the same voxels saved."""
     weights = _moment_weights(profile)
+    base = _prior_moments(weights, prior)
     if HAVE_NUMBA:
-        return _row_moments(np.ascontiguousarray(alpha), weights)
-    return np.asarray(alpha, np.float64) @ weights.T
+        return _row_moments(np.ascontiguousarray(alpha), weights, np.float64(np.float32(prior)), base)
+    return base + (np.asarray(alpha, np.float64) - np.float64(np.float32(prior))) @ weights.T
 
 
 if HAVE_NUMBA:
 
     @njit(nogil=True)
-    def _row_moments(alpha, weights):  # pragma: no cover - compiled
+    def _row_moments(alpha, weights, prior, base):  # pragma: no cover - compiled
         rows, classes = alpha.shape
         out = np.zeros((rows, 5))
         for row in range(rows):
             for k in range(5):
-                total = 0.0
+                total = base[k]
                 for c in range(classes):
-                    total += np.float64(alpha[row, c]) * weights[k, c]
+                    above = np.float64(alpha[row, c]) - prior
+                    if above != 0.0:
+                        total += above * weights[k, c]
                 out[row, k] = total
         return out
 
@@ -184,7 +198,7 @@ def column_costs(indices: np.ndarray, alpha: np.ndarray, resolution: float,
     alpha = np.asarray(alpha)
     if not np.issubdtype(alpha.dtype, np.floating):
         alpha = alpha.astype(np.float64)
-    moments = _moments(alpha, profile)
+    moments = _moments(alpha, profile, prior)
     evident = moments[:, 0] - prior * alpha.shape[1] >= profile.min_evidence
     indices, moments = indices[evident], moments[evident]
     if not len(indices):
@@ -372,8 +386,9 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     top_ground = np.empty((size_x, size_y), np.int64)
     lowest = np.empty((size_x, size_y), np.int64)
     with parallel_region():
-        _voxel_pass(alpha, mask, origin, np.asarray(dims, np.int64), _moment_weights(profile),
-                    float(prior) * alpha.shape[0], profile.min_evidence, profile.risk_sigma, risk, kind,
+        weights = _moment_weights(profile)
+        _voxel_pass(alpha, mask, origin, np.asarray(dims, np.int64), weights, np.float32(prior),
+                    _prior_moments(weights, prior), float(prior) * alpha.shape[0], profile.min_evidence, profile.risk_sigma, risk, kind,
                     top_ground, lowest)
     # Global order (column origin + i at row i) for the neighbours, whose adjacency the torus breaks.
     order_x = (origin[0] + np.arange(size_x)) % size_x
@@ -408,8 +423,8 @@ _TINY = np.finfo(np.float64).tiny
 if HAVE_NUMBA:
 
     @njit(parallel=True, nogil=True)
-    def _voxel_pass(alpha, mask, origin, dims, weights, prior_total, min_evidence, risk_sigma, risk, kind,
-                    top_ground, lowest):  # pragma: no cover - compiled
+    def _voxel_pass(alpha, mask, origin, dims, weights, prior, base, prior_total, min_evidence, risk_sigma, risk,
+                    kind, top_ground, lowest):  # pragma: no cover - compiled
         """Per voxel with evidence: its risk and kind bits (``_voxel_risks``' rules); per column:
         the ground voxel's global z (``column_costs``' rule) and the lowest voxel's. The voxels
         of a column are visited upwards in global z, so the first obstacle is known on the way."""
@@ -431,12 +446,20 @@ if HAVE_NUMBA:
                     lowest[x, y] = _NO_VOXEL
                     continue
                 # Class by class along z: each class's run of the column is contiguous in memory,
-                # where the classes of one voxel lie a whole class plane apart.
-                sums[:, :] = 0.0
+                # where the classes of one voxel lie a whole class plane apart. A run at the prior
+                # adds nothing (most classes of a column hold no evidence) and is skipped.
+                for k in range(5):
+                    sums[k, :] = base[k]
+                prior64 = np.float64(prior)
                 for c in range(classes):
+                    held = False
+                    for z in range(size_z):
+                        held |= alpha[c, x, y, z] != prior
+                    if not held:
+                        continue
                     w0, w1, w2, w3, w4 = weights[0, c], weights[1, c], weights[2, c], weights[3, c], weights[4, c]
                     for z in range(size_z):  # one contiguous run: vectorised
-                        value = np.float64(alpha[c, x, y, z])
+                        value = np.float64(alpha[c, x, y, z]) - prior64
                         sums[0, z] += value * w0
                         sums[1, z] += value * w1
                         sums[2, z] += value * w2
