@@ -385,11 +385,11 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     kind = np.empty(mask.shape, np.uint8)
     top_ground = np.empty((size_x, size_y), np.int64)
     lowest = np.empty((size_x, size_y), np.int64)
+    weights = _moment_weights(profile)
     with parallel_region():
-        weights = _moment_weights(profile)
         _voxel_pass(alpha, mask, origin, np.asarray(dims, np.int64), weights, np.float32(prior),
-                    _prior_moments(weights, prior), float(prior) * alpha.shape[0], profile.min_evidence, profile.risk_sigma, risk, kind,
-                    top_ground, lowest)
+                    _prior_moments(weights, prior), float(prior) * alpha.shape[0], profile.min_evidence,
+                    profile.risk_sigma, risk, kind, top_ground, lowest)
     # Global order (column origin + i at row i) for the neighbours, whose adjacency the torus breaks.
     order_x = (origin[0] + np.arange(size_x)) % size_x
     order_y = (origin[1] + np.arange(size_y)) % size_y

@@ -21,16 +21,17 @@ the rays' reach, and the Dirichlet sum keeps them for as long as the drive lasts
    part of the space a bus swept, but no ray passes through its upper part once it has gone
    (the beams above the sensor's height end nowhere, and LiDARs send no return from the
    sky), so the top of the bus would stay. In each column of the window, walking up from
-   its bottom: the column is *over empty space* from an empty voxel (class 0 holds more than
-   half of its concentration) until an occupied voxel of a static class. A voxel of a movable
-   class met while the column is over empty space, that this scan's class evidence did not
+   its bottom, count the empty voxels (class 0 holds more than half of the concentration)
+   met since the last occupied voxel of a static class. A voxel of a movable class met when
+   that count is at least ``MIN_EMPTY_BELOW`` metres' worth (more than the clearance under a
+   parked car, which the rays under it find empty), that this scan's class evidence did not
    reach, is a trail and becomes empty space:
 
        alpha[0, v] <- max(alpha[0, v], sum_{c >= 1} alpha[c, v] + 1)
 
    A mover that is there is seen (its voxels receive this scan's evidence) and stays; a
-   parked car stands on the road, whose voxels are seen every scan, so nothing empty lies
-   between them. The rule reads the emptiness the rays left up to the previous scan (it
+   parked car out of view stands on the road with a voxel or two of empty clearance under
+   its body, too little to float. The rule reads the emptiness the rays left up to the previous scan (it
    runs between this scan's update, which marks what the scan reached, and its rays), so a
    trail goes one scan after the space under it was found empty.
 
@@ -60,6 +61,9 @@ FREE_CLASS = 0
 # Bits of ``MoverForgetting.columns``: the column may hold a movable voxel (the support rule
 # visits it); a movable return of this scan lies within the kernel's reach of it.
 _FLAGGED, _NEAR_MOVERS = 1, 2
+# Metres of empty space under a movable voxel that make it float: rays that pass under a parked
+# car (its ground clearance) find a voxel or two empty, the space a bus has left far more.
+MIN_EMPTY_BELOW = 0.6
 EMPTY_SHARE = 0.5  # a voxel is empty space when class 0 holds more than this share of its concentration
 
 
@@ -68,13 +72,16 @@ class MoverForgetting:
     ``TorchWindow``: torch tensors); ``movable_classes`` of the label map, ``reach`` the
     kernel's half width in voxels (how far a return's evidence spreads)."""
 
-    def __init__(self, movable_classes, num_classes: int, prior: float, dims: np.ndarray, reach: int):
+    def __init__(self, movable_classes, num_classes: int, prior: float, dims: np.ndarray, reach: int,
+                 resolution: float):
         self.movable = np.zeros(num_classes, np.bool_)
         self.movable[list(movable_classes)] = True
         self.movable[FREE_CLASS] = False
         self.prior = float(prior)
         self.dims = np.asarray(dims, np.int64)
         self.reach = int(reach)
+        # Empty voxels a movable voxel needs below it to float (more than a car's ground clearance).
+        self.min_empty = max(1, int(np.ceil(MIN_EMPTY_BELOW / resolution - 1e-9)))
         # Per torus column: it may hold a voxel of a movable class (the rule of 2 visits it).
         self.columns = np.zeros(tuple(self.dims[:2]), np.uint8)
         self.origin: np.ndarray | None = None
@@ -148,14 +155,15 @@ class MoverForgetting:
         before free space (which clears them)."""
         if isinstance(window.alpha, torch.Tensor):
             near = torch.as_tensor((self.columns & _NEAR_MOVERS) != 0, device=window.alpha.device)
-            count = _unsupported_torch(window.alpha, window.mask, window.origin, self.movable, self.prior, near)
+            count = _unsupported_torch(window.alpha, window.mask, window.origin, self.movable, self.prior, near,
+                                       self.min_empty)
         elif HAVE_NUMBA:
             with parallel_region():
                 count = int(_unsupported_numba(window.alpha, window.mask, np.asarray(window.origin, np.int64),
-                                               self.movable, self.columns, np.float32(self.prior)))
+                                               self.movable, self.columns, np.float32(self.prior), self.min_empty))
         else:
             count = _unsupported_numpy(window.alpha, window.mask, np.asarray(window.origin, np.int64),
-                                       self.movable, self.columns, np.float32(self.prior))
+                                       self.movable, self.columns, np.float32(self.prior), self.min_empty)
         self.emptied_voxels += count
         return count
 
@@ -185,14 +193,14 @@ def _contradicted_torch(alpha, physical, seen, movable, prior) -> int:
     return int(reset.sum())
 
 
-def _unsupported_numpy(alpha, mask, origin, movable, columns, prior) -> int:
+def _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty) -> int:
     """The rule of 2 over the flagged columns, vectorised across them (the no-numba path)."""
     xs, ys = np.nonzero(columns)
     if not len(xs):
         return 0
     size_z = mask.shape[2]
     near = (columns[xs, ys] & _NEAR_MOVERS) != 0
-    over_empty = np.zeros(len(xs), bool)
+    empty_below = np.zeros(len(xs), np.int64)  # empty voxels met since the last static one
     on_ground = np.zeros(len(xs), bool)  # the voxel just below is occupied by a static class
     still_movable = np.zeros(len(xs), bool)
     count = 0
@@ -206,7 +214,7 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior) -> int:
         occupied = values[1:]
         # A voxel whose classes all hold the prior has no most likely class: it is not a mover.
         is_movable = evident & ~empty & movable[occupied.argmax(axis=0) + 1] & (occupied.max(axis=0) > prior)
-        trail = is_movable & over_empty & ((marks & TOUCHED) == 0)
+        trail = is_movable & (empty_below >= min_empty) & ((marks & TOUCHED) == 0)
         fringe = is_movable & ~trail & on_ground & ~near & ((marks & TOUCHED) != 0)
         if fringe.any():  # reached by the ground's spread, no mover near: the rays decide
             mask[xs[fringe], ys[fringe], z] &= np.uint8(0xFF & ~TOUCHED)
@@ -216,18 +224,18 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior) -> int:
             mask[xs[trail], ys[trail], z] |= np.uint8(CHANGED)
             count += int(trail.sum())
         still_movable |= is_movable & ~trail
-        over_empty = (over_empty | empty) & ~(evident & ~empty & ~is_movable)
+        empty_below = np.where(evident & ~empty & ~is_movable, 0, empty_below + empty)
         on_ground = evident & ~empty & ~is_movable
     columns[xs[~still_movable], ys[~still_movable]] = 0
     return count
 
 
-def _unsupported_torch(alpha, mask, origin, movable, prior, near) -> int:
+def _unsupported_torch(alpha, mask, origin, movable, prior, near, min_empty) -> int:
     """The rule of 2 over every column of a device window (a GPU does the whole window at once)."""
     size_z = mask.shape[2]
     movable_t = torch.as_tensor(movable, device=alpha.device)
-    over_empty = torch.zeros(mask.shape[:2], dtype=torch.bool, device=alpha.device)
-    on_ground = torch.zeros_like(over_empty)
+    empty_below = torch.zeros(mask.shape[:2], dtype=torch.int64, device=alpha.device)
+    on_ground = torch.zeros(mask.shape[:2], dtype=torch.bool, device=alpha.device)
     count = 0
     for step in range(size_z):
         z = int((origin[2] + step) % size_z)
@@ -238,7 +246,7 @@ def _unsupported_torch(alpha, mask, origin, movable, prior, near) -> int:
         empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * total)
         occupied = values[1:]
         is_movable = evident & ~empty & movable_t[occupied.argmax(dim=0) + 1] & (occupied.amax(dim=0) > prior)
-        trail = is_movable & over_empty & ((marks & TOUCHED) == 0)
+        trail = is_movable & (empty_below >= min_empty) & ((marks & TOUCHED) == 0)
         fringe = is_movable & ~trail & on_ground & ~near & ((marks & TOUCHED) != 0)
         mask[:, :, z] &= ~(fringe.to(torch.uint8) * TOUCHED)
         if bool(trail.any()):
@@ -247,7 +255,7 @@ def _unsupported_torch(alpha, mask, origin, movable, prior, near) -> int:
                                                      values[FREE_CLASS])
             mask[:, :, z] |= trail.to(torch.uint8) * CHANGED
             count += int(trail.sum())
-        over_empty = (over_empty | empty) & ~(evident & ~empty & ~is_movable)
+        empty_below = torch.where(evident & ~empty & ~is_movable, 0, empty_below + empty.to(torch.int64))
         on_ground = evident & ~empty & ~is_movable
     return count
 
@@ -288,7 +296,7 @@ if HAVE_NUMBA:
         return count
 
     @njit(parallel=True, nogil=True)
-    def _unsupported_numba(alpha, mask, origin, movable, columns, prior):  # pragma: no cover - compiled
+    def _unsupported_numba(alpha, mask, origin, movable, columns, prior, min_empty):  # pragma: no cover - compiled
         """The rule of 2 over the flagged columns; each class's run of a column is read in one
         pass (contiguous in z), as the costmap reads the window."""
         size_x, size_y, size_z = mask.shape
@@ -323,7 +331,7 @@ if HAVE_NUMBA:
                             best[z] = value
                             held[z] = c
                 near = columns[x, y] & _NEAR_MOVERS != 0
-                over_empty = False
+                empty_below = 0  # empty voxels met since the last static one
                 on_ground = False  # the voxel just below is occupied by a static class
                 still_movable = False
                 for step in range(size_z):
@@ -334,14 +342,14 @@ if HAVE_NUMBA:
                         continue
                     free = alpha[0, x, y, z]
                     if free > EMPTY_SHARE * (free + rest[z]):
-                        over_empty = True
+                        empty_below += 1
                         on_ground = False
                         continue
                     if not movable[held[z]] or best[z] <= prior:  # static, or no class above the prior
-                        over_empty = False
+                        empty_below = 0
                         on_ground = True
                         continue
-                    if over_empty and marks & TOUCHED == 0:
+                    if empty_below >= min_empty and marks & TOUCHED == 0:
                         alpha[0, x, y, z] = max(free, rest[z] + np.float32(1.0))
                         mask[x, y, z] = marks | CHANGED
                         counts[x] += 1

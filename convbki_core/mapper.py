@@ -180,7 +180,7 @@ class ConvBKIMapper:
         self.present_movers: PresentMovers | None = None  # the last scan's moving points, never in the map
         self.movable_classes = tuple(int(c) for c in movable_classes)
         self.forgetting = (MoverForgetting(self.movable_classes, kernel.num_classes, self.prior, self.geometry.dims,
-                                           kernel.filter_size // 2)
+                                           kernel.filter_size // 2, self.resolution)
                            if self.free_space and self.movable_classes else None)
         self._refresh_filters()  # the filters of the first scan, prepared now
 
