@@ -40,9 +40,9 @@ label map marks as movable. Like clamping, they are not sums: maps made with the
 evidence, and the merge differs from mapping the whole drive where one part's rays would
 have emptied what the other part saw (the docs measure it). The rule of 2 reads whole
 columns, so the mapper keeps, per column of the window, whether it may hold a movable
-voxel (flagged around this scan's movable returns, and where the window brought in voxels
-from the store); a column found without one is unflagged, so the rule visits only where
-movers have been.
+voxel (flagged around every voxel to which this scan brings movable evidence, and where the
+window brought in voxels from the store); a column found without one is unflagged, so the
+rule visits only where movers have been.
 """
 
 from __future__ import annotations
@@ -99,7 +99,7 @@ class MoverForgetting:
     # -- 1. returns that contradict a mover ----------------------------------------------------
     def contradicted(self, volume: SparseVolume, window) -> int:
         """Reset the class evidence of the voxels of this scan's returns (``volume``) whose
-        movable class they contradict; flag the columns around movable returns. Call after the
+        movable class they contradict; flag the columns around movable evidence. Call after the
         window moved to the scan's origin and before the update."""
         self.columns &= np.uint8(_FLAGGED)  # the movable returns near a column are this scan's
         if not volume.num_voxels:
@@ -112,11 +112,14 @@ class MoverForgetting:
             count = int(_contradicted_numba(window.alpha, physical, seen, self.movable, np.float32(self.prior)))
         else:
             count = _contradicted_numpy(window.alpha, physical, seen, self.movable, self.prior)
-        self._flag_around(physical[self.movable[seen]])
+        # Any movable evidence, also in a voxel whose returns are mostly static: its spread can
+        # make a neighbour's most likely class a movable one.
+        self._flag_around(physical[volume.features[:, self.movable].max(axis=1) > 0], _FLAGGED)
+        self._flag_around(physical[self.movable[seen]], _FLAGGED | _NEAR_MOVERS)
         self.reset_voxels += count
         return count
 
-    def _flag_around(self, physical: np.ndarray) -> None:
+    def _flag_around(self, physical: np.ndarray, bits: int) -> None:
         if not len(physical):
             return
         columns = np.unique(physical[:, 0] * self.dims[1] + physical[:, 1])
@@ -125,7 +128,7 @@ class MoverForgetting:
         xs = np.mod(x[:, None, None] + steps[None, :, None], self.dims[0])
         ys = np.mod(y[:, None, None] + steps[None, None, :], self.dims[1])
         self.columns[np.broadcast_to(xs, (len(x), len(steps), len(steps))).reshape(-1),
-                     np.broadcast_to(ys, (len(x), len(steps), len(steps))).reshape(-1)] = _FLAGGED | _NEAR_MOVERS
+                     np.broadcast_to(ys, (len(x), len(steps), len(steps))).reshape(-1)] |= np.uint8(bits)
 
     def window_moved(self, origin: np.ndarray, mask) -> None:
         """The window now starts at global ``origin``: the columns it brought in (new x or y

@@ -28,6 +28,7 @@ decides when a sent message arrives.
 
     .venv/bin/python -m convbki_ros.tools.realtime_check [--frames 300] [--out out/realtime]
         [--listeners map,updates,view,local] [--busy-cores 1] [--publication-mode synchronous]
+        [--param forget_movers:=false ...]
 """
 
 from __future__ import annotations
@@ -102,6 +103,18 @@ def listeners_arg(text: str) -> tuple[str, ...]:
         problem = f"unknown listener {unknown[0]!r}" if unknown else f"listeners must name each one once, got {text!r}"
         raise argparse.ArgumentTypeError(f"{problem} (known: {', '.join(LISTENERS)}; or none)")
     return names
+
+
+def param_arg(text: str) -> str:
+    """argparse type: ``name:=value``, a name the node declares."""
+    from convbki_ros.params import SPECS
+
+    name, separator, value = text.partition(":=")
+    if not separator or not value:
+        raise argparse.ArgumentTypeError(f"expected NAME:=VALUE, got {text!r}")
+    if name not in SPECS:
+        raise argparse.ArgumentTypeError(f"the mapper node has no parameter {name!r}")
+    return text
 
 
 def non_negative_int(text: str) -> int:
@@ -207,7 +220,8 @@ def _check(args: argparse.Namespace) -> int:
                          "-r", "odom:=/kitti/odom", "-p", "use_sim_time:=true",
                          "-p", f"publish_period:={args.publish_period}", "-p", f"map_period:={args.map_period}",
                          "-p", "stats_period:=1.0",
-                         "-p", "save_on_shutdown:=false", environment=node_env)
+                         "-p", "save_on_shutdown:=false",
+                         *[item for param in args.param for item in ("-p", param)], environment=node_env)
             for name in args.listeners:
                 watch = LISTENERS[name]
                 start(f"listener_{name}", f"the {name} listener", "-m", "convbki_ros.tools.topic_listener", "--topic",
@@ -353,6 +367,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--publication-mode", choices=tuple(PUBLICATION_MODES), default="default",
                    help=f"Fast DDS publication mode of the node ({MODE_VARIABLE}): default leaves it to the "
                         "node (which chooses asynchronous), or asynchronous / synchronous (default: %(default)s)")
+    p.add_argument("--param", action="append", default=[], type=param_arg, metavar="NAME:=VALUE",
+                   help="a mapper node parameter over config/mapper.yaml (repeatable), e.g. forget_movers:=false")
     p.add_argument("--dataset", default=None, metavar="ROOT",
                    help="replay this SemanticKITTI-layout dataset instead of simulating one (e.g. out/bench/drive)")
     p.add_argument("--sequence", default="00", help="sequence of --dataset (default: %(default)s)")
