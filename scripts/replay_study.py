@@ -94,7 +94,7 @@ def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
         with (out / f"mapper_{index}.log").open("w") as log:
             reader = LineReader(node, log)
             reader.wait_for("mapper ready", timeout=180)
-            command = [sys.executable, "-m", "convbki_ros.play_bag", str(args.bag), "--clock"]
+            command = [sys.executable, "-m", "convbki_ros.tools.play_bag", str(args.bag), "--clock"]
             command += ["--wait-for-node"] if args.wait_for_node else ["--rate", str(args.rate)]
             started = time.monotonic()
             player = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

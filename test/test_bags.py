@@ -188,7 +188,7 @@ def test_kitti_to_bag_failure_midway_leaves_nothing(dataset, tmp_path: Path, cap
 
 
 def test_kitti_to_bag_module_entry_point(tmp_path: Path) -> None:
-    result = subprocess.run([sys.executable, "-m", "convbki_ros.kitti_to_bag", "--dataset", str(tmp_path / "none"),
+    result = subprocess.run([sys.executable, "-m", "convbki_ros.tools.kitti_to_bag", "--dataset", str(tmp_path / "none"),
                              "--sequence", "0", "--out", str(tmp_path / "bag")], capture_output=True, text=True,
                             cwd=REPO, timeout=60, stdin=subprocess.DEVNULL)
     assert result.returncode == 2

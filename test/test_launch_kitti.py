@@ -73,7 +73,7 @@ def test_a_kitti_bag_through_ros2_launch_and_play_bag_maps_from_tf(tmp_path):
     maps = probe.subscribe(PointCloud2, "/semantic_map", latched=True)
     try:
         player = subprocess.run(
-            [sys.executable, "-m", "convbki_ros.play_bag", str(bag), "--clock", "--wait-for-node"], cwd=REPO,
+            [sys.executable, "-m", "convbki_ros.tools.play_bag", str(bag), "--clock", "--wait-for-node"], cwd=REPO,
             env=ros_env(domain), stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=240)
         assert player.returncode == 0, player.stderr
         assert "/convbki_mapper received 4 of 4 clouds, integrated 4, dropped 0" in player.stderr, player.stderr

@@ -238,7 +238,7 @@ def exit_code(argv) -> int:
 
 
 def test_module_runs_as_a_process_without_traceback(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "convbki_core.map_tool", "info", str(tmp_path / "nowhere.npz")],
+    result = subprocess.run([sys.executable, "-m", "convbki_core.tools.map_tool", "info", str(tmp_path / "nowhere.npz")],
                             cwd=REPO, capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.strip().splitlines() == [f"map_tool: error: {tmp_path / 'nowhere.npz'}: no such map file"]

@@ -335,3 +335,17 @@ def test_evaluate_maps_as_the_node_does_by_default() -> None:
     assert args.max_concentration == SPECS["max_concentration"].default
     mapper_default = inspect.signature(ConvBKIMapper).parameters["max_concentration"].default
     assert mapper_default == SPECS["max_concentration"].default
+
+
+def test_console_scripts_are_the_tools_and_nothing_re_exports_them() -> None:
+    """setup.py installs exactly the executables above from their modules, and no module outside
+    a ``tools`` package re-exports a tool (one import path per executable)."""
+    text = (REPO / "setup.py").read_text()
+    scripts = dict(line.strip().strip('",').split(" = ") for line in text.split('"console_scripts": [')[1]
+                   .split("]")[0].strip().splitlines())
+    assert scripts == {exe: f"{module}:main" for exe, (module, _) in EXECUTABLES.items()}
+    for package in ("convbki_core", "convbki_ros"):
+        for path in (REPO / package).rglob("*.py"):
+            if "tools" not in path.relative_to(REPO).parts:
+                source = path.read_text()
+                assert ".tools." not in source or "import *" not in source, f"{path} re-exports a tool"
