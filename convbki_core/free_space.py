@@ -198,15 +198,6 @@ def scratch_counts(dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.full(shape, 0.0, np.float32), np.full(shape[1:], 0.0, np.float32)
 
 
-def crossed_voxels(start: np.ndarray, end_voxel: np.ndarray, through: bool = False) -> list[tuple[int, int, int]]:
-    """The voxels a ray from ``start`` (voxel units) to the centre of ``end_voxel`` passes
-    through, in order, the end voxel left out unless ``through`` (the traversal the
-    compiled pass runs)."""
-    crossed = []
-    _walk_ray(np.asarray(start, np.float64), np.asarray(end_voxel, np.int64), crossed.append, through)
-    return crossed
-
-
 def _walk_ray(start, end_voxel, visit, through=False) -> None:
     """Amanatides-Woo: step into the neighbour whose boundary the ray meets first."""
     end = end_voxel + 0.5

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from pathlib import Path
 
 import torch
 
@@ -67,18 +66,6 @@ def sparse_kernel(distance: torch.Tensor, ell: torch.Tensor) -> torch.Tensor:
     value = (2.0 + torch.cos(two_pi_r)) * (1.0 - ratio) / 3.0 + torch.sin(two_pi_r) / (2.0 * math.pi)
     # Rounding can leave a value of order 1e-8 below zero just inside the support.
     return torch.where(inside, value.clamp(0.0, 1.0), torch.zeros_like(value))
-
-
-def tap_offsets(filter_size: int, resolution: float, dtype=torch.float32, device=None):
-    """Metric offsets of every tap from the filter centre, each of shape (f, f, f).
-
-    Returns (dx, dy, dz); index order [i, j, m] matches conv3d's (D, H, W) = (x, y, z).
-    """
-    if filter_size < 1 or filter_size % 2 == 0:
-        raise ValueError(f"filter_size must be a positive odd integer, got {filter_size}")
-    half = filter_size // 2
-    steps = torch.arange(-half, half + 1, dtype=dtype, device=device) * resolution
-    return torch.meshgrid(steps, steps, steps, indexing="ij")
 
 
 class ConvBKIKernel(torch.nn.Module):
@@ -129,10 +116,6 @@ class ConvBKIKernel(torch.nn.Module):
                        temperature=config.temperature)
         return cls(config.kernel, config.num_classes, config.filter_size, config.resolution, ell=config.ell,
                    free_ell=config.free_ell, temperature=config.temperature)
-
-    @classmethod
-    def from_file(cls, path: str | Path) -> ConvBKIKernel:
-        return cls.from_config(load_kernel_file(path))
 
     def to_config(self) -> KernelConfig:
         def values(parameter: torch.Tensor) -> list[float]:

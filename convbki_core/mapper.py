@@ -202,11 +202,6 @@ class ConvBKIMapper:
     def resolution(self) -> float:
         return self.geometry.resolution
 
-    @property
-    def last_origin(self) -> np.ndarray | None:
-        """Global index of the current window's first voxel (None before the first scan)."""
-        return self.window.origin
-
     # -- the update ------------------------------------------------------------------------
     def integrate(self, points: np.ndarray, values: np.ndarray, pose: np.ndarray,
                   moving: np.ndarray | None = None) -> IntegrationResult:

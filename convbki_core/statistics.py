@@ -44,12 +44,6 @@ def dirichlet_statistics(alpha: np.ndarray) -> DirichletStats:
     return DirichletStats(label.astype(np.int64), expected, variance.astype(np.float32))
 
 
-def expected_probabilities(alpha: np.ndarray) -> np.ndarray:
-    """E[theta] = alpha / sum(alpha) row-wise, (N, C)."""
-    alpha = np.asarray(alpha, dtype=np.float64)
-    return alpha / alpha.sum(axis=1, keepdims=True)
-
-
 if HAVE_NUMBA:
     from convbki_core.native import njit, prange
 

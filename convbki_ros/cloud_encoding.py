@@ -118,12 +118,6 @@ def pack_rgb(rgb: np.ndarray) -> np.ndarray:
     return ((rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]).astype(np.uint32).view(np.float32)
 
 
-def unpack_rgb(packed: np.ndarray) -> np.ndarray:
-    """(...) float32 packed 0x00RRGGBB -> (..., 3) uint8 RGB."""
-    bits = np.ascontiguousarray(packed, dtype=np.float32).view(np.uint32)
-    return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], axis=-1).astype(np.uint8)
-
-
 def map_cloud_fields(voxels: Any, class_colors: np.ndarray) -> dict[str, np.ndarray]:
     """The point fields of ``/semantic_map`` (those of ``convbki_core.records.RECORD``) from a
     VoxelSet-like object (``centres``, ``label``, ``variance``, ``confidence``): x, y, z (float32

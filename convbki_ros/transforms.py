@@ -68,16 +68,6 @@ def quaternion_to_matrix(quaternion: np.ndarray) -> np.ndarray:
     ], axis=-2)
 
 
-def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` of (x, y, z, w) quaternions (rotation b, then a)."""
-    ax, ay, az, aw = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
-    bx, by, bz, bw = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
-    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw,
-                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
-
-
 def slerp(q0: np.ndarray, q1: np.ndarray, t: float | np.ndarray) -> np.ndarray:
     """Spherical linear interpolation from ``q0`` (t = 0) to ``q1`` (t = 1), shortest arc.
 
@@ -218,16 +208,6 @@ def pose_to_odometry(pose: np.ndarray, stamp: Any, frame_id: str, child_frame_id
                                                             covariance=_covariance(types, pose_covariance)),
         twist=types("geometry_msgs/msg/TwistWithCovariance")(twist=twist, covariance=_covariance(types, None)),
     )
-
-
-def odometry_to_pose(msg: Any) -> np.ndarray:
-    """nav_msgs/Odometry (or geometry_msgs/Pose, PoseStamped, PoseWithCovariance) -> 4x4 pose."""
-    pose = msg
-    while hasattr(pose, "pose"):  # Odometry.pose.pose, PoseStamped.pose, PoseWithCovariance.pose
-        pose = pose.pose
-    p, o = pose.position, pose.orientation
-    return pose_from_translation_quaternion(np.array([p.x, p.y, p.z], np.float64),
-                                            np.array([o.x, o.y, o.z, o.w], np.float64))
 
 
 def pose_to_transform_stamped(pose: np.ndarray, stamp: Any, frame_id: str, child_frame_id: str,

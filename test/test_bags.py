@@ -14,12 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from helpers import odometry_to_pose
 from kitti_fixture import pose_about_z, write_sequence
 from ros_helpers import Probe, domain_id
 
 from convbki_ros.pointcloud import decode_cloud
 from convbki_ros.tools import kitti_to_bag, play_bag
-from convbki_ros.transforms import odometry_to_pose, stamp_to_ns, transform_to_pose
+from convbki_ros.transforms import stamp_to_ns, transform_to_pose
 
 REPO = Path(__file__).resolve().parents[1]
 EPOCH_NS = 1_700_000_000_000_000_000
@@ -188,9 +189,9 @@ def test_kitti_to_bag_failure_midway_leaves_nothing(dataset, tmp_path: Path, cap
 
 
 def test_kitti_to_bag_module_entry_point(tmp_path: Path) -> None:
-    result = subprocess.run([sys.executable, "-m", "convbki_ros.tools.kitti_to_bag", "--dataset", str(tmp_path / "none"),
-                             "--sequence", "0", "--out", str(tmp_path / "bag")], capture_output=True, text=True,
-                            cwd=REPO, timeout=60, stdin=subprocess.DEVNULL)
+    result = subprocess.run([sys.executable, "-m", "convbki_ros.tools.kitti_to_bag",
+                             "--dataset", str(tmp_path / "none"), "--sequence", "0", "--out", str(tmp_path / "bag")],
+                            capture_output=True, text=True, cwd=REPO, timeout=60, stdin=subprocess.DEVNULL)
     assert result.returncode == 2
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
 

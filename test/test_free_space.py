@@ -12,13 +12,13 @@ import math
 
 import numpy as np
 import pytest
+from helpers import crossed_voxels
 from reference import sparse_kernel_np
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.free_space import (
     _free_space_numpy,
     count_rays,
-    crossed_voxels,
     free_space_update,
     free_taps,
     scratch_counts,
@@ -250,7 +250,7 @@ def brute_force_free_evidence(points, labels, pose, mapper, stored, touched, fre
     resolution = mapper.resolution
     world = points @ pose[:3, :3].T + pose[:3, 3]
     voxels = np.floor(world / resolution).astype(np.int64)
-    origin, dims = mapper.last_origin, mapper.geometry.dims
+    origin, dims = mapper.window.origin, mapper.geometry.dims
     inside = ((voxels >= origin) & (voxels < origin + dims)).all(axis=1) & (labels != 0)
     ends, rays = np.unique(voxels[inside], axis=0, return_counts=True)
     sensor = pose[:3, 3] / resolution

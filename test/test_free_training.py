@@ -115,7 +115,8 @@ def test_the_ray_counts_a_sample_reads_are_those_of_a_walk_of_every_ray():
     """H[q, tap] is the weighted number of the later scan's rays that cross q + tap - h, at the
     voxels the earlier scan gave class evidence and the later one did not (checked against
     ``free_space.crossed_voxels``, ray by ray)."""
-    from convbki_core.free_space import crossed_voxels
+    from helpers import crossed_voxels
+
     from convbki_core.training.free_samples import free_evidence, past_rays, reached, support_offsets
     from convbki_core.volume import voxelize
 

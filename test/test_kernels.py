@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from helpers import kernel_from_file, tap_offsets
 from hypothesis import given
 from hypothesis import strategies as st
 from reference import sparse_kernel_np
@@ -19,7 +20,7 @@ from convbki_core.io.kernel_file import (
     load_kernel_file,
     save_kernel_file,
 )
-from convbki_core.kernels import sparse_kernel, tap_offsets
+from convbki_core.kernels import sparse_kernel
 from convbki_core.paths import kernel_path
 
 lengths = st.floats(min_value=0.01, max_value=5.0, allow_nan=False)
@@ -125,7 +126,7 @@ def test_kernel_file_round_trip(tmp_path, kind):
     kernel = random_kernel(kind, 20, 7, 0.1, np.random.default_rng(3))
     path = tmp_path / f"{kind}.yaml"
     save_kernel_file(kernel.to_config(), path)
-    loaded = ConvBKIKernel.from_file(path)
+    loaded = kernel_from_file(path)
     assert (loaded.kind, loaded.num_classes, loaded.filter_size, loaded.resolution) == (kind, 20, 7, 0.1)
     torch.testing.assert_close(loaded.filters(), kernel.filters(), atol=1e-5, rtol=0)
     assert not list(tmp_path.glob(".*tmp")), "no temporary file may be left behind"

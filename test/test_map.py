@@ -6,13 +6,13 @@ import json
 import numpy as np
 import pytest
 import torch
+from helpers import read_ply
 from hypothesis import given
 from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError, dirichlet_statistics
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.devices import resolve_device
-from convbki_core.io.ply import read_ply
 from convbki_core.paths import kernel_path
 from convbki_core.store import VoxelStore
 from convbki_core.volume import WindowGeometry

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import read_ply
 from kitti_fixture import write_drive
 
 from convbki_core.clamping import DEFAULT_LIMIT
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.map_file import MapSnapshot, read_map
-from convbki_core.io.ply import read_ply
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_core.store import VoxelStore
@@ -238,8 +238,8 @@ def exit_code(argv) -> int:
 
 
 def test_module_runs_as_a_process_without_traceback(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "convbki_core.tools.map_tool", "info", str(tmp_path / "nowhere.npz")],
-                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    result = subprocess.run([sys.executable, "-m", "convbki_core.tools.map_tool", "info",
+                             str(tmp_path / "nowhere.npz")], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert result.stderr.strip().splitlines() == [f"map_tool: error: {tmp_path / 'nowhere.npz'}: no such map file"]
 

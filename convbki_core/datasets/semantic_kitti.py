@@ -113,11 +113,6 @@ def read_poses(path: Path, calibration: np.ndarray) -> np.ndarray:
     return np.linalg.inv(calibration) @ poses @ calibration
 
 
-def lidar_poses_to_camera(poses: np.ndarray, calibration: np.ndarray) -> np.ndarray:
-    """The inverse of ``read_poses``' transform: camera-frame P_i = Tr @ T_i @ inv(Tr)."""
-    return calibration @ poses @ np.linalg.inv(calibration)
-
-
 class SemanticKittiSequence:
     """One sequence of a SemanticKITTI-layout dataset, frame by frame.
 

@@ -63,10 +63,3 @@ def write_voxels_ply(voxels: VoxelArrays, path: str | Path, max_variance: float 
     return int(vertices.shape[0])
 
 
-def read_ply(path: str | Path) -> np.ndarray:
-    """Read a PLY written by ``write_voxels_ply`` back into a structured array."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii").splitlines()
-    count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
-    return np.frombuffer(data, dtype=PLY_DTYPE, count=count, offset=end)

@@ -147,7 +147,8 @@ def _demo(args: argparse.Namespace) -> int:
         with log_path.open("w") as log:
             reader = LineReader(mapper, log)
             reader.wait_for("mapper ready", timeout=120)
-            player = _python_module("convbki_ros.tools.play_bag", str(bag), "--clock", "--rate", str(args.rate), env=env)
+            player = _python_module("convbki_ros.tools.play_bag", str(bag), "--clock", "--rate", str(args.rate),
+                                    env=env)
             while True:  # follow the node's counters until every scan is in
                 line = reader.next(timeout=30)
                 match = COUNTERS.search(line)

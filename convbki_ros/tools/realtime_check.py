@@ -233,8 +233,8 @@ def _check(args: argparse.Namespace) -> int:
                 if name != "mapper":
                     reader.wait_for("listener ready" if name.startswith("listener_") else "busy", timeout=60)
             played = time.monotonic()
-            player = subprocess.Popen([sys.executable, "-m", "convbki_ros.tools.play_bag", str(bag), "--clock", "--rate",
-                                       str(args.rate)], env=env, stdin=subprocess.DEVNULL)
+            player = subprocess.Popen([sys.executable, "-m", "convbki_ros.tools.play_bag", str(bag), "--clock",
+                                       "--rate", str(args.rate)], env=env, stdin=subprocess.DEVNULL)
             unchanged_since = None  # when the counters last changed after the bag ended
             while True:
                 line = node.next(timeout=30)
