@@ -74,7 +74,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "mapper = convbki_ros.mapper:main",
+            "mapper = convbki_ros.main:main",
             "kitti_to_bag = convbki_ros.tools.kitti_to_bag:main",
             "play_bag = convbki_ros.tools.play_bag:main",
             "evaluate = convbki_core.tools.evaluate:main",

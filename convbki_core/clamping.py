@@ -33,10 +33,10 @@ import math
 import numpy as np
 import torch
 
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.compiled import HAVE_NUMBA
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit
+    from convbki_core.compiled import njit
 
 DEFAULT_LIMIT = 300.0
 # A voxel whose free concentration is below this is seen empty for the first time (the prior

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.compiled import HAVE_NUMBA
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit
+    from convbki_core.compiled import njit
 
 
 def entry_starts(counts: np.ndarray) -> np.ndarray:

@@ -39,11 +39,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.compiled import HAVE_NUMBA, parallel_region
 from convbki_core.window import EVIDENCE, gather_window
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit, prange
+    from convbki_core.compiled import njit, prange
 
 UNKNOWN = -1
 LETHAL = 100

@@ -50,12 +50,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.compiled import HAVE_NUMBA, parallel_region
 from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit, prange
+    from convbki_core.compiled import njit, prange
 
 FREE_CLASS = 0
 # Bits of ``MoverForgetting.columns``: the column may hold a movable voxel (the support rule

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 
 from convbki_core.clamping import FIRST_CONTRADICTION, clamp_numpy
-from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.compiled import HAVE_NUMBA, parallel_region
 from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
 
@@ -58,7 +58,7 @@ if HAVE_NUMBA:
     import numba
 
     from convbki_core.clamping import clamp_voxel, evidence_scale
-    from convbki_core.native import njit, prange
+    from convbki_core.compiled import njit, prange
 
     # Bytes, so that the mask's update stays in bytes and vectorises.
     _CHANGED_BYTE = np.uint8(CHANGED)

@@ -27,7 +27,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.clamping import DEFAULT_LIMIT, check_limit, clamp_torch
+from convbki_core.clamping import check_limit, clamp_torch
+from convbki_core.compiled import HAVE_NUMBA
+from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
 from convbki_core.devices import resolve_device
 from convbki_core.forgetting import MoverForgetting
 from convbki_core.free_space import (
@@ -43,7 +45,6 @@ from convbki_core.io.map_file import MAP_FORMAT, MAP_VERSION, MapFileError, MapS
 from convbki_core.io.ply import write_voxels_ply
 from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
-from convbki_core.native import HAVE_NUMBA
 from convbki_core.present_movers import PresentMovers, labels_now, present_movers
 from convbki_core.records import RECORD, records_from_alpha, window_records
 from convbki_core.statistics import dirichlet_statistics
@@ -63,10 +64,6 @@ from convbki_core.volume import (
     voxelize_scan,
 )
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
-
-# How the update runs: auto (fast on the CPU, torch on CUDA), fast (the compiled scatter into
-# a host window), dense (the paper's conv3d, the reference), torch (a device-resident window).
-UPDATE_PATHS = ("auto", "fast", "dense", "torch")
 
 
 @dataclass
@@ -112,63 +109,63 @@ class VoxelSet:
 
 
 class ConvBKIMapper:
-    """Online ConvBKI semantic mapping in a global voxel map.
+    """Online ConvBKI semantic mapping in a global voxel map, set up by a ``MapperConfig``
+    (``config``; the product's defaults when None).
 
-    ``kernel``: a ``ConvBKIKernel``, a ``KernelConfig`` or a kernel-file path. The
-    resolution and filter size come from the kernel unless overridden (lengths are in
-    metres, so a kernel may be evaluated on another grid). ``prior`` is the initial
-    concentration of every class in a new voxel. ``track_changes``: remember what changed
-    for ``take_changes`` (outputs that send only changes); off, nothing is kept for it.
-    ``free_space``: the rays between the sensor and its returns add evidence that the voxels
-    they cross are empty, into class 0 (``free_space`` module); class 0 must be ignored.
-    ``max_concentration``: with free space, a voxel that rays first find empty while its
-    concentrations sum to more than this is scaled down to it (``clamping`` module), so a
-    bounded number of rays can empty what a mover left; 0 turns that off.
-    ``movable_classes``: with free space, the classes whose evidence is of the time it was
-    seen (a label map's movers: car, person, ...): their voxels forget where a return shows
-    another class and where they float over empty space (``forgetting``); () turns that off.
+    ``kernel``: a ``ConvBKIKernel`` (training passes the one it learns), a ``KernelConfig`` or
+    a kernel-file path; None: the config's ``kernel_file``. The resolution and filter size
+    come from the kernel unless the config sets them (lengths are in metres, so a kernel may
+    be evaluated on another grid). With free space, the rays between the sensor and its
+    returns add evidence that the voxels they cross are empty, into class 0 (``free_space``);
+    class 0 must be ignored. Clamping (``max_concentration``) scales down a voxel that rays
+    first find empty, so a bounded number of rays can empty what a mover left
+    (``clamping``). The movers' rules (``forgetting``) make the movable classes' voxels
+    forget where a return shows another class and where they float over empty space.
     """
 
-    def __init__(self, kernel: ConvBKIKernel | KernelConfig | str | Path,
-                 local_bounds: tuple[tuple[float, float, float], tuple[float, float, float]] = (
-                     (-40.0, -40.0, -2.6), (40.0, 40.0, 2.6)),
-                 prior: float = 1e-3, resolution: float | None = None, filter_size: int | None = None,
-                 device: str = "auto", frame_id: str = "map", ignore_classes: tuple[int, ...] = (0,),
-                 update_path: str = "auto", track_changes: bool = False, free_space: bool = False,
-                 max_concentration: float = DEFAULT_LIMIT, movable_classes: Sequence[int] = ()):
+    def __init__(self, config: MapperConfig | None = None,
+                 kernel: ConvBKIKernel | KernelConfig | str | Path | None = None):
+        config = DEFAULTS if config is None else config
+        self.config = config
+        if kernel is None:
+            kernel = config.kernel_path()
         if isinstance(kernel, (str, Path)):
             kernel = load_kernel_file(kernel)
         # The mapper's own kernel: a caller's kernel object keeps its device and grid.
         kernel = ConvBKIKernel.from_config(kernel) if isinstance(kernel, KernelConfig) else copy.deepcopy(kernel)
-        if resolution is not None:
-            kernel.resolution = float(resolution)
-        if filter_size is not None:
-            if filter_size < 1 or filter_size % 2 == 0:
-                raise ValueError(f"filter_size must be a positive odd integer, got {filter_size}")
-            kernel.filter_size = int(filter_size)
-        if not prior > 0:
-            raise ValueError(f"prior must be positive, got {prior}")
-        self.device = resolve_device(device)
+        window, free = config.window, config.free_space
+        if window.resolution is not None:
+            kernel.resolution = float(window.resolution)
+        if window.filter_size is not None:
+            if window.filter_size < 1 or window.filter_size % 2 == 0:
+                raise ValueError(f"filter_size must be a positive odd integer, got {window.filter_size}")
+            kernel.filter_size = int(window.filter_size)
+        if not window.prior > 0:
+            raise ValueError(f"prior must be positive, got {window.prior}")
+        self.device = resolve_device(config.compute.device)
         self.layer = ConvBKILayer(kernel).to(self.device)
-        self.geometry = WindowGeometry(kernel.resolution, tuple(local_bounds[0]), tuple(local_bounds[1]))
-        self.prior = float(prior)
-        self.frame_id = frame_id
-        self.ignore_classes = tuple(int(c) for c in ignore_classes)
-        if free_space and FREE_CLASS not in self.ignore_classes:
+        self.geometry = WindowGeometry(kernel.resolution, tuple(window.local_bounds[0]), tuple(window.local_bounds[1]))
+        self.prior = float(window.prior)
+        self.frame_id = config.frame_id
+        self.ignore_classes = config.ignore_classes()
+        if free.enabled and FREE_CLASS not in self.ignore_classes:
             raise ValueError(f"free space is kept in class {FREE_CLASS}, which must be an ignored class "
                              f"(ignored: {list(self.ignore_classes)})")
-        self.free_space = bool(free_space)
-        self.max_concentration = check_limit(max_concentration)
-        self.store = VoxelStore(kernel.num_classes, prior=self.prior)
-        self.window = RollingWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store, track_changes)
+        self.free_space = bool(free.enabled)
+        self.max_concentration = check_limit(free.max_concentration)
+        update_path = config.compute.update_path
         if update_path not in UPDATE_PATHS:
             raise ValueError(f"update_path must be one of {', '.join(UPDATE_PATHS)}, got {update_path!r}")
         if update_path == "auto":
             update_path = "fast" if self.device.type == "cpu" else "torch"
         self.update_path = update_path
+        track_changes = config.store.track_changes
+        self.store = VoxelStore(kernel.num_classes, prior=self.prior)
         if update_path == "torch":
             self.window = TorchWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store, track_changes,
                                       self.device)
+        else:
+            self.window = RollingWindow(self.geometry.dims, kernel.num_classes, self.prior, self.store, track_changes)
         self.scans_integrated = 0
         self.sensor_position: np.ndarray | None = None  # map frame (m), at the last scan (or from a loaded file)
         self._removed: list[np.ndarray] = []  # voxels that left the map since the changes were taken
@@ -178,7 +175,7 @@ class ConvBKIMapper:
         self._plan_key: tuple | None = None
         self._free_counts = scratch_counts(self.geometry.dims) if self.free_space else None
         self.present_movers: PresentMovers | None = None  # the last scan's moving points, never in the map
-        self.movable_classes = tuple(int(c) for c in movable_classes)
+        self.movable_classes = config.movable_classes()
         self.forgetting = (MoverForgetting(self.movable_classes, kernel.num_classes, self.prior, self.geometry.dims,
                                            kernel.filter_size // 2, self.resolution)
                            if self.free_space and self.movable_classes else None)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.compiled import HAVE_NUMBA, parallel_region
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.volume import voxel_centres
 
@@ -75,7 +75,7 @@ def window_records(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims
 
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit, prange
+    from convbki_core.compiled import njit, prange
     from convbki_core.statistics import voxel_statistics
     from convbki_core.window import plane_starts
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.compiled import HAVE_NUMBA, parallel_region
 
 
 @dataclass
@@ -45,7 +45,7 @@ def dirichlet_statistics(alpha: np.ndarray) -> DirichletStats:
 
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit, prange
+    from convbki_core.compiled import njit, prange
 
     @njit(nogil=True, inline="always")
     def voxel_statistics(values):  # pragma: no cover - compiled

@@ -20,11 +20,11 @@ import sys
 import numpy as np
 
 from convbki_core.compact_rows import compress_rows, entry_ranges, entry_starts, expand_rows
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.compiled import HAVE_NUMBA
 from convbki_core.volume import linear_index, unravel_linear
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit
+    from convbki_core.compiled import njit
 
 CHUNK_SHIFT = 4
 CHUNK_EDGE = 1 << CHUNK_SHIFT

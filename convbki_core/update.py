@@ -30,15 +30,15 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from convbki_core.compiled import HAVE_NUMBA, parallel_region
 from convbki_core.layer import ConvBKILayer
-from convbki_core.native import HAVE_NUMBA, parallel_region
 from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE
 
 if HAVE_NUMBA:
     import numba
 
-    from convbki_core.native import njit, prange
+    from convbki_core.compiled import njit, prange
 
 @dataclass(frozen=True)
 class FilterPlan:

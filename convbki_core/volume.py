@@ -22,10 +22,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.compiled import HAVE_NUMBA, parallel_region
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit, prange
+    from convbki_core.compiled import njit, prange
 if TYPE_CHECKING:
     import torch
 

@@ -9,8 +9,8 @@ mapping and its outputs call: scans with labels and with probabilities (float32 
 float64 points, tempered and not), window moves (slabs out to the store and back), free
 space with clamping, a forgotten box, the map's changes, statistics and point records,
 the shown map, the planner's costmap, queries inside and outside the window, a save to a temporary file, its
-load and a PLY export. The mapper itself is not touched; ``warm_up(settings)`` takes the
-mapper's constructor arguments instead, so that it can run while that mapper allocates its
+load and a PLY export. The mapper itself is not touched; ``warm_up(config, kernel)`` takes the
+mapper's configuration instead, so that it can run while that mapper allocates its
 window (a third of a gigabyte at the paper's grid, which numpy fills without holding the GIL).
 
 On a GPU the same run also loads the device's kernels, as nvblox warms CUDA up before it
@@ -28,12 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
+from convbki_core.compiled import KernelCache, kernel_cache, threading_layer
+from convbki_core.config import DEFAULTS, MapperConfig
 from convbki_core.costmap import TraversabilityProfile, column_costs, grid_of_window
 from convbki_core.free_space import FREE_CLASS
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.native import KernelCache, kernel_cache, threading_layer
 from convbki_core.records import change_records, packed_palette, view_records
 from convbki_core.shown_map import ShownMap
 
@@ -82,25 +83,21 @@ def _pose(x: float, y: float, yaw: float) -> np.ndarray:
     return pose
 
 
-def settings_of(mapper: ConvBKIMapper) -> dict:
-    """Constructor arguments of a mapper like ``mapper`` (its kernel, grid, prior, device, path)."""
-    return {"kernel": mapper.kernel, "prior": mapper.prior, "device": str(mapper.device), "frame_id": mapper.frame_id,
-            "ignore_classes": mapper.ignore_classes, "update_path": mapper.update_path}
-
-
-def throwaway_mapper(settings: dict, temperature: float | None = None) -> ConvBKIMapper:
-    """A mapper made with ``settings`` (``ConvBKIMapper``'s arguments) on a small window, with free
-    space and clamping on, so that their kernels are compiled whatever the settings say."""
-    kernel = settings["kernel"]
+def throwaway_mapper(config: MapperConfig, kernel, temperature: float | None = None) -> ConvBKIMapper:
+    """A mapper like one made from ``config`` and ``kernel`` (its kernel, grid, prior, device and
+    update path) on a small window, with free space, clamping and the movers' rules on, so
+    that their kernels are compiled whatever the configuration says."""
+    if kernel is None:
+        kernel = config.kernel_path()
     if isinstance(kernel, (str, Path)):
         kernel = load_kernel_file(kernel)
-    resolution = settings.get("resolution") or kernel.resolution
+    resolution = config.window.resolution or kernel.resolution
     half = np.asarray(HALF_EXTENT) * resolution / 0.2
-    ignored = tuple(sorted({FREE_CLASS, *settings.get("ignore_classes", (FREE_CLASS,))}))
-    mapper = ConvBKIMapper(**{**settings, "kernel": kernel, "local_bounds": (tuple(-half), tuple(half)),
-                              "ignore_classes": ignored, "track_changes": True, "free_space": True,
-                              "max_concentration": 1.0,
-                              "movable_classes": settings.get("movable_classes") or (min(1, kernel.num_classes - 1),)})
+    ignored = tuple(sorted({FREE_CLASS, *config.ignore_classes()}))
+    movable = config.classes.movable_classes or (min(1, kernel.num_classes - 1),)
+    small = config.replace(local_bounds=(tuple(-half), tuple(half)), ignore_classes=ignored, track_changes=True,
+                           free_space=True, max_concentration=1.0, forget_movers=True, movable_classes=movable)
+    mapper = ConvBKIMapper(small, kernel)
     mapper.kernel.temperature = temperature
     return mapper
 
@@ -145,21 +142,20 @@ def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bo
     mapper.reset()
 
 
-def warm_up(mapper: ConvBKIMapper | dict | None = None) -> WarmUpReport:
+def warm_up(mapper: ConvBKIMapper | MapperConfig | None = None, kernel=None) -> WarmUpReport:
     """Compile (or load from the cache) every kernel a mapper and its outputs will run: the
-    mapper given, or one made with the given constructor arguments, or (none) the shipped
-    configuration (compound kernel, free space)."""
+    mapper given, or one made from a configuration (and ``kernel``: None, the configuration's
+    kernel file), or (none) the product's defaults on the CPU."""
     started = time.perf_counter()
     if isinstance(mapper, ConvBKIMapper):
-        settings = settings_of(mapper)
+        config, kernel = mapper.config.replace(device=str(mapper.device), update_path=mapper.update_path), mapper.kernel
     else:
-        from convbki_core.paths import kernel_path
-
-        settings = mapper or {"kernel": kernel_path("semantic_kitti_compound"), "device": "cpu"}
+        config = mapper or DEFAULTS.replace(device="cpu")
+        kernel = kernel if kernel is not None else config.kernel_path()
     rng = np.random.default_rng(0)
     with _scratch_folder() as folder:
         for temperature, probabilities in ((None, False), (None, True), (0.5, True)):
-            _exercise(throwaway_mapper(settings, temperature), rng, probabilities, folder)
+            _exercise(throwaway_mapper(config, kernel, temperature), rng, probabilities, folder)
     return WarmUpReport(time.perf_counter() - started, kernel_cache(), threading_layer())
 
 

@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA, parallel_region
+from convbki_core.compiled import HAVE_NUMBA, parallel_region
 from convbki_core.store import VoxelStore
 from convbki_core.volume import unravel_linear
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit, prange
+    from convbki_core.compiled import njit, prange
 
 # Bits of the window's byte mask: the voxel holds evidence; its concentrations changed since
 # the map's changes were last taken (``RollingWindow.take_changes``); it received class

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from convbki_ros.pointcloud import DTYPE_TO_DATATYPE
+from convbki_ros.cloud_decoding import DTYPE_TO_DATATYPE
 from convbki_ros.transforms import TypeResolver, make_header, message_types
 
 

@@ -20,6 +20,7 @@ from convbki_core.io.map_file import MapFileError, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_core.warm_up import WarmUpReport, warm_up
+from convbki_ros.cloud_decoding import CloudError, decode_cloud
 from convbki_ros.costmap_output import profile_of, rolling_grid
 from convbki_ros.params import (
     KERNEL_DECIDES,
@@ -27,15 +28,14 @@ from convbki_ros.params import (
     SPECS,
     StartupError,
     check_choice,
-    check_local_bounds,
     check_mount,
+    config_from_node,
     declare,
     explicitly_set,
     kernel_defaults,
     optional,
     unknown_parameters,
 )
-from convbki_ros.pointcloud import CloudError, decode_cloud
 from convbki_ros.pose_buffer import PoseStatus, pose_problem
 from convbki_ros.status import problem_key
 from convbki_ros.sync import CloudQueue, Decision, PendingCloud, SensorFrames, Verdict
@@ -118,17 +118,11 @@ class MappingCore:
         check_choice("label_space", node.param("label_space"))
         check_choice("update_path", node.param("update_path"))
         check_choice("on_pose_jump", node.param("on_pose_jump"))
-        settings = {"kernel": config, "local_bounds": check_local_bounds(node.param("local_bounds")),
-                    "prior": node.param("prior"), "resolution": node.param("resolution"),
-                    "filter_size": node.param("filter_size"), "device": node.param("device"),
-                    "frame_id": node.param("map_frame") or "map", "update_path": node.param("update_path"),
-                    "ignore_classes": self.label_map.ignore_classes, "track_changes": True,
-                    "free_space": node.param("free_space"), "max_concentration": node.param("max_concentration"),
-                    "movable_classes": self.label_map.movable_classes if node.param("forget_movers") else ()}
+        mapper_config = config_from_node(node, self.label_map)
         # Every kernel is compiled (or loaded) while the map's window is allocated and filled.
         with ThreadPoolExecutor(max_workers=1) as pool:
-            warming = pool.submit(warm_up, settings)
-            mapper = ConvBKIMapper(**settings)
+            warming = pool.submit(warm_up, mapper_config, config)
+            mapper = ConvBKIMapper(mapper_config, config)
             self.warm_up_report = warming.result()
         return mapper
 

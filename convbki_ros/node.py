@@ -37,9 +37,10 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
+from convbki_core.compiled import kernel_cache
 from convbki_core.datasets.labels import load_label_map
-from convbki_core.native import kernel_cache
 from convbki_core.records import packed_palette
+from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.cloud_encoding import encode_cloud
 from convbki_ros.map_files import MapFiles
 from convbki_ros.mapping import MappingCore
@@ -55,7 +56,6 @@ from convbki_ros.params import (
     integers_as_doubles,
     optional,
 )
-from convbki_ros.pointcloud import decode_cloud
 from convbki_ros.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
 
 LEVELS = {OK: DiagnosticStatus.OK, WARN: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}

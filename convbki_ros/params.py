@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
 from convbki_core.io.kernel_file import KernelConfig
 
 NODE_NAME = "convbki_mapper"
@@ -59,9 +60,10 @@ PARAMETERS: tuple[Spec, ...] = (
          2, 1024),
     Spec("resolution", 0.2, "voxel edge length; metres; default: the kernel file's", 0.01, 10.0),
     Spec("filter_size", 5, "convolution filter edge f (odd); voxels; default: the kernel file's", 1, 31, step=2),
-    Spec("local_bounds", [-40.0, -40.0, -2.6, 40.0, 40.0, 2.6],
+    Spec("local_bounds", [*DEFAULTS.window.local_bounds[0], *DEFAULTS.window.local_bounds[1]],
          "local map window around the sensor, [min_x, min_y, min_z, max_x, max_y, max_z]; metres"),
-    Spec("prior", 0.001, "Dirichlet prior concentration of every class in every voxel; unitless", 1e-9, 1e6),
+    Spec("prior", DEFAULTS.window.prior,
+         "Dirichlet prior concentration of every class in every voxel; unitless", 1e-9, 1e6),
     Spec("label_space", "raw",
          "meaning of the input `label` field: raw (SemanticKITTI raw ids) or learning (0..num_classes-1)",
          choices=("raw", "learning")),
@@ -90,21 +92,25 @@ PARAMETERS: tuple[Spec, ...] = (
          "metres", 0.5, 10000.0, run_time=True),
     Spec("view_max_points", 600_000, "at most this many voxels in semantic_map/view, the nearest first; count",
          1, 100_000_000, run_time=True),
-    Spec("free_space", True, "the rays between the sensor and its returns add evidence that the voxels they "
+    Spec("free_space", DEFAULTS.free_space.enabled,
+         "the rays between the sensor and its returns add evidence that the voxels they "
          "cross are empty, so moving objects leave no trail; false: the paper's ConvBKI; bool"),
-    Spec("max_concentration", 300.0, "with free_space: a voxel that rays first find empty while its concentrations "
+    Spec("max_concentration", DEFAULTS.free_space.max_concentration,
+         "with free_space: a voxel that rays first find empty while its concentrations "
          "sum to more than this is scaled down to it, so a bounded number of rays can empty what a mover left "
          "(OctoMap's clamping); 0 = never; unitless (points of evidence)", 0.0, 1e12),
-    Spec("forget_movers", True, "with free_space: the voxels of movable classes (car, person, ...) forget their "
+    Spec("forget_movers", DEFAULTS.free_space.forget_movers,
+         "with free_space: the voxels of movable classes (car, person, ...) forget their "
          "evidence where a return shows another class, and empty where they float over space the rays found "
          "empty (the top of a bus that has gone); false: free space alone; bool"),
     Spec("moving_labels", True, "with label_space raw: points whose label is a moving id (SemanticKITTI's "
          "252-259, from a multi-scan segmentation network) are evidence for their own scan only and stay out "
          "of the map, so what moves leaves no trail; false: they are mapped as their static classes; bool"),
-    Spec("device", "auto", "torch device: auto (CUDA when present, else CPU), cpu, cuda[:N]"),
-    Spec("update_path", "auto", "how the update runs: auto (fast on the CPU, torch on CUDA), fast (compiled "
+    Spec("device", DEFAULTS.compute.device, "torch device: auto (CUDA when present, else CPU), cpu, cuda[:N]"),
+    Spec("update_path", DEFAULTS.compute.update_path,
+         "how the update runs: auto (fast on the CPU, torch on CUDA), fast (compiled "
          "sparse scatter, CPU), torch (the window resident on the torch device, any device) or dense "
-         "(depthwise conv3d, the paper's formulation, the reference)", choices=("auto", "fast", "torch", "dense")),
+         "(depthwise conv3d, the paper's formulation, the reference)", choices=UPDATE_PATHS),
     Spec("input_qos", "reliable",
          "QoS of cloud_in and odom: reliable (bag replay) or sensor_data (live, best effort)",
          choices=("reliable", "sensor_data")),
@@ -287,6 +293,18 @@ def check_local_bounds(bounds) -> tuple[tuple[float, ...], tuple[float, ...]]:
     if not all(np.isfinite(bounds)) or not all(a < b for a, b in zip(low, high, strict=True)):
         raise StartupError(f"parameter local_bounds: each min must be below its max, got {bounds}")
     return tuple(low), tuple(high)
+
+
+def config_from_node(node, label_map) -> MapperConfig:
+    """The mapper's configuration from the node's parameters: the one place where ROS
+    parameter names meet ``MapperConfig`` (checked values; the label map's classes)."""
+    return DEFAULTS.replace(
+        local_bounds=check_local_bounds(node.param("local_bounds")), prior=node.param("prior"),
+        resolution=node.param("resolution"), filter_size=node.param("filter_size"),
+        device=node.param("device"), update_path=node.param("update_path"), frame_id=node.param("map_frame") or "map",
+        ignore_classes=label_map.ignore_classes, movable_classes=label_map.movable_classes, track_changes=True,
+        free_space=node.param("free_space"), max_concentration=node.param("max_concentration"),
+        forget_movers=node.param("forget_movers"))
 
 
 def optional(node, name: str):

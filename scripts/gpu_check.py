@@ -26,8 +26,9 @@ import numpy as np
 import torch
 
 from convbki_core.datasets.labels import load_label_map
-from convbki_core.pipeline import ensure_drive, paper_mapper
+from convbki_core.offline import paper_mapper
 from convbki_core.statistics import dirichlet_statistics
+from convbki_core.synth.cached_drive import ensure_drive
 
 BENCH_SEED = 5  # bench's default drive, so that bench reuses the drive written here
 CONFIGURATIONS = {

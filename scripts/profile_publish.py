@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from convbki_core.config import MapperConfig
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
@@ -74,8 +75,8 @@ def main() -> int:
     dataset = SemanticKittiSequence(Path(args.dataset), args.sequence)
     label_map = load_label_map("semantic_kitti")
     palette = packed_palette(label_map.colors)
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), device="cpu",
-                           ignore_classes=label_map.ignore_classes, track_changes=True)
+    mapper = ConvBKIMapper(MapperConfig.paper(device="cpu", ignore_classes=label_map.ignore_classes,
+                                              track_changes=True), kernel_path("semantic_kitti_compound"))
     frames = []
     for number, frame in enumerate(dataset):
         if number >= args.scans:

@@ -81,7 +81,7 @@ def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
     watch = DiagnosticsWatch(domain)
     map_file = out / f"map_{index}.npz"
     node = subprocess.Popen(
-        [sys.executable, "-m", "convbki_ros.mapper", "--ros-args", "--params-file", str(config_dir() / "mapper.yaml"),
+        [sys.executable, "-m", "convbki_ros.main", "--ros-args", "--params-file", str(config_dir() / "mapper.yaml"),
          "-r", "cloud_in:=/kitti/velo/pointcloud", "-r", "odom:=/kitti/odom", "-p", "use_sim_time:=true",
          "-p", f"map_file:={map_file}", "-p", "stats_period:=1.0", "-p", "save_on_shutdown:=false"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

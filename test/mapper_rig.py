@@ -9,9 +9,10 @@ from pathlib import Path
 import numpy as np
 from ros_helpers import NodeLog, Probe, domain_id, start
 
+from convbki_core.config import MapperConfig
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.paths import kernel_path
+from convbki_core.paths import config_dir
 from convbki_ros.cloud_encoding import encode_cloud
 from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_odometry
 
@@ -56,16 +57,10 @@ def odometry(stamp: int, translation=TRANSLATION, quaternion=QUATERNION, child: 
 
 
 def node_default_mapper(**options) -> ConvBKIMapper:
-    """The mapper object a node with the default parameters builds over BOUNDS (free space,
-    clamping and the movers' rules as their parameters' defaults say); ``options`` override."""
-    from convbki_ros.params import SPECS
-
-    label_map = load_label_map("semantic_kitti")
-    settings = {"local_bounds": (BOUNDS[:3], BOUNDS[3:]), "prior": 0.001, "device": "cpu",
-                "ignore_classes": label_map.ignore_classes, "free_space": SPECS["free_space"].default,
-                "max_concentration": SPECS["max_concentration"].default,
-                "movable_classes": label_map.movable_classes if SPECS["forget_movers"].default else (), **options}
-    return ConvBKIMapper(kernel_path("semantic_kitti_compound"), **settings)
+    """The mapper object a node started with the shipped parameters file builds over BOUNDS
+    (free space, clamping and the movers' rules as the file says); ``options`` override."""
+    config = MapperConfig.from_params_file(config_dir() / "mapper.yaml")
+    return ConvBKIMapper(config.replace(**{"local_bounds": (BOUNDS[:3], BOUNDS[3:]), "device": "cpu", **options}))
 
 
 def offline_map(scans: int) -> ConvBKIMapper:
@@ -127,7 +122,7 @@ class Rig:
             self.map_file.parent.mkdir(parents=True, exist_ok=True)
         self.domain = domain = domain_id()
         remap = ("-r", f"__ns:={namespace}") if namespace else ()
-        self.process = start("convbki_ros.mapper", domain, "--ros-args", *remap, "-p", f"local_bounds:={BOUNDS}",
+        self.process = start("convbki_ros.main", domain, "--ros-args", *remap, "-p", f"local_bounds:={BOUNDS}",
                              "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "map_period:=0.2",
                              "-p", "diagnostics_period:=0.2",
                              "-p", "pose_wait_timeout:=1.5", "-p", f"map_file:={self.map_file}",

@@ -34,6 +34,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError
+from convbki_core.config import MapperConfig
 from convbki_core.io.atomic import (
     atomic_write_bytes,
     atomic_write_with,
@@ -60,11 +61,12 @@ WRITER = r"""
 import os, signal, sys
 import numpy as np
 from convbki_core import ConvBKIMapper, KernelConfig
+from convbki_core.config import MapperConfig
 import convbki_core.io.atomic as atomic
 
 path, markers, grid_shape = sys.argv[1], int(sys.argv[2]), [int(v) for v in sys.argv[3].split(",")]
 config = KernelConfig("single", 0.2, 3, 20, ell=[0.3])
-mapper = ConvBKIMapper(config, local_bounds=((-2, -2, -1), (2, 2, 1)), device="cpu")
+mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=((-2, -2, -1), (2, 2, 1)), device="cpu"), config)
 grid = np.stack(np.meshgrid(*(np.arange(n) for n in grid_shape), indexing="ij"), -1).reshape(-1, 3)
 rng = np.random.default_rng(0)
 mapper.store.write(grid, rng.random((len(grid), 20), dtype=np.float32) + 0.001)
@@ -275,8 +277,8 @@ def test_stale_temp_files_of_live_processes_and_other_names_are_kept(tmp_path):
 
 def test_failed_save_leaves_the_old_file_and_no_temp_file(tmp_path):
     path = tmp_path / "map.npz"
-    mapper = ConvBKIMapper(ConvBKIKernel("single", 4, 3, 0.2, ell=0.3), local_bounds=((-1, -1, -1), (1, 1, 1)),
-                           device="cpu")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=((-1, -1, -1), (1, 1, 1)), device="cpu"),
+                           ConvBKIKernel("single", 4, 3, 0.2, ell=0.3))
     mapper.store.write(np.array([[0, 0, 0], [1, 2, 3]]), np.ones((2, 4), np.float32))
     mapper.save(path)
     before = path.read_bytes()
@@ -290,8 +292,8 @@ def test_failed_save_leaves_the_old_file_and_no_temp_file(tmp_path):
 
 
 def _saved_map(folder: Path) -> Path:
-    mapper = ConvBKIMapper(ConvBKIKernel("single", 4, 3, 0.2, ell=0.3), local_bounds=((-1, -1, -1), (1, 1, 1)),
-                           device="cpu")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=((-1, -1, -1), (1, 1, 1)), device="cpu"),
+                           ConvBKIKernel("single", 4, 3, 0.2, ell=0.3))
     mapper.store.write(np.array([[0, 0, 0], [1, 2, 3], [-4, 5, 6]]), np.arange(12, dtype=np.float32).reshape(3, 4))
     path = folder / "good.npz"
     mapper.save(path)
@@ -450,8 +452,8 @@ def test_a_save_keeps_the_file_it_replaces_as_prev_and_a_failed_save_keeps_both(
 def test_a_map_save_over_a_map_keeps_the_map_before_it_loadable(tmp_path):
     path = _saved_map(tmp_path)
     before = path.read_bytes()
-    mapper = ConvBKIMapper(ConvBKIKernel("single", 4, 3, 0.2, ell=0.3), local_bounds=((-1, -1, -1), (1, 1, 1)),
-                           device="cpu")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=((-1, -1, -1), (1, 1, 1)), device="cpu"),
+                           ConvBKIKernel("single", 4, 3, 0.2, ell=0.3))
     mapper.load(path)
     mapper.store.write(np.array([[9, 9, 9]]), np.full((1, 4), 2.0, np.float32))
     mapper.save(path)

@@ -18,7 +18,7 @@ from helpers import odometry_to_pose
 from kitti_fixture import pose_about_z, write_sequence
 from ros_helpers import Probe, domain_id
 
-from convbki_ros.pointcloud import decode_cloud
+from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.tools import kitti_to_bag, play_bag
 from convbki_ros.transforms import stamp_to_ns, transform_to_pose
 

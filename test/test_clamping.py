@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from convbki_core.clamping import check_limit, clamp_numpy, clamp_torch, first_contradiction
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.compiled import HAVE_NUMBA
 
 
 def _window(seed: int, classes: int = 6, dims=(5, 4, 3)):

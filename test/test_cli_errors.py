@@ -383,12 +383,11 @@ def test_bench_drive_folder_that_is_a_file(tmp_path, capsys):
 
 
 def test_bench_without_convbki_ros_keeps_the_keys_and_says_why(monkeypatch):
-    """The core runs without convbki_ros: bench then reports the ROS-side figures as not measured,
-    under the keys bench_ros fills when it is there."""
-    from convbki_core.pipeline import paper_mapper
+    """The core never imports convbki_ros: bench runs the ROS-side figures as a process and,
+    where convbki_ros is not there, reports them as not measured, under the keys bench_ros fills."""
+    from convbki_core.offline import paper_mapper
     from convbki_ros.tools import bench_ros
 
-    assert bench.ros_figures() is bench_ros
     assert bench.ROS_ENCODE_KEYS == bench_ros.ENCODE_KEYS and bench.ROS_SCAN_TO_MAP_KEYS == bench_ros.SCAN_TO_MAP_KEYS
     assert set(bench_ros.START_KEYS) < set(bench.ROS_START_KEYS) <= set(bench.REPORTED)
     rng = np.random.default_rng(0)
@@ -403,12 +402,22 @@ def test_bench_without_convbki_ros_keeps_the_keys_and_says_why(monkeypatch):
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec",
                         lambda name, *rest: None if name == "convbki_ros" else find_spec(name, *rest))
-    assert bench.ros_figures() is None
-    figures = {**dict.fromkeys(bench.REPORTED, 1.0), "machine": "test",
-               **dict.fromkeys(bench.ROS_ENCODE_KEYS + bench.ROS_SCAN_TO_MAP_KEYS + bench.ROS_START_KEYS)}
+    args = SimpleNamespace(skip_start=False, drive_dir="unused", scans=3, repeat=1, seed=5)
+    assert bench.ros_side_figures(args) == dict.fromkeys(bench.ROS_ENCODE_KEYS + bench.ROS_SCAN_TO_MAP_KEYS
+                                                          + bench.ROS_START_KEYS)
+    figures = {**dict.fromkeys(bench.REPORTED, 1.0), "machine": "test", **bench.ros_side_figures(args)}
     rows = {line.split()[0]: line for line in bench.format_report(figures, []).splitlines()[3:] if line}
     unmeasured = [key for key in bench.REPORTED if rows[key].endswith(bench.NOT_MEASURED)]
     assert unmeasured == ["encode_ms_per_million", "scan_to_map_ms", *bench.ROS_START_KEYS]
+
+
+def test_bench_measures_the_ros_side_figures_in_a_process_of_their_own(tmp_path):
+    """With convbki_ros there, bench_ros runs as its own process on bench's drive and every
+    figure it owns comes back as a number."""
+    args = SimpleNamespace(skip_start=True, drive_dir=str(tmp_path / "drive"), scans=4, repeat=2, seed=5)
+    figures = bench.ros_side_figures(args)
+    assert set(figures) == set(bench.ROS_ENCODE_KEYS + bench.ROS_SCAN_TO_MAP_KEYS)
+    assert figures["encoded_voxels"] > 1000 and figures["encode_ms_per_million"] > 0 and figures["scan_to_map_ms"] > 0
 
 
 def test_demo_missing_dataset_creates_nothing(tmp_path, capsys):

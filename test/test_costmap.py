@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from convbki_core.config import MapperConfig
 from convbki_core.costmap import ProfileError, column_costs, load_profile, rasterise
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.paths import config_dir
@@ -118,9 +119,9 @@ def test_the_grid_read_from_the_dense_window_equals_the_grid_of_its_voxels_gathe
     from convbki_core.paths import kernel_path
 
     label_map = load_label_map("semantic_kitti")
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=((-8, -6, -3), (8, 6, 3)),
-                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True,
-                           update_path=update_path)
+    config = MapperConfig.paper(local_bounds=((-8, -6, -3), (8, 6, 3)), prior=0.001, device="cpu",
+                                ignore_classes=label_map.ignore_classes, free_space=True, update_path=update_path)
+    mapper = ConvBKIMapper(config, kernel_path("semantic_kitti_compound"))
     rng = np.random.default_rng(3)
     raw_classes = np.array([40, 48, 70, 72, 10, 50, 51, 80])  # road, sidewalk, vegetation, terrain, car, ...
     compared = 0
@@ -174,8 +175,9 @@ def test_a_car_that_drove_off_leaves_no_lethal_cells_behind_it():
     from convbki_core.paths import kernel_path
 
     label_map = load_label_map("semantic_kitti")
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=((-20, -12, -3), (20, 12, 4)),
-                           prior=0.001, device="cpu", ignore_classes=label_map.ignore_classes, free_space=True)
+    config = MapperConfig.paper(local_bounds=((-20, -12, -3), (20, 12, 4)), prior=0.001, device="cpu",
+                                ignore_classes=label_map.ignore_classes, free_space=True)
+    mapper = ConvBKIMapper(config, kernel_path("semantic_kitti_compound"))
     grid = np.stack(np.meshgrid(np.arange(-2, 16, 0.15), np.arange(-4, 4, 0.15)), -1).reshape(-1, 2)
     ground = np.column_stack([grid, np.full(len(grid), -1.6)])
     car = np.random.default_rng(1).uniform([4, -1, -1.5], [6, 1, -0.3], (1500, 3))

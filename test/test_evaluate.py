@@ -10,6 +10,7 @@ from helpers import kernel_from_file
 from kitti_fixture import BUILDING, POLE, ROAD, SIDEWALK, write_drive
 
 from convbki_core import ConvBKIMapper
+from convbki_core.paths import kernel_path
 from convbki_core.tools import evaluate, train
 
 # SemanticKITTI's learning_map (semantic-kitti.yaml of the semantic-kitti-api), typed here
@@ -86,7 +87,7 @@ def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys
     # Fusing five noisy views beats the single-view input by a wide margin on this scene.
     assert report["map"]["miou"] > report["input"]["miou"] + 0.1
     assert (tmp_path / "report_map.png").stat().st_size > 10_000
-    # Measured uncertainty (test_calibration.py): the map's, and none for an input of labels only.
+    # Measured uncertainty (test_uncertainty_metrics.py): the map's, and none for an input of labels only.
     assert all(np.isfinite(report["map"][key]) for key in ("ece", "nll", "brier"))
     assert len(report["map"]["variance_curve"]) == 14
     assert report["input"]["ece"] is None and report["input"]["nll"] is None and report["input"]["brier"] is None
@@ -97,7 +98,7 @@ def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys
 
 def test_evaluate_compares_several_kernels(tmp_path):
     write_drive(tmp_path / "data", "00", frames=3)
-    kernels = [str(evaluate.kernel_path(name)) for name in ("semantic_kitti_sbki", "semantic_kitti_compound")]
+    kernels = [str(kernel_path(name)) for name in ("semantic_kitti_sbki", "semantic_kitti_compound")]
     code = evaluate.main(["--dataset", str(tmp_path / "data"), "--sequence", "0", "--report", str(tmp_path / "r.json"),
                           "--kernel", *kernels, "--quiet", "--device", "cpu", *SMALL_WINDOW])
     assert code == 0

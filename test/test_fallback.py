@@ -9,6 +9,7 @@ import numpy as np
 from ros_helpers import REPO
 
 from convbki_core import ConvBKIMapper
+from convbki_core.config import MapperConfig
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.paths import kernel_path
 
@@ -20,13 +21,14 @@ import json, sys
 sys.modules["numba"] = None  # what a platform without numba looks like to `import numba`
 import numpy as np
 from convbki_core import ConvBKIMapper
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.config import MapperConfig
+from convbki_core.compiled import HAVE_NUMBA
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.paths import kernel_path
 rng = np.random.default_rng(4)
 config = load_kernel_file(kernel_path("semantic_kitti_compound"))
 config.temperature = 0.45
-mapper = ConvBKIMapper(config, local_bounds=BOUNDS_HERE, device="cpu")
+mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS_HERE, device="cpu"), config)
 for step in range(4):
     pose = np.eye(4)
     pose[:3, 3] = [0.7 * step, 0.2 * step, 0.0]
@@ -49,7 +51,7 @@ def test_without_numba_the_numpy_path_maps_the_same_and_logs_one_line():
     rng = np.random.default_rng(4)
     config = load_kernel_file(kernel_path("semantic_kitti_compound"))
     config.temperature = 0.45  # the last scan's probabilities are calibrated by it on both paths
-    compiled = ConvBKIMapper(config, local_bounds=BOUNDS, device="cpu")
+    compiled = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"), config)
     for step in range(4):
         pose = np.eye(4)
         pose[:3, 3] = [0.7 * step, 0.2 * step, 0.0]

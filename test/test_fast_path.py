@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 from kitti_fixture import write_drive
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
+from convbki_core.config import MapperConfig
 from convbki_core.store import VoxelStore
 from convbki_core.tools import evaluate
 from convbki_core.window import RollingWindow, box_difference
@@ -33,8 +34,8 @@ def test_fast_path_equals_dense_reference(seed, kind, filter_size, probabilities
     kernel = random_kernel(kind, filter_size, rng)
     low = -rng.uniform(0.8, 1.6, 3)
     bounds = (tuple(low), tuple(low + rng.uniform(1.0, 2.4, 3)))  # small windows: scans reach every border
-    fast = ConvBKIMapper(kernel, local_bounds=bounds, device="cpu", update_path="fast")
-    dense = ConvBKIMapper(kernel, local_bounds=bounds, device="cpu", update_path="dense")
+    fast = ConvBKIMapper(MapperConfig.paper(local_bounds=bounds, device="cpu", update_path="fast"), kernel)
+    dense = ConvBKIMapper(MapperConfig.paper(local_bounds=bounds, device="cpu", update_path="dense"), kernel)
     position = np.zeros(3)
     for _ in range(4):
         position = position + rng.uniform(-0.7, 0.7, 3)  # moves of a few voxels: slabs leave and enter
@@ -195,7 +196,7 @@ def test_compiled_scatter_handles_any_zero_pattern_in_the_filters(seed, filter_s
 
 @pytest.mark.parametrize("bound", [1, 2047, 2048, 4_160_000, 1 << 30])
 def test_the_voxelisers_radix_sort_equals_numpy_sort(bound):
-    from convbki_core.native import HAVE_NUMBA
+    from convbki_core.compiled import HAVE_NUMBA
     if not HAVE_NUMBA:
         pytest.skip("the radix sort is part of the compiled voxeliser")
     from convbki_core.volume import _radix_sort

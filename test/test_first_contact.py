@@ -49,7 +49,7 @@ class Replay:
             for topic, latched in (("semantic_map", True), ("semantic_map/updates", False),
                                    ("semantic_map/view", True), ("semantic_map/local", False)):
                 self.outputs[topic] = self.probe.subscribe(PointCloud2, f"/{topic}", latched=latched)
-        self.process = start("convbki_ros.mapper", domain, "--ros-args", "--params-file", REPO / "config/mapper.yaml",
+        self.process = start("convbki_ros.main", domain, "--ros-args", "--params-file", REPO / "config/mapper.yaml",
                              "-r", "cloud_in:=/kitti/velo/pointcloud", "-r", "odom:=/kitti/odom",
                              "-p", "device:=cpu", "-p", f"diagnostics_period:={DIAGNOSTICS_PERIOD}",
                              "-p", f"map_file:={tmp_path / 'map.npz'}", env=env)

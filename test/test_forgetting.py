@@ -9,6 +9,7 @@ import pytest
 from test_free_space import BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
 
 from convbki_core import ConvBKIMapper
+from convbki_core.config import MapperConfig
 from convbki_core.forgetting import (
     _contradicted_numba,
     _contradicted_numpy,
@@ -26,8 +27,8 @@ LOW_WALL = (np.array([13.0, -12.0, 0.0]), np.array([13.5, 12.0, 1.0]), BUILDING)
 
 
 def mapper(forget: bool = True, **options) -> ConvBKIMapper:
-    return ConvBKIMapper(KERNEL, local_bounds=BOUNDS, free_space=True, device="cpu",
-                         movable_classes=MOVABLE if forget else (), **options)
+    return ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, free_space=True, device="cpu",
+                                            movable_classes=MOVABLE if forget else (), **options), KERNEL)
 
 
 def scan(m: ConvBKIMapper, sensor: np.ndarray, boxes, max_range: float = 16.0):
@@ -193,7 +194,8 @@ def test_the_torch_path_forgets_as_the_fast_path(mislabelled):
 
 
 def test_without_free_space_or_movable_classes_there_are_no_rules():
-    assert ConvBKIMapper(KERNEL, local_bounds=BOUNDS, device="cpu", movable_classes=MOVABLE).forgetting is None
+    assert ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", movable_classes=MOVABLE),
+                         KERNEL).forgetting is None
     assert mapper(forget=False).forgetting is None
     m = mapper()
     scan(m, creeping(0), [BUILDING_ACROSS])

@@ -16,6 +16,7 @@ from helpers import crossed_voxels
 from reference import sparse_kernel_np
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
+from convbki_core.config import MapperConfig
 from convbki_core.free_space import (
     _free_space_numpy,
     count_rays,
@@ -287,7 +288,8 @@ def test_free_evidence_equals_a_ray_by_ray_reference(tmp_path, free_ell):
     kernel = ConvBKIKernel("compound", 20, 3, 0.5, ell_h=0.7, ell_z=0.6, free_ell=free_ell)
     bounds = ((-4.0, -4.0, -2.0), (4.0, 4.0, 2.0))
     # the unclamped model: clamping has its own tests
-    with_free = ConvBKIMapper(kernel, local_bounds=bounds, free_space=True, device="cpu", max_concentration=0.0)
+    with_free = ConvBKIMapper(MapperConfig.paper(local_bounds=bounds, free_space=True, device="cpu",
+                                                 max_concentration=0.0), kernel)
     position = np.zeros(3)
     freed = 0
     for scan in range(6):
@@ -303,7 +305,7 @@ def test_free_evidence_equals_a_ray_by_ray_reference(tmp_path, free_ell):
         labels[:40] = 0  # ignored points cast no ray
         path = tmp_path / f"before_{scan}.npz"
         with_free.save(path)
-        without = ConvBKIMapper(kernel, local_bounds=bounds, device="cpu", track_changes=True)
+        without = ConvBKIMapper(MapperConfig.paper(local_bounds=bounds, device="cpu", track_changes=True), kernel)
         if scan:
             without.load(path)
         without.take_changes(everything=True)
@@ -327,12 +329,13 @@ def test_free_evidence_equals_a_ray_by_ray_reference(tmp_path, free_ell):
 
 def test_free_space_off_leaves_class_zero_at_the_prior_and_on_needs_class_zero_ignored():
     rng = np.random.default_rng(2)
-    mapper = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS), "config/kernels/semantic_kitti_compound.yaml")
     for _ in range(3):
         mapper.integrate(rng.uniform(-8, 8, (2000, 3)), rng.integers(0, 20, 2000), np.eye(4))
     assert (mapper.items()[1][:, 0] == np.float32(mapper.prior)).all()
     with pytest.raises(ValueError, match="class 0"):
-        ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", ignore_classes=(), free_space=True)
+        ConvBKIMapper(MapperConfig.paper(ignore_classes=(), free_space=True),
+                      "config/kernels/semantic_kitti_compound.yaml")
 
 
 # -- scenes: a tiny ray caster over a ground plane and boxes ---------------------------------------
@@ -373,8 +376,8 @@ def map_labels(mapper: ConvBKIMapper) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("free_space", [False, True])
 def test_a_car_crossing_the_street_leaves_no_trail_once_the_street_is_seen_again(free_space):
-    mapper = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS,
-                           free_space=free_space, device="cpu")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, free_space=free_space, device="cpu"),
+                           "config/kernels/semantic_kitti_compound.yaml")
     car_low, car_high = np.array([-2.0, -0.9, 0.35]), np.array([2.0, 0.9, 1.85])  # 0.35 m above the road
     for scan in range(30):
         sensor = np.array([0.1 * scan, 0.05, 1.73])  # the ego vehicle creeps along x
@@ -401,8 +404,8 @@ def test_a_car_crossing_the_street_leaves_no_trail_once_the_street_is_seen_again
 def test_a_car_that_stood_long_is_emptied_soon_after_it_leaves_only_with_clamping(limit):
     """A car parked beside the ego vehicle for 60 scans holds thousands of units of "car";
     clamped, the rays of 15 scans after it left empty its voxels; unclamped they cannot."""
-    mapper = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS,
-                           free_space=True, device="cpu", max_concentration=limit)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, free_space=True, device="cpu",
+                                              max_concentration=limit), "config/kernels/semantic_kitti_compound.yaml")
     car_low, car_high = np.array([4.5, -2.0, 0.35]), np.array([6.3, 2.0, 1.85])
     sensor = np.array([0.05, 0.05, 1.73])
     for scan in range(75):
@@ -424,9 +427,10 @@ def test_a_car_that_stood_long_is_emptied_soon_after_it_leaves_only_with_clampin
 
 def test_a_pole_seen_from_all_sides_stays_a_pole():
     pole = (np.array([-0.1, -0.1, 0.0]), np.array([0.1, 0.1, 3.0]), POLE)
-    mapper = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS,
-                           free_space=True, device="cpu")
-    plain = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS, device="cpu")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, free_space=True, device="cpu"),
+                           "config/kernels/semantic_kitti_compound.yaml")
+    plain = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"),
+                          "config/kernels/semantic_kitti_compound.yaml")
     for scan in range(36):  # a circle of 6 m around the pole
         angle = math.radians(10 * scan)
         sensor = np.array([6 * math.cos(angle), 6 * math.sin(angle), 1.73])

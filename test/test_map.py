@@ -11,6 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError, dirichlet_statistics
+from convbki_core.config import MapperConfig
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.devices import resolve_device
 from convbki_core.paths import kernel_path
@@ -27,7 +28,7 @@ def small_mapper(**overrides):
                            ell_z=[0.5, 0.8, 0.3, 0.45, 0.6, 0.2])
     options = {"local_bounds": BOUNDS, "prior": 1e-3, "device": "cpu"}
     options.update(overrides)
-    return ConvBKIMapper(kernel, **options)
+    return ConvBKIMapper(MapperConfig.paper(**options), kernel)
 
 
 def random_scan(rng, count, extent=2.0):
@@ -373,7 +374,8 @@ def test_broken_map_files_are_refused_and_the_map_kept(tmp_path):
     picture = tmp_path / "picture.npz"  # a PNG saved under a map's name
     picture.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
     other_classes = tmp_path / "other.npz"
-    ConvBKIMapper(kernel_path("semantic_kitti_sbki"), local_bounds=BOUNDS, device="cpu").save(other_classes)
+    ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"),
+                  kernel_path("semantic_kitti_sbki")).save(other_classes)
     for path, message in [(truncated, "not a readable"), (foreign, "missing"),
                           (text, r"not a NumPy \.npz archive: text\)$"),
                           (picture, r"not a NumPy \.npz archive: a PNG image\)$"),
@@ -394,7 +396,8 @@ def test_reset_empties_the_map():
 
 
 def test_ply_export_holds_every_voxel_in_class_colours(tmp_path):
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, device="cpu")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"),
+                           kernel_path("semantic_kitti_compound"))
     rng = np.random.default_rng(10)
     road_points = np.column_stack([rng.uniform(-1, 1, (400, 2)), rng.uniform(-0.55, -0.45, 400)])
     points = np.concatenate([rng.uniform(-2, 2, (300, 3)), road_points])  # scattered classes and a road patch

@@ -10,6 +10,7 @@ rebuilt map against the whole map, record for record.
 import numpy as np
 import pytest
 
+from convbki_core.config import MapperConfig
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
@@ -38,8 +39,8 @@ def assert_same(rebuilt: dict, shown: dict) -> None:
 @pytest.mark.parametrize("seed", [0, 1])
 def test_updates_rebuild_the_shown_map_after_random_operations(update_path, seed, tmp_path):
     rng = np.random.default_rng(seed)
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, device="cpu",
-                           update_path=update_path, track_changes=True)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", update_path=update_path,
+                                              track_changes=True), kernel_path("semantic_kitti_compound"))
     rebuilt: dict = {}
     chunked = ShownMap()  # the node's whole map, kept chunk by chunk from the same records
     max_variance = 0.0
@@ -58,7 +59,8 @@ def test_updates_rebuild_the_shown_map_after_random_operations(update_path, seed
         elif operation == "reset":
             mapper.reset()
         elif operation == "load":  # a map file replaces the map: everything is a change
-            other = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, device="cpu")
+            other = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"),
+                                  kernel_path("semantic_kitti_compound"))
             other.integrate(rng.uniform(-3, 3, (300, 3)), rng.integers(1, 20, 300), np.eye(4))
             other.save(tmp_path / "other.npz")
             mapper.load(tmp_path / "other.npz")
@@ -79,14 +81,15 @@ def test_updates_rebuild_the_shown_map_after_random_operations(update_path, seed
 
 
 def test_no_change_means_an_empty_update():
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, device="cpu",
-                           track_changes=True)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", track_changes=True),
+                           kernel_path("semantic_kitti_compound"))
     mapper.integrate(np.random.default_rng(3).uniform(-3, 3, (500, 3)), np.full(500, 9), np.eye(4))
     first = mapper.take_changes()
     assert len(first.indices) == len(mapper) and len(first.removed) == 0
     second = mapper.take_changes()
     assert len(second.indices) == 0 and len(second.removed) == 0
-    untracked = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, device="cpu")
+    untracked = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"),
+                              kernel_path("semantic_kitti_compound"))
     with pytest.raises(RuntimeError, match="does not track changes"):
         untracked.take_changes()
 
@@ -111,8 +114,8 @@ def test_window_records_equal_the_records_of_the_window_voxels(update_path):
     """The local window and the view are computed from the window's class planes in one pass;
     they must be the records of the same voxels computed from their concentrations, bit for bit."""
     rng = np.random.default_rng(6)
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, device="cpu",
-                           update_path=update_path)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", update_path=update_path),
+                           kernel_path("semantic_kitti_compound"))
     for step in range(6):
         pose = np.eye(4)
         pose[:3, 3] = [1.3 * step, -0.7 * step, 0.1]

@@ -13,6 +13,7 @@ from helpers import read_ply
 from kitti_fixture import write_drive
 
 from convbki_core.clamping import DEFAULT_LIMIT
+from convbki_core.config import DEFAULTS, MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.map_file import MapSnapshot, read_map
 from convbki_core.mapper import ConvBKIMapper
@@ -36,8 +37,8 @@ def sorted_map(path):
 
 
 def map_frames(dataset, start, stop, path, **options):
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=BOUNDS, prior=PRIOR, device="cpu",
-                           **options)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, prior=PRIOR, device="cpu", **options),
+                           kernel_path("semantic_kitti_compound"))
     for position in range(start, stop):
         frame = dataset[position]
         mapper.integrate(frame.points, frame.input_values, frame.pose)
@@ -256,8 +257,9 @@ def test_evaluate_saves_the_map_it_built(tmp_path, capsys):
     metadata, indices, alpha = sorted_map(saved)
     # The same frames through a mapper with evaluate's defaults: the same arithmetic, so the same bits.
     dataset = SemanticKittiSequence(tmp_path / "data", "08")
-    mapper = ConvBKIMapper(kernel_path(evaluate.DEFAULT_KERNEL), local_bounds=BOUNDS, prior=evaluate.DEFAULT_PRIOR,
-                           device="cpu", ignore_classes=dataset.label_map.ignore_classes)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, prior=DEFAULTS.window.prior, device="cpu",
+                                              ignore_classes=dataset.label_map.ignore_classes),
+                           DEFAULTS.kernel_path())
     for frame in dataset:
         mapper.integrate(frame.points, frame.input_values, frame.pose)
     expected_indices, expected_alpha = mapper.items()

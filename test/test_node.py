@@ -7,11 +7,12 @@ import pytest
 from mapper_rig import node_default_mapper
 from ros_helpers import NodeLog, Probe, domain_id, start, stop
 
+from convbki_core.config import MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_core.tools.synth import main as synth
-from convbki_ros.pointcloud import FLOAT32, UINT32, decode_cloud
+from convbki_ros.cloud_decoding import FLOAT32, UINT32, decode_cloud
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
 
 BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]
@@ -39,7 +40,7 @@ def offline_map(root):
 
 
 def start_mapper(domain, tmp_path, *parameters):
-    return start("convbki_ros.mapper", domain, "--ros-args", "-r", "cloud_in:=/kitti/velo/pointcloud",
+    return start("convbki_ros.main", domain, "--ros-args", "-r", "cloud_in:=/kitti/velo/pointcloud",
                  "-r", "odom:=/kitti/odom", "-p", f"local_bounds:={BOUNDS}", "-p", "publish_period:=0.3",
                  "-p", "map_period:=0.3",
                  "-p", f"map_file:={tmp_path / 'map.npz'}", "-p", "device:=cpu", *parameters)
@@ -87,8 +88,8 @@ def test_node_maps_a_bag_like_the_offline_mapper_and_serves_its_map(drive, tmp_p
 
         saved = probe.call(Trigger, "/convbki_mapper/save_map")
         assert saved.success, saved.message
-        reloaded = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]),
-                                 device="cpu")
+        reloaded = ConvBKIMapper(MapperConfig.paper(local_bounds=(BOUNDS[:3], BOUNDS[3:]), device="cpu"),
+                                 kernel_path("semantic_kitti_compound"))
         reloaded.load(tmp_path / "map.npz")
         a, b = reloaded.voxels(), voxels
         order_a, order_b = np.lexsort(a.indices.T), np.lexsort(b.indices.T)

@@ -16,6 +16,7 @@ import pytest
 from mapper_rig import BOUNDS, TRANSLATION, WAIT, Rig, expect_file_holds, offline_map
 from ros_helpers import NodeLog, Probe, domain_id, start
 
+from convbki_core.config import MapperConfig
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 
@@ -100,8 +101,8 @@ def test_load_map_clear_box_and_a_run_time_map_file_show_in_the_published_map(tm
     original = offline_map(2)
     original.save(start_file)
     other_resolution = tmp_path / "coarse.npz"
-    ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=(BOUNDS[:3], BOUNDS[3:]), resolution=0.4,
-                  device="cpu").save(other_resolution)
+    ConvBKIMapper(MapperConfig.paper(local_bounds=(BOUNDS[:3], BOUNDS[3:]), resolution=0.4, device="cpu"),
+                  kernel_path("semantic_kitti_compound")).save(other_resolution)
     read_only = tmp_path / "read_only"
     read_only.mkdir(mode=0o555)
     rig = Rig(tmp_path, map_file=start_file, prefix=WITHOUT_PERMISSION_OVERRIDE)
@@ -170,7 +171,7 @@ def test_load_map_clear_box_and_a_run_time_map_file_show_in_the_published_map(tm
 
 
 def start_node(domain: int, map_file: Path, *parameters: str) -> subprocess.Popen:
-    return start("convbki_ros.mapper", domain, "--ros-args", "-p", "device:=cpu", "-p", f"local_bounds:={BOUNDS}",
+    return start("convbki_ros.main", domain, "--ros-args", "-p", "device:=cpu", "-p", f"local_bounds:={BOUNDS}",
                  "-p", f"map_file:={map_file}", *parameters, prefix=WITHOUT_PERMISSION_OVERRIDE)
 
 

@@ -10,7 +10,7 @@ from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds, node_defau
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_ros.pointcloud import decode_cloud
+from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_translation_quaternion
 
 BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]

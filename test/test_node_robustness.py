@@ -37,7 +37,7 @@ from mapper_rig import (
 from ros_helpers import domain_id, start
 
 from convbki_core.datasets.labels import load_label_map
-from convbki_ros.pointcloud import decode_cloud
+from convbki_ros.cloud_decoding import decode_cloud
 
 # Root ignores file permissions through two capabilities; a node started without them (still
 # uid 0) meets a read-only folder as any user would. Empty when not root or no setpriv.
@@ -504,7 +504,7 @@ def test_an_unreadable_map_file_gives_an_empty_map_or_a_refusal(tmp_path):
     np.savez(foreign, points=np.zeros((10, 3)))  # a valid archive, not a map
 
     # Refusing: exits 2 naming the file and the problem (runs beside the next node).
-    refusing = start("convbki_ros.mapper", domain_id(), "--ros-args", "-p", "device:=cpu",
+    refusing = start("convbki_ros.main", domain_id(), "--ros-args", "-p", "device:=cpu",
                      "-p", f"map_file:={foreign}", "-p", "refuse_bad_map_file:=true")
     rig = Rig(tmp_path / "truncated")
     try:

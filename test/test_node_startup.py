@@ -43,7 +43,7 @@ def test_every_bad_start_is_one_line_and_exit_2(tmp_path):
             params = tmp_path / f"{case.replace(' ', '_')}.yaml"
             params.write_text(arguments)
             arguments = ["--params-file", str(params)]
-        processes[case] = start("convbki_ros.mapper", domain_id(), "--ros-args", "-p", "device:=cpu", *arguments)
+        processes[case] = start("convbki_ros.main", domain_id(), "--ros-args", "-p", "device:=cpu", *arguments)
     for case, process in processes.items():
         output, _ = process.communicate(timeout=120)
         lines = output.strip().splitlines()

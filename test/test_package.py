@@ -26,7 +26,7 @@ PACKAGE = "convbki_ros"
 
 # Every executable the package installs: exe -> (module, flags its --help must explain).
 EXECUTABLES: dict[str, tuple[str, tuple[str, ...]]] = {
-    "mapper": ("convbki_ros.mapper", ("--ros-args", "--params-file")),
+    "mapper": ("convbki_ros.main", ("--ros-args", "--params-file")),
     "kitti_to_bag": ("convbki_ros.tools.kitti_to_bag", (
         "--dataset", "--sequence", "--out", "--predictions-dir", "--probabilities-dir",
         "--frames", "--storage", "mcap", "sqlite3")),
@@ -263,7 +263,7 @@ def test_venv_runs_modules_from_any_directory(tmp_path: Path) -> None:
         pytest.skip("not running in the repo's .venv")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     result = subprocess.run(
-        [sys.executable, "-m", "convbki_ros.mapper", "--help"], cwd=tmp_path, env=env,
+        [sys.executable, "-m", "convbki_ros.main", "--help"], cwd=tmp_path, env=env,
         stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=TIMEOUT,
     )
     assert result.returncode == 0, result.stderr
@@ -323,18 +323,30 @@ def test_node_reference_documents_every_parameter() -> None:
     assert {spec.name for spec in PARAMETERS} <= rows
 
 
-def test_evaluate_maps_as_the_node_does_by_default() -> None:
-    """evaluate's free-space switches default to the node's parameters, so its figures are the
-    node's map."""
+def test_every_program_takes_its_mapping_defaults_from_one_configuration() -> None:
+    """One set of defaults (``MapperConfig``): the node's declared parameters, the shipped
+    parameters file, ``evaluate``'s and ``train``'s flags and a mapper built without settings
+    all say the same, so the programs' figures are the node's map."""
+    from convbki_core.config import DEFAULTS, MapperConfig
     from convbki_core.mapper import ConvBKIMapper
-    from convbki_core.tools.evaluate import build_parser
+    from convbki_core.tools import evaluate, train
     from convbki_ros.params import SPECS
 
-    args = build_parser().parse_args(["--dataset", "D", "--sequence", "08", "--report", "R.json"])
-    assert args.free_space is SPECS["free_space"].default
-    assert args.max_concentration == SPECS["max_concentration"].default
-    mapper_default = inspect.signature(ConvBKIMapper).parameters["max_concentration"].default
-    assert mapper_default == SPECS["max_concentration"].default
+    flat = DEFAULTS.flat()
+    for name in ("prior", "free_space", "max_concentration", "forget_movers", "device", "update_path",
+                 "kernel_file"):
+        assert SPECS[name].default == flat[name], name
+    assert SPECS["local_bounds"].default == [*flat["local_bounds"][0], *flat["local_bounds"][1]]
+    assert MapperConfig.from_params_file(REPO / "config" / "mapper.yaml") == DEFAULTS
+    args = evaluate.build_parser().parse_args(["--dataset", "D", "--sequence", "08", "--report", "R.json"])
+    assert (args.free_space, args.max_concentration, args.forget_movers, args.prior, args.device, args.update_path) == (
+        flat["free_space"], flat["max_concentration"], flat["forget_movers"], flat["prior"], flat["device"],
+        flat["update_path"])
+    train_args = train.build_parser().parse_args(["--dataset", "D", "--sequences", "08", "--out", "k.yaml"])
+    assert train_args.device == flat["device"]
+    mapper = ConvBKIMapper(DEFAULTS.replace(device="cpu", local_bounds=((-2, -2, -1), (2, 2, 1))))
+    assert mapper.free_space and mapper.max_concentration == flat["max_concentration"]
+    assert mapper.forgetting is not None and mapper.prior == flat["prior"]
 
 
 def test_console_scripts_are_the_tools_and_nothing_re_exports_them() -> None:

@@ -8,6 +8,7 @@ import pytest
 from test_free_space import BOUNDS, BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
 
 from convbki_core import ConvBKIMapper
+from convbki_core.config import MapperConfig
 from convbki_core.present_movers import labels_now, present_movers
 
 CAR_LOW, CAR_HIGH = np.array([-2.0, -0.9, 0.35]), np.array([2.0, 0.9, 1.85])
@@ -37,10 +38,10 @@ def drive_past(mapper: ConvBKIMapper, with_moving_labels: bool) -> list[float]:
 
 @pytest.mark.parametrize("free_space", [False, True])
 def test_a_car_marked_moving_leaves_no_trail_where_no_later_ray_passes(free_space):
-    marked = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS,
-                           free_space=free_space, device="cpu")
-    unmarked = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS,
-                             free_space=free_space, device="cpu")
+    marked = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, free_space=free_space, device="cpu"),
+                           "config/kernels/semantic_kitti_compound.yaml")
+    unmarked = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, free_space=free_space, device="cpu"),
+                             "config/kernels/semantic_kitti_compound.yaml")
     shares = drive_past(marked, with_moving_labels=True)
     drive_past(unmarked, with_moving_labels=False)
     marked_voxels, unmarked_voxels = marked.voxels(), unmarked.voxels()
@@ -69,7 +70,8 @@ def test_the_layer_sums_the_moving_points_of_each_voxel_and_holds_only_those():
 
 
 def test_moving_flags_of_the_wrong_length_are_refused_and_leave_the_map_as_it_was():
-    mapper = ConvBKIMapper("config/kernels/semantic_kitti_compound.yaml", local_bounds=BOUNDS, device="cpu")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"),
+                           "config/kernels/semantic_kitti_compound.yaml")
     points, labels = cast(np.array([0.0, 0.0, 1.73]), [BUILDING_ACROSS])
     pose = np.eye(4)
     pose[:3, 3] = [0.0, 0.0, 1.73]

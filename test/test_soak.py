@@ -15,7 +15,8 @@ import statistics
 import numpy as np
 import pytest
 
-from convbki_core.pipeline import drive_frames, ensure_drive, paper_mapper
+from convbki_core.offline import drive_frames, paper_mapper
+from convbki_core.synth.cached_drive import ensure_drive
 from convbki_core.tools.soak import DEFAULT_SEED, main
 from convbki_core.tools.soak_measure import MB, resident_bytes, soak
 from convbki_core.tools.soak_report import write_outputs

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from convbki_core import compact_rows
 from convbki_core import store as store_module
 from convbki_core.compact_rows import compress_rows, expand_rows
+from convbki_core.config import MapperConfig
 from convbki_core.io.map_file import MAP_VERSION, MapSnapshot, read_map
 from convbki_core.store import VoxelStore
 
@@ -243,8 +244,8 @@ def test_version_1_files_still_load(tmp_path):
     metadata, got_indices, got_alpha = read_map(path)
     assert metadata["version"] == 1 and np.array_equal(got_indices, indices)
     assert got_alpha.tobytes() == alpha.tobytes()
-    mapper = ConvBKIMapper(ConvBKIKernel("single", 4, 3, 0.2, ell=0.3), local_bounds=((-1, -1, -1), (1, 1, 1)),
-                           device="cpu")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=((-1, -1, -1), (1, 1, 1)), device="cpu"),
+                           ConvBKIKernel("single", 4, 3, 0.2, ell=0.3))
     mapper.load(path)
     assert mapper.scans_integrated == 3 and len(mapper) == len(indices)
     loaded_indices, loaded_alpha = mapper.items()

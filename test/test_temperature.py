@@ -12,7 +12,7 @@ import yaml
 from kitti_fixture import pose_about_z, street_scene, write_sequence
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
-from convbki_core.calibration import tempered_distribution
+from convbki_core.config import DEFAULTS, MapperConfig
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.kernel_file import KernelFileError, load_kernel_file, parse_kernel_text, save_kernel_file
@@ -20,6 +20,7 @@ from convbki_core.paths import kernel_path
 from convbki_core.tools import train
 from convbki_core.training import trainer
 from convbki_core.training.temperature import fit_input_temperature, input_nll, minimise_temperature
+from convbki_core.uncertainty_metrics import tempered_distribution
 from convbki_core.volume import voxelize
 
 BOUNDS = ((-3.0, -3.0, -1.5), (3.0, 3.0, 1.5))
@@ -49,8 +50,9 @@ def items(mapper: ConvBKIMapper) -> tuple[np.ndarray, np.ndarray]:
 
 
 def mapped(temperature, path="fast", probabilities=True, free_space=False):
-    mapper = ConvBKIMapper(kernel(temperature, free_ell=0.3 if free_space else None), local_bounds=BOUNDS,
-                           device="cpu", update_path=path, free_space=free_space)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", update_path=path,
+                                              free_space=free_space), kernel(temperature,
+                                                                             free_ell=0.3 if free_space else None))
     drive(mapper, probabilities)
     return items(mapper)
 
@@ -119,7 +121,7 @@ def test_a_kernel_file_with_a_temperature_round_trips_and_reaches_the_mapper(tmp
     assert yaml.safe_load(path.read_text())["temperature"] == 0.4375
     loaded = load_kernel_file(path)
     assert loaded.temperature == 0.4375
-    mapper = ConvBKIMapper(path, local_bounds=BOUNDS, device="cpu")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"), path)
     assert mapper.temperature == 0.4375
     assert mapper.snapshot().metadata["kernel"]["temperature"] == 0.4375  # saved maps say how they were made
 
@@ -129,7 +131,7 @@ def test_an_old_kernel_file_without_a_temperature_loads_as_one(tmp_path):
     assert "temperature" not in yaml.safe_load(shipped.read_text())
     config = load_kernel_file(shipped)
     assert config.temperature is None
-    assert ConvBKIMapper(shipped, device="cpu").temperature is None
+    assert ConvBKIMapper(MapperConfig.paper(device="cpu"), shipped).temperature is None
     save_kernel_file(config, tmp_path / "again.yaml")  # and written back, still without one
     assert "temperature" not in yaml.safe_load((tmp_path / "again.yaml").read_text())
 
@@ -212,7 +214,8 @@ SMALL_BOUNDS = ((-20.0, -12.0, -3.0), (20.0, 12.0, 4.0))
 @pytest.mark.parametrize(("sharpness", "direction"), [(1.0, "sharpen"), (4.0, "soften")])
 def test_the_map_fit_moves_the_temperature_the_right_way(tmp_path, sharpness, direction):
     dataset = write_probability_drive(tmp_path / "data", sharpness)
-    validator = trainer.Validator([dataset], [list(range(6, 12))], local_bounds=SMALL_BOUNDS)
+    validator = trainer.Validator([dataset], [list(range(6, 12))],
+                                  DEFAULTS.replace(device="cpu", forget_movers=False, local_bounds=SMALL_BOUNDS))
     config = ConvBKIKernel("compound", 20, 5, 0.2, ell=0.5).to_config()
     fit = trainer.fit_temperature(validator, config, grid=5, golden_steps=5)
     assert fit.start_temperature == 1.0

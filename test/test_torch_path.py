@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
+from convbki_core.config import MapperConfig
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.torch_window import TorchWindow
 
@@ -61,8 +62,8 @@ def sorted_items(mapper: ConvBKIMapper) -> tuple[np.ndarray, np.ndarray]:
 def test_the_torch_path_equals_the_fast_path(kind, filter_size, probabilities):
     maps = {}
     for path in ("fast", "torch"):
-        mapper = ConvBKIMapper(kernel(kind, filter_size), local_bounds=BOUNDS, device="cpu", update_path=path,
-                               track_changes=True)
+        mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", update_path=path,
+                                                  track_changes=True), kernel(kind, filter_size))
         drive(mapper, filter_size, probabilities)
         maps[path] = sorted_items(mapper)
         if path == "torch":
@@ -79,8 +80,9 @@ def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell, limit):
     maps, changes = {}, {}
     for path in ("fast", "torch"):
         chosen = ConvBKIKernel("compound", 6, 5, 0.25, ell_h=0.6, ell_z=0.5, free_ell=free_ell)
-        mapper = ConvBKIMapper(chosen, local_bounds=BOUNDS, device="cpu", update_path=path, free_space=True,
-                               ignore_classes=(0,), track_changes=True, max_concentration=limit)
+        config = MapperConfig.paper(local_bounds=BOUNDS, device="cpu", update_path=path, free_space=True,
+                                    ignore_classes=(0,), track_changes=True, max_concentration=limit)
+        mapper = ConvBKIMapper(config, chosen)
         drive(mapper, 3, False)
         maps[path] = sorted_items(mapper)
         taken = mapper.take_changes()
@@ -91,8 +93,8 @@ def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell, limit):
     assert changes["fast"] == changes["torch"]
     if limit < 10:  # clamping did something: against the unclamped map, voxels were scaled down
         chosen = ConvBKIKernel("compound", 6, 5, 0.25, ell_h=0.6, ell_z=0.5, free_ell=free_ell)
-        unclamped = ConvBKIMapper(chosen, local_bounds=BOUNDS, device="cpu", free_space=True,
-                                  ignore_classes=(0,), max_concentration=0.0)
+        unclamped = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", free_space=True,
+                                                     ignore_classes=(0,), max_concentration=0.0), chosen)
         drive(unclamped, 3, False)
         indices, alpha = sorted_items(unclamped)
         assert np.array_equal(indices, maps["fast"][0])
@@ -100,7 +102,8 @@ def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell, limit):
 
 
 def test_slabs_leaving_and_entering_the_device_window_round_trip_exactly():
-    mapper = ConvBKIMapper(kernel("compound", 5), local_bounds=BOUNDS, device="cpu", update_path="torch")
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", update_path="torch"),
+                           kernel("compound", 5))
     drive(mapper, 9, True, scans=2)
     before = sorted_items(mapper)
     window_before = mapper.window.count()
@@ -117,8 +120,8 @@ def test_slabs_leaving_and_entering_the_device_window_round_trip_exactly():
 def test_building_a_mapper_leaves_the_callers_kernel_unchanged():
     given = kernel("compound", 5)
     state = {name: value.clone() for name, value in given.state_dict().items()}
-    mapper = ConvBKIMapper(given, local_bounds=BOUNDS, device="cpu", update_path="torch", resolution=0.5,
-                           filter_size=3)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", update_path="torch", resolution=0.5,
+                                              filter_size=3), given)
     assert mapper.kernel is not given and mapper.resolution == 0.5 and mapper.kernel.filter_size == 3
     assert given.resolution == 0.25 and given.filter_size == 5
     assert all(torch.equal(state[name], value) for name, value in given.state_dict().items())
@@ -129,4 +132,4 @@ def test_cuda_asked_for_without_cuda_is_one_clear_error():
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
     with pytest.raises(ValueError, match="no CUDA device"):
-        ConvBKIMapper(kernel("single", 3), local_bounds=BOUNDS, device="cuda", update_path="torch")
+        ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cuda", update_path="torch"), kernel("single", 3))

@@ -8,6 +8,7 @@ from hypothesis import strategies as st
 from reference import BruteForceMap, filter_table, pose_matrix
 
 from convbki_core import ConvBKIKernel, ConvBKILayer, ConvBKIMapper
+from convbki_core.config import MapperConfig
 
 NUM_CLASSES = 5
 RESOLUTION = 0.2
@@ -94,7 +95,8 @@ def test_mapper_equals_brute_force_sum_over_a_drive(kind, filter_size, evidence,
     rng = np.random.default_rng(seed)
     kernel = make_kernel(kind, filter_size, rng)
     kernel.temperature = temperature
-    mapper = ConvBKIMapper(kernel, local_bounds=BOUNDS, prior=PRIOR, device="cpu", update_path=update_path)
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, prior=PRIOR, device="cpu", update_path=update_path),
+                           kernel)
     oracle = BruteForceMap(kind, NUM_CLASSES, RESOLUTION, filter_size, BOUNDS, PRIOR,
                            temperature=temperature if evidence == "probabilities" else None, **kernel_lengths(kernel))
     np.testing.assert_array_equal(mapper.geometry.dims, oracle.dims)
@@ -156,10 +158,10 @@ def test_probabilities_equal_one_hot_labels():
     kernel = make_kernel("compound", 5, rng)
     points, labels = random_scan(rng, 80)
     labels = np.clip(labels, 0, NUM_CLASSES - 1)
-    by_label = ConvBKIMapper(kernel, local_bounds=BOUNDS, device="cpu")
+    by_label = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"), kernel)
     by_label.integrate(points, labels, np.eye(4))
     one_hot = np.eye(NUM_CLASSES, dtype=np.float32)[labels]
-    by_probability = ConvBKIMapper(kernel, local_bounds=BOUNDS, device="cpu")
+    by_probability = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"), kernel)
     by_probability.integrate(points, one_hot, np.eye(4))
     a, b = by_label.voxels(), by_probability.voxels()
     np.testing.assert_array_equal(a.indices, b.indices)
@@ -168,7 +170,7 @@ def test_probabilities_equal_one_hot_labels():
 
 def test_soft_probabilities_spread_fractional_evidence():
     kernel = ConvBKIKernel("single", 3, 3, RESOLUTION, ell=0.1)  # identity: evidence stays in its voxel
-    mapper = ConvBKIMapper(kernel, local_bounds=BOUNDS, prior=0.01, device="cpu", ignore_classes=())
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, prior=0.01, device="cpu", ignore_classes=()), kernel)
     points = np.array([[0.05, 0.05, 0.05], [0.07, 0.01, 0.1]])
     probabilities = np.array([[0.2, 0.5, 0.3], [0.1, 0.1, 0.8]], np.float32)
     mapper.integrate(points, probabilities, np.eye(4))

@@ -19,6 +19,7 @@ NOTHING_NEW = r"""
 import json, sys, tempfile
 import numpy as np
 import numba
+from convbki_core.config import MapperConfig
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
@@ -26,7 +27,7 @@ from convbki_core.records import change_records, packed_palette, view_records
 from convbki_core.shown_map import ShownMap
 from convbki_core.warm_up import warm_up
 from convbki_ros.cloud_encoding import encode_cloud
-from convbki_ros.pointcloud import decode_cloud
+from convbki_ros.cloud_decoding import decode_cloud
 
 def signatures():
     found = {}
@@ -38,9 +39,10 @@ def signatures():
     return found
 
 labels = load_label_map("semantic_kitti")
-mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), local_bounds=((-20, -20, -2.6), (20, 20, 2.6)),
-                       device="cpu", ignore_classes=labels.ignore_classes, track_changes=True, free_space=True,
-                       max_concentration=300.0)
+config = MapperConfig.paper(local_bounds=((-20, -20, -2.6), (20, 20, 2.6)), device="cpu",
+                            ignore_classes=labels.ignore_classes, track_changes=True, free_space=True,
+                            max_concentration=300.0)
+mapper = ConvBKIMapper(config, kernel_path("semantic_kitti_compound"))
 report = warm_up(mapper)
 before = signatures()
 rng = np.random.default_rng(1)
@@ -87,7 +89,7 @@ def test_after_the_warm_up_mapping_like_the_node_compiles_nothing():
 
 READ_ONLY_CHECK = r"""
 import json
-from convbki_core.native import kernel_cache
+from convbki_core.compiled import kernel_cache
 from convbki_core.statistics import dirichlet_statistics
 import numpy as np
 stats = dirichlet_statistics(np.array([[1.0, 3.0], [2.0, 1.0]], np.float32))  # a compiled kernel runs
@@ -139,7 +141,7 @@ def test_import_and_help_on_a_read_only_install_with_no_writable_home(tmp_path, 
     site, home = read_only_install
     temporary = tmp_path / "tmp"
     temporary.mkdir()
-    help_run = _run(site, home, "-m", "convbki_ros.mapper", "--help", TMPDIR=str(temporary))
+    help_run = _run(site, home, "-m", "convbki_ros.main", "--help", TMPDIR=str(temporary))
     assert help_run.returncode == 0 and "ROS 2 node convbki_mapper" in help_run.stdout, help_run.stderr
     assert help_run.stderr == "", help_run.stderr
     check = _run(site, home, "-c", READ_ONLY_CHECK, TMPDIR=str(temporary))

@@ -7,7 +7,7 @@ cast exactly against the ground plane (z = 0) and the scene's primitives, walkin
 of cells outward from the sensor (Amanatides-Woo), so a ray only tests primitives near its
 path. Porous primitives (foliage, mesh fences) are hit at a random depth or passed through.
 
-All kernels are cached (``convbki_core.native``: the first run in a fresh environment compiles
+All kernels are cached (``convbki_core.compiled``: the first run in a fresh environment compiles
 them, which takes a while; later runs load them from numba's cache). Frames: ray directions are
 given in the scene frame; the sensor frame only matters to ``Beams`` and the ego-body mask.
 """
@@ -19,10 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.native import HAVE_NUMBA
+from convbki_core.compiled import HAVE_NUMBA
 
 if HAVE_NUMBA:
-    from convbki_core.native import njit, prange
+    from convbki_core.compiled import njit, prange
 else:  # pragma: no cover - exercised only without numba
 
     def njit(**options):  # stand-in decorator: the kernels are never called without numba

@@ -26,7 +26,8 @@ Figures (medians over the drive; a shared machine is noisy, so compare ratios fr
   compiled-kernel cache and with the one set-up leaves) and, for each, the update time the
   node reports for its first and its tenth scan (cold_first_scan_ms, cold_tenth_scan_ms, ...).
 encode_ms_per_million, scan_to_map_ms and the start figures run the node's code
-(convbki_ros.tools.bench_ros); without convbki_ros they are reported as not measured.
+(``python -m convbki_ros.tools.bench_ros``, in its own process after the other figures);
+without convbki_ros they are reported as not measured.
 Then an ablation table (resolution 0.4 / 0.2 / 0.1 m at f = 5; f = 3 / 5 / 7 / 9 at 0.2 m)
 with latency and peak memory, and a PNG plot of update time against points per scan and
 against filter size.
@@ -36,22 +37,22 @@ from __future__ import annotations
 
 import argparse
 import gc
-import importlib
 import importlib.util
 import io
 import json
 import os
 import platform
 import resource
+import subprocess
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from types import ModuleType
 
 import torch
 
 from convbki_core.io.atomic import atomic_write_bytes
-from convbki_core.pipeline import ensure_drive, mapping_device
+from convbki_core.synth.cached_drive import ensure_drive
 from convbki_core.tools.bench_figures import (
     ablation,
     costmap_figures,
@@ -82,29 +83,34 @@ REPORTED = ("voxelize_ms", "update_ms", "update_probs_ms", "update_free_ms", "de
             "cold_tenth_scan_ms", "cold_first_scan_ratio", "warm_first_scan_ms", "warm_tenth_scan_ms",
             "warm_first_scan_ratio")
 ROS_FIGURES = "convbki_ros.tools.bench_ros"
-NOT_MEASURED = "not measured: convbki_ros not importable"
-# The figures bench_ros measures, None in the report where it cannot be imported.
+NOT_MEASURED = "not measured: convbki_ros is not installed, or its figures failed"
+# The figures bench_ros measures, None in the report where it cannot run.
 ROS_ENCODE_KEYS = ("encode_ms_per_million", "encoded_voxels")
 ROS_SCAN_TO_MAP_KEYS = ("scan_to_map_ms",)
 ROS_START_KEYS = ("cold_start_s", "warm_start_s", "cold_first_scan_ms", "cold_tenth_scan_ms", "cold_first_scan_ratio",
                   "warm_first_scan_ms", "warm_tenth_scan_ms", "warm_first_scan_ratio")
 
 
-def ros_figures() -> ModuleType | None:
-    """The ROS-side figures' module, or None where convbki_ros is not installed: the core never
-    needs convbki_ros, so the benchmark only uses it when it is there."""
+def ros_side_figures(args: argparse.Namespace) -> dict:
+    """The figures that run the node's ROS-side code, from ``convbki_ros.tools.bench_ros`` in its
+    own process (the core never imports convbki_ros), on the same drive; each None (not
+    measured) where convbki_ros is not installed or that process fails."""
+    keys = ROS_ENCODE_KEYS + ROS_SCAN_TO_MAP_KEYS + (() if args.skip_start else ROS_START_KEYS)
     if importlib.util.find_spec("convbki_ros") is None:
-        return None
-    return importlib.import_module(ROS_FIGURES)
-
-
-def start_figures(ros: ModuleType, frames: list) -> dict:
-    """The node's start figures, with the first scan's update time over the tenth's."""
-    figures = ros.start_figures(frames)
-    for kind in ("cold", "warm"):
-        figures[f"{kind}_first_scan_ratio"] = figures[f"{kind}_first_scan_ms"] / max(figures[f"{kind}_tenth_scan_ms"],
-                                                                                     1e-6)
-    return figures
+        return dict.fromkeys(keys)
+    with tempfile.TemporaryDirectory(prefix="bench_ros_") as folder:
+        out = Path(folder) / "ros.json"
+        command = [sys.executable, "-m", ROS_FIGURES, "--drive-dir", str(args.drive_dir), "--scans", str(args.scans),
+                   "--repeat", str(args.repeat), "--seed", str(args.seed), "--json", str(out)]
+        if args.skip_start:
+            command.append("--skip-start")
+        finished = subprocess.run(command, stdin=subprocess.DEVNULL, capture_output=True, text=True)
+        if finished.returncode != 0 or not out.exists():
+            reason = (finished.stderr.strip().splitlines() or ["no output"])[-1]
+            print(f"{PROG}: the ROS-side figures were not measured: {reason}", file=sys.stderr)
+            return dict.fromkeys(keys)
+        measured = json.loads(out.read_text())
+    return {key: measured.get(key) for key in keys}
 
 
 def save_plot(points_rows: list[dict], ablation_rows: list[dict], path: Path) -> None:
@@ -187,18 +193,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    with mapping_device(args.device):
-        return _bench_on_device(args)
-
-
-def _bench_on_device(args: argparse.Namespace) -> int:
     torch.set_num_threads(os.cpu_count() or 1)
     dataset = ensure_drive(Path(args.drive_dir), args.scans, args.seed, on_simulate=lambda: print(
         f"{PROG}: simulating a {args.scans}-scan drive into {args.drive_dir} (cached for later runs)",
         file=sys.stderr))
     if len(dataset) < args.scans:
         raise UserError(f"{args.drive_dir} holds {len(dataset)} scans, fewer than --scans {args.scans}")
-    figures, mapper, frames = drive_figures(dataset, args.scans, args.repeat)
+    figures, mapper, frames = drive_figures(dataset, args.scans, args.repeat, args.device)
     figures["machine"] = f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
     figures["device"] = str(mapper.device) + (f" ({torch.cuda.get_device_name(mapper.device)})"
                                               if mapper.device.type == "cuda" else "")
@@ -209,40 +210,35 @@ def _bench_on_device(args: argparse.Namespace) -> int:
     figures["bytes_per_voxel"] = store_bytes / max(len(mapper.store), 1)
     figures["window_mb"] = window_bytes / 1e6
     figures["bytes_per_voxel_with_window"] = (store_bytes + window_bytes) / max(len(mapper), 1)
-    ros = ros_figures()
-    encoding = ros.encode_figures(mapper, max(3, args.repeat // 5)) if ros else dict.fromkeys(ROS_ENCODE_KEYS)
-    figures.update(encoding)
     del mapper
     gc.collect()
-    figures["update_probs_ms"] = probabilities_figure(frames, min(args.repeat, 10))
-    figures["update_free_ms"] = free_space_figure(dataset, args.scans)
-    figures["dense_reference_ms"] = dense_reference_figure(frames[0], args.repeat)
+    figures["update_probs_ms"] = probabilities_figure(frames, min(args.repeat, 10), args.device)
+    figures["update_free_ms"] = free_space_figure(dataset, args.scans, args.device)
+    figures["dense_reference_ms"] = dense_reference_figure(frames[0], args.repeat, args.device)
     figures["speedup_vs_dense"] = figures["dense_reference_ms"] / figures["update_ms"]
-    large = large_map_ratio(frames, min(args.repeat, 15))
+    large = large_map_ratio(frames, min(args.repeat, 15), args.device)
     figures["query_ms_100k"] = large[100_000]["query_ms"]
     figures["query_ms_10m"] = large[10_000_000]["query_ms"]
     figures["query_ms_ratio_large_map"] = figures["query_ms_10m"] / max(figures["query_ms_100k"], 1e-6)
-    publishing = publish_figures(frames, min(args.repeat, 15))
+    publishing = publish_figures(frames, min(args.repeat, 15), args.device)
     figures["publish_ms"] = publishing[1_000_000]["publish_ms"]
     figures["publish_ms_10m"] = publishing[10_000_000]["publish_ms"]
     figures["publish_ms_ratio_large_map"] = figures["publish_ms_10m"] / max(figures["publish_ms"], 1e-6)
     figures["updates_bytes_per_scan"] = publishing[1_000_000]["updates_bytes_per_scan"]
-    costmap = costmap_figures(frames, min(args.repeat, 15))
+    costmap = costmap_figures(frames, min(args.repeat, 15), args.device)
     figures["costmap_ms"] = costmap[1_000_000]["costmap_ms"]
     figures["costmap_ms_10m"] = costmap[10_000_000]["costmap_ms"]
     figures["costmap_ms_ratio_large_map"] = figures["costmap_ms_10m"] / max(figures["costmap_ms"], 1e-6)
-    figures.update(ros.scan_to_map_figures(frames, args.repeat) if ros else dict.fromkeys(ROS_SCAN_TO_MAP_KEYS))
     ablation_rows, sweep = [], []
     if not args.skip_ablation:
-        ablation_rows = ablation(frames, min(args.repeat, 8))
-        sweep = points_sweep(frames, min(args.repeat, 8))
+        ablation_rows = ablation(frames, min(args.repeat, 8), args.device)
+        sweep = points_sweep(frames, min(args.repeat, 8), args.device)
         plot = Path(args.plot) if args.plot else (Path(args.json).with_suffix(".png") if args.json
                                                    else Path("out/bench/bench.png"))
         plot.parent.mkdir(parents=True, exist_ok=True)
         save_plot(sweep, ablation_rows, plot)
         figures["plot"] = str(plot)
-    if not args.skip_start:  # skipped: left out of the report
-        figures.update(start_figures(ros, frames) if ros else dict.fromkeys(ROS_START_KEYS))
+    figures.update(ros_side_figures(args))
     figures["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(format_report(figures, ablation_rows))
     if args.json:

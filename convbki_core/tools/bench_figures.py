@@ -1,5 +1,5 @@
 """The measurements of ``bench`` that need only the core: update, query, memory, publishing
-cost and the ablations, each on the paper's set-up (``pipeline.paper_mapper``).
+cost and the ablations, each on the paper's set-up (``offline.paper_mapper``).
 
 Timings are medians; the first scans of a mapper load compiled code and fill the window,
 so figures that time a few scans drop the first one where there is more than one.
@@ -18,7 +18,7 @@ import torch
 from convbki_core.datasets import SequenceDataset
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.pipeline import integrate_frames, paper_mapper, query_ms, read_frames, update_ms
+from convbki_core.offline import integrate_frames, paper_mapper, query_ms, read_frames, update_ms
 from convbki_core.records import change_records, packed_palette, view_records
 from convbki_core.shown_map import ShownMap
 from convbki_core.tools.cli import progress
@@ -54,10 +54,11 @@ def map_memory_bytes(mapper: ConvBKIMapper) -> tuple[int, int]:
     return mapper.store.resident_bytes, mapper.window.nbytes
 
 
-def drive_figures(dataset: SequenceDataset, scans: int, repeat: int) -> tuple[dict, ConvBKIMapper, list]:
+def drive_figures(dataset: SequenceDataset, scans: int, repeat: int,
+                  device: str = "cpu") -> tuple[dict, ConvBKIMapper, list]:
     """Map the drive with the paper's set-up; per-scan timings; the map at the end; and
     ``repeat`` frames from the second half of the drive for the other figures."""
-    mapper = paper_mapper()
+    mapper = paper_mapper(device=device)
     frames_kept, timings = [], []
     frames = progress(read_frames(dataset, range(scans)), total=scans, description="drive")
     for position, (frame, result) in enumerate(integrate_frames(mapper, frames)):
@@ -75,28 +76,28 @@ def drive_figures(dataset: SequenceDataset, scans: int, repeat: int) -> tuple[di
     return figures, mapper, frames_kept
 
 
-def probabilities_figure(frames: list, repeat: int) -> float:
+def probabilities_figure(frames: list, repeat: int, device: str = "cpu") -> float:
     """Update time with 20-class probabilities as input instead of labels."""
-    mapper = paper_mapper()
+    mapper = paper_mapper(device=device)
     rng = np.random.default_rng(0)
     inputs = [(f.points, soft_probabilities(f.input_labels, 20, rng), f.pose) for f in frames[:repeat]]
     mapper.integrate(*inputs[0])  # warm up
     return statistics.median(update_ms(mapper.integrate(*values)) for values in inputs)
 
 
-def free_space_figure(dataset: SequenceDataset, scans: int) -> float:
+def free_space_figure(dataset: SequenceDataset, scans: int, device: str = "cpu") -> float:
     """Update time with labels and free space on, measured like ``update_ms``: the whole drive
     mapped again with free space, the median from the sixth scan on (the cost of free space
     grows with the evidence the window holds, so a fresh map would understate it)."""
-    mapper = paper_mapper(free_space=True)
+    mapper = paper_mapper(free_space=True, device=device)
     frames = progress(read_frames(dataset, range(scans)), total=scans, description="drive, free space")
     times = [update_ms(result) for _, result in integrate_frames(mapper, frames)]
     return statistics.median(times[min(5, len(times) - 1):])
 
 
-def dense_reference_figure(frame, repeat: int) -> float:
+def dense_reference_figure(frame, repeat: int, device: str = "cpu") -> float:
     """The paper's dense update as the reference code runs it: conv3d(groups=C), default layout."""
-    mapper = paper_mapper(update_path="dense")
+    mapper = paper_mapper(update_path="dense", device=device)
     points_map = transform_points(frame.points, frame.pose)
     origin = mapper.geometry.origin_for(frame.pose[:3, 3])
 
@@ -128,11 +129,11 @@ def far_strip(frames: list, count: int, num_classes: int, prior: float) -> tuple
     return strip, alpha
 
 
-def large_map_ratio(frames: list, repeat: int) -> dict:
+def large_map_ratio(frames: list, repeat: int, device: str = "cpu") -> dict:
     """Window moves (query + write-back) with 100 k vs 10 M voxels stored elsewhere in the map."""
     results = {}
     for stored in (100_000, 10_000_000):
-        mapper = paper_mapper()
+        mapper = paper_mapper(device=device)
         strip, alpha = far_strip(frames, stored, mapper.num_classes, mapper.prior)
         mapper.store.write(strip, alpha)
         times = [query_ms(result) for _, result in integrate_frames(mapper, frames[:repeat])]
@@ -142,7 +143,7 @@ def large_map_ratio(frames: list, repeat: int) -> dict:
     return results
 
 
-def publish_figures(frames: list, repeat: int) -> dict:
+def publish_figures(frames: list, repeat: int, device: str = "cpu") -> dict:
     """One publish cycle of the node after one scan's change: the updates (the changed voxels as
     point records, applied to the chunked whole map) and the view (the map within 30 m), with
     1 M and with 10 M voxels stored elsewhere in the map; and the bytes of one scan's updates.
@@ -150,7 +151,7 @@ def publish_figures(frames: list, repeat: int) -> dict:
     palette = packed_palette(load_label_map("semantic_kitti").colors)
     results = {}
     for stored in (1_000_000, 10_000_000):
-        mapper = paper_mapper(track_changes=True)
+        mapper = paper_mapper(track_changes=True, device=device)
         mapper.store.write(*far_strip(frames, stored, mapper.num_classes, mapper.prior))
         shown = ShownMap()
         changes = mapper.take_changes(everything=True)
@@ -172,7 +173,7 @@ def publish_figures(frames: list, repeat: int) -> dict:
     return results
 
 
-def costmap_figures(frames: list, repeat: int) -> dict:
+def costmap_figures(frames: list, repeat: int, device: str = "cpu") -> dict:
     """One refresh of the planner's rolling costmap (the car profile's grid over the paper's
     window, read from the window in place, as the node does) after each scan, free space on,
     with 1 M and with 10 M voxels stored elsewhere in the map."""
@@ -183,7 +184,7 @@ def costmap_figures(frames: list, repeat: int) -> dict:
     profile = load_profile(traversability_profile("car"), label_map.class_names)
     results = {}
     for stored in (1_000_000, 10_000_000):
-        mapper = paper_mapper(free_space=True)
+        mapper = paper_mapper(free_space=True, device=device)
         mapper.store.write(*far_strip(frames, stored, mapper.num_classes, mapper.prior))
         times = []
         for _ in integrate_frames(mapper, frames[:repeat]):
@@ -196,13 +197,13 @@ def costmap_figures(frames: list, repeat: int) -> dict:
     return results
 
 
-def ablation(frames: list, repeat: int) -> list[dict]:
+def ablation(frames: list, repeat: int, device: str = "cpu") -> list[dict]:
     """Latency and peak memory of the update for the paper's resolution and filter-size ablations."""
     rows = []
     settings = [(0.4, 5), (0.2, 5), (0.1, 5), (0.2, 3), (0.2, 7), (0.2, 9)]
     for resolution, filter_size in progress(settings, total=len(settings), description="ablation"):
         gc.collect()
-        mapper = paper_mapper(resolution=resolution, filter_size=filter_size)
+        mapper = paper_mapper(resolution=resolution, filter_size=filter_size, device=device)
         times = [update_ms(result) for _, result in integrate_frames(mapper, frames[:repeat])]
         store_bytes, window_bytes = map_memory_bytes(mapper)
         rows.append({"resolution": resolution, "filter_size": filter_size,
@@ -213,12 +214,12 @@ def ablation(frames: list, repeat: int) -> list[dict]:
     return rows
 
 
-def points_sweep(frames: list, repeat: int) -> list[dict]:
+def points_sweep(frames: list, repeat: int, device: str = "cpu") -> list[dict]:
     """Update time against points per scan (random subsets of the same scans)."""
     rows = []
     rng = np.random.default_rng(2)
     for fraction in (0.125, 0.25, 0.5, 1.0):
-        mapper = paper_mapper()
+        mapper = paper_mapper(device=device)
         times, counts = [], []
         for frame in frames[:repeat]:
             keep = rng.random(len(frame.points)) < fraction

@@ -207,7 +207,7 @@ def run(prog: str, body: Callable[[argparse.Namespace], int], parser: argparse.A
 def _kernel_cache_note(prog: str, said: bool) -> bool:
     """Print, once, why compiled kernels are cached somewhere unusual or not at all (only where
     the command uses compiled kernels); True once said or nothing to say."""
-    native = sys.modules.get("convbki_core.native")
+    native = sys.modules.get("convbki_core.compiled")
     if said or native is None:
         return said
     note = native.kernel_cache().note

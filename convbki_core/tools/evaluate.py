@@ -24,16 +24,15 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.calibration import CalibrationStats, MapCalibration, input_distribution, tempered_distribution
-from convbki_core.clamping import DEFAULT_LIMIT, check_limit
+from convbki_core.clamping import check_limit
+from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
-from convbki_core.paths import kernel_path
-from convbki_core.pipeline import PAPER_BOUNDS, map_frame_labels
+from convbki_core.offline import map_frame_labels
 from convbki_core.tools.cli import (
     NewOutputs,
     UserError,
@@ -46,12 +45,11 @@ from convbki_core.tools.cli import (
     window_bounds,
 )
 from convbki_core.trails import StaticCoverage, SweptSpace
+from convbki_core.uncertainty_metrics import CalibrationStats, MapCalibration, input_distribution, tempered_distribution
 from convbki_core.volume import tempers, transform_points
 from convbki_core.warm_up import warm_up
 
 PROG = "evaluate"
-DEFAULT_KERNEL = "semantic_kitti_compound"
-DEFAULT_PRIOR = 1e-3
 
 
 @dataclass
@@ -82,13 +80,11 @@ def write_label_file(path: Path, learning_labels: np.ndarray, label_map) -> None
     path.write_bytes(label_map.to_raw(learning_labels).astype("<u4").tobytes())
 
 
-def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], kernel_file: str | Path, device: str,
-                    prior: float, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
-                    show_progress: bool = True, local_bounds=PAPER_BOUNDS, update_path: str = "auto",
-                    free_space: bool = True, input_calibration: CalibrationStats | None = None,
-                    tempered_calibration: CalibrationStats | None = None,
-                    max_concentration: float = DEFAULT_LIMIT, truth_voxels=None,
-                    moving_labels: bool = True, forget_movers: bool = True) -> KernelRun:
+def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], kernel_file: str | Path,
+                    mapper_config: MapperConfig, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
+                    show_progress: bool = True, input_calibration: CalibrationStats | None = None,
+                    tempered_calibration: CalibrationStats | None = None, truth_voxels=None,
+                    moving_labels: bool = True) -> KernelRun:
     """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
 
     ``input_scores`` (when given) also receives the input segmentation's confusion counts, and
@@ -97,25 +93,24 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
     the run's ``calibration`` measures the map's class distributions on the scored points;
     ``labels_folder`` (when given, an existing folder) receives one NNNNNN.label per frame.
     Where the ground truth marks moving objects, the run also counts the map's trail voxels.
-    ``max_concentration``: the clamping limit with free space (``ConvBKIMapper``).
+    ``mapper_config``: how to map (the dataset's label map decides the ignored and movable classes).
     ``truth_voxels`` (a ``costmap_eval.GroundTruthVoxels``, when given) receives every frame's
     ground-truth points, for the costmap's report. ``moving_labels``: where the input marks
     moving points (raw ids such as 252-259), they are evidence for their scan only
-    (``present_movers``); False maps them as their static classes. ``forget_movers``: with
-    free space, the movable classes' rules (``forgetting``).
+    (``present_movers``); False maps them as their static classes.
     """
     config = load_kernel_file(kernel_file)
     label_map = dataset.label_map
     if config.num_classes != label_map.num_classes:
         raise UserError(f"{kernel_file}: kernel has {config.num_classes} classes, the dataset {label_map.num_classes}")
-    mapper = ConvBKIMapper(config, local_bounds=local_bounds, prior=prior, device=device,
-                           ignore_classes=label_map.ignore_classes, update_path=update_path, free_space=free_space,
-                           max_concentration=max_concentration,
-                           movable_classes=label_map.movable_classes if forget_movers else ())
+    mapper_config = mapper_config.replace(ignore_classes=label_map.ignore_classes,
+                                          movable_classes=label_map.movable_classes)
+    mapper = ConvBKIMapper(mapper_config, config)
     warm_up(mapper)  # every kernel compiled (or loaded) before the first timed frame
     run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
                                                                              label_map.ignore_classes), mapper=mapper)
-    run_result.calibration = MapCalibration(label_map.num_classes, label_map.ignore_classes, free_space=free_space)
+    run_result.calibration = MapCalibration(label_map.num_classes, label_map.ignore_classes,
+                                            free_space=mapper.free_space)
     out_folder = labels_folder
     swept = SweptSpace(mapper.resolution)
     coverage = StaticCoverage(mapper.resolution)
@@ -155,7 +150,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
             run_result.moving_map_scores.add(frame.ground_truth[frame.moving], predicted[frame.moving])
         coverage.add(points_map, frame.ground_truth, frame.moving)
         if truth_voxels is not None:
-            truth_voxels.add(points_map, frame.ground_truth, frame.moving, frame.pose[:3, 3], local_bounds)
+            truth_voxels.add(points_map, frame.ground_truth, frame.moving, frame.pose[:3, 3],
+                             mapper_config.window.local_bounds)
     voxels = mapper.voxels()
     if swept.moving_points:
         run_result.trail_voxels = swept.trail_voxels(voxels.indices, voxels.label, label_map.movable_classes)
@@ -277,20 +273,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--local-bounds", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX",
                    "YMAX", "ZMAX"), help="local window around the sensor in metres (default: the paper's "
                    "-40 -40 -2.6 40 40 2.6)")
-    p.add_argument("--device", default="auto", type=device_arg,
+    p.add_argument("--device", default=DEFAULTS.compute.device, type=device_arg,
                    help="torch device: auto (CUDA when present), cpu, cuda or cuda:N (default: %(default)s)")
-    p.add_argument("--update-path", default="auto", choices=("auto", "fast", "torch", "dense"),
+    p.add_argument("--update-path", default=DEFAULTS.compute.update_path, choices=UPDATE_PATHS,
                    help="how the update is computed: fast (compiled sparse scatter, the CPU default), torch (the "
                    "window resident on the torch device, the CUDA default), dense (the paper's depthwise conv3d, "
                    "the reference) (default: %(default)s)")
     p.add_argument("--no-free-space", dest="free_space", action="store_false",
                    help="map without free space: the rays between the sensor and its returns add no evidence "
                    "that the voxels they cross are empty (the paper's ConvBKI; movers then leave trails)")
-    p.add_argument("--max-concentration", default=DEFAULT_LIMIT, type=float,
+    p.add_argument("--max-concentration", default=DEFAULTS.free_space.max_concentration, type=float,
                    help="with free space: a voxel that rays first find empty while its concentrations sum to more "
                    "than this is scaled down to it (clamping), so a bounded number of rays can empty what a mover "
                    "left; 0 = never (default: %(default)s, as the node)")
-    p.add_argument("--prior", default=DEFAULT_PRIOR, type=float,
+    p.add_argument("--prior", default=DEFAULTS.window.prior, type=float,
                    help="initial concentration of every class in a new voxel (default: %(default)s)")
     p.add_argument("--no-forget-movers", dest="forget_movers", action="store_false",
                    help="with free space: keep the movable classes' evidence as free space leaves it (by default "
@@ -327,7 +323,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
-    kernels = args.kernel or [str(kernel_path(DEFAULT_KERNEL))]
+    kernels = args.kernel or [str(DEFAULTS.kernel_path())]
     for kernel_file in kernels:
         load_kernel_file(kernel_file)  # fail before any work on a bad kernel file
     if not args.prior > 0:
@@ -337,7 +333,10 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     except ValueError:
         raise UserError("--max-concentration must be 0 (off) or a positive number, "
                         f"got {args.max_concentration}") from None
-    bounds = window_bounds(args.local_bounds) or PAPER_BOUNDS
+    mapper_config = DEFAULTS.replace(local_bounds=window_bounds(args.local_bounds) or DEFAULTS.window.local_bounds,
+                                     prior=args.prior, device=args.device, update_path=args.update_path,
+                                     free_space=args.free_space, max_concentration=args.max_concentration,
+                                     forget_movers=args.forget_movers)
     report_path = Path(args.report)
     output_folder(report_path, "report")
     if report_path.is_dir():
@@ -386,16 +385,14 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         tempered = (temperature, CalibrationStats(label_map.num_classes, label_map.ignore_classes, thresholds=None))
     runs = []
     for number, kernel_file in enumerate(kernels):
-        runs.append(evaluate_kernel(dataset, positions, kernel_file, args.device, args.prior,
+        runs.append(evaluate_kernel(dataset, positions, kernel_file, mapper_config,
                                     input_scores if number == 0 else None,
                                     labels_folder if number == 0 else None,
-                                    show_progress=not args.quiet, local_bounds=bounds,
-                                    update_path=args.update_path, free_space=args.free_space,
-                                    max_concentration=args.max_concentration,
+                                    show_progress=not args.quiet,
                                     input_calibration=input_calibration if number == 0 else None,
                                     tempered_calibration=tempered[1] if number == 0 and tempered else None,
                                     truth_voxels=truth_voxels if number == 0 else None,
-                                    moving_labels=args.moving_labels, forget_movers=args.forget_movers))
+                                    moving_labels=args.moving_labels))
     movable = label_map.movable_classes if any(run.trail_voxels is not None for run in runs) else ()
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,
                           input_calibration, tempered, movable)

@@ -27,8 +27,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from convbki_core.config import PAPER_BOUNDS, PAPER_KERNEL
+from convbki_core.offline import drive_frames, paper_mapper
 from convbki_core.paths import kernel_path
-from convbki_core.pipeline import PAPER_BOUNDS, PAPER_KERNEL, drive_frames, ensure_drive, paper_mapper
+from convbki_core.synth.cached_drive import ensure_drive
 from convbki_core.tools.cli import UserError, positive, run
 from convbki_core.tools.soak_measure import MB, Checkpoint, soak
 from convbki_core.tools.soak_report import table_header, table_row, write_outputs

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.pipeline import query_ms, update_ms
+from convbki_core.offline import query_ms, update_ms
 from convbki_core.tools.cli import UserError
 
 MB = 2**20

@@ -86,17 +86,6 @@ def _float_in(what: str, lo: float, hi: float, lo_open: bool = False):
     return parse
 
 
-def read_synth_record(sequence_folder: Path) -> dict | None:
-    """The ``synth.yaml`` that ``synth`` leaves in a sequence it wrote, or None (not a synth drive)."""
-    import yaml
-
-    try:
-        record = yaml.safe_load((Path(sequence_folder) / "synth.yaml").read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
-        return None
-    return record if isinstance(record, dict) else None
-
-
 def build_parser() -> argparse.ArgumentParser:
     """Command-line parser."""
     p = _Parser(

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from convbki_core.config import DEFAULTS
 from convbki_core.datasets import parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.devices import resolve_device
@@ -143,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--filter-size", default=5, type=int, metavar="F",
                    help="odd filter size in voxels (default: %(default)s)")
     p.add_argument("--seed", default=0, type=int, help="shuffling seed (default: %(default)s)")
-    p.add_argument("--device", default="cpu", type=device_arg,
+    p.add_argument("--device", default=DEFAULTS.compute.device, type=device_arg,
                    help="torch device to train on: cpu, auto (CUDA when present) or cuda[:N] (default: %(default)s)")
     p.add_argument("--local-bounds", nargs=6, type=float, default=None, metavar=("XMIN", "YMIN", "ZMIN", "XMAX",
                    "YMAX", "ZMAX"), help="validation map window around the sensor in metres (default: the paper's "
@@ -196,7 +197,9 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
             dataset.check_files(chosen)
     bounds = window_bounds(args.local_bounds)
     device = resolve_device(args.device)
-    validator = Validator(val_datasets, val_positions, device=device, local_bounds=bounds)
+    validation_config = DEFAULTS.replace(device=str(device), forget_movers=False,
+                                         local_bounds=bounds or DEFAULTS.window.local_bounds)
+    validator = Validator(val_datasets, val_positions, validation_config)
     held = ", ".join(f"{d.sequence}: {_ranges(c)}" for d, c in zip(val_datasets, val_positions) if c)
     print(f"validation: {validator.frame_count} frames ({held}); training: "
           f"{sum(len(c) for c in train_positions)} samples")

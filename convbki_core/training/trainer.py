@@ -64,14 +64,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from convbki_core.calibration import MapCalibration
+from convbki_core.config import DEFAULTS, MapperConfig
 from convbki_core.datasets import DatasetError, Frame
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
 from convbki_core.free_space import FREE_CLASS
 from convbki_core.kernels import ConvBKIKernel, KernelConfig
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
-from convbki_core.pipeline import PAPER_BOUNDS, map_frame_labels
+from convbki_core.offline import map_frame_labels
 from convbki_core.training.free_samples import (
     FreeEvidence,
     free_evidence,
@@ -84,13 +84,13 @@ from convbki_core.training.free_samples import (
 )
 from convbki_core.training.sparse_plan import SparsePlan
 from convbki_core.training.temperature import TemperatureSearch, fit_input_temperature, input_nll, minimise_temperature
+from convbki_core.uncertainty_metrics import MapCalibration
 from convbki_core.volume import WindowGeometry, transform_points, unravel_linear, voxel_indices, voxelize
 
 # progress(items, total, description) -> the same items, shown as they are consumed.
 Progress = Callable[[Iterable, int, str], Iterable]
 
 INITIAL_ELL = 0.5
-DEFAULT_PRIOR = 1e-3
 TARGET_UPDATES = 300  # default epochs: enough passes for about this many optimiser steps
 MIN_LR_FRACTION = 0.05  # the cosine schedule ends at this fraction of the initial rate
 VALIDATION_BLOCK = 10
@@ -350,14 +350,16 @@ class Validator:
     """The paper's protocol (``tools.evaluate``) on the validation frames, for a candidate kernel."""
 
     def __init__(self, datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]],
-                 prior: float = DEFAULT_PRIOR, device: str | torch.device = "cpu", local_bounds=None,
-                 free_space: bool = True):
+                 mapper_config: MapperConfig | None = None):
+        """``mapper_config``: how the validation maps are made (default: the product's free space
+        and clamping on the CPU, without the movers' rules, which a kernel's lengths do not
+        meet); the datasets' label map decides the ignored classes."""
         self.datasets = list(datasets)
         self.positions = [list(chosen) for chosen in positions]
-        self.prior = prior
-        self.device = str(device)
-        self.local_bounds = local_bounds
-        self.free_space = free_space
+        label_map = self.datasets[0].label_map if self.datasets else None
+        config = mapper_config or DEFAULTS.replace(device="cpu", forget_movers=False)
+        self.mapper_config = config.replace(ignore_classes=label_map.ignore_classes) if label_map else config
+        self.free_space = self.mapper_config.free_space.enabled
         self._frames: dict[tuple[int, int], Frame] = {}
         if not any(self.positions):
             raise DatasetError("no validation frames")
@@ -386,9 +388,7 @@ class Validator:
         for number, chosen in enumerate(self.positions):
             if not chosen:
                 continue
-            mapper = ConvBKIMapper(config, local_bounds=self.local_bounds or PAPER_BOUNDS, prior=self.prior,
-                                   device=self.device, ignore_classes=label_map.ignore_classes,
-                                   free_space=self.free_space)
+            mapper = ConvBKIMapper(self.mapper_config, config)
             for position in chosen:
                 frame = self._frame(number, position)
                 if frame.ground_truth is None:
@@ -537,7 +537,7 @@ def fit_temperature(validator: Validator, config: KernelConfig, log: Callable[[s
 
 def train_kernel(datasets: Sequence[SemanticKittiSequence], positions: Sequence[Sequence[int]], kind: str,
                  frames_per_sample: int = 10, epochs: int | None = None, lr: float = 0.007, resolution: float = 0.2,
-                 filter_size: int = 5, prior: float = DEFAULT_PRIOR, seed: int = 0,
+                 filter_size: int = 5, prior: float = DEFAULTS.window.prior, seed: int = 0,
                  progress: Progress | None = None, log: Callable[[str], None] | None = None, log_every: int = 25,
                  device: str | torch.device = "cpu", start: KernelConfig | None = None,
                  validator: Validator | None = None, validate_every: int | None = None,

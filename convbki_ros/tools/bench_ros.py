@@ -1,8 +1,9 @@
 """The figures of ``bench`` that go through the node's ROS-side code (PointCloud2 encoding and
-decoding, the odometry buffer). ``bench`` lives in the core, which must run without
-convbki_ros, so it looks this module up at run time and reports these figures as not
-measured where convbki_ros is not installed. Imports no rclpy: the codec works on plain
-objects with the PointCloud2 attributes.
+decoding, the odometry buffer, the node's start). ``bench`` lives in the core, which never
+imports convbki_ros, so it runs ``python -m convbki_ros.tools.bench_ros`` in its own
+process on the same drive and reports these figures as not measured where that cannot run.
+Imports no rclpy at import time: the codec works on plain objects with the PointCloud2
+attributes.
 """
 
 from __future__ import annotations
@@ -15,10 +16,10 @@ import numpy as np
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.pipeline import paper_mapper
+from convbki_core.offline import paper_mapper
 from convbki_core.tools.bench_figures import median_ms, steady
+from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.cloud_encoding import map_cloud_fields, pack_fields
-from convbki_ros.pointcloud import decode_cloud
 from convbki_ros.pose_buffer import OdometryBuffer
 
 # The keys the functions below add to bench's figures.
@@ -78,7 +79,7 @@ READY = "mapper ready"
 
 
 def start_figures(frames: list, scans: int = 10, starts: int = 3) -> dict:
-    """The mapper node started as a user starts it (``python -m convbki_ros.mapper`` with the
+    """The mapper node started as a user starts it (``python -m convbki_ros.main`` with the
     shipped params, in its own process) with an empty compiled-kernel cache (``NUMBA_CACHE_DIR``
     on a new folder: a fresh install) and with the cache set-up leaves: seconds from process
     start to "ready", then the update time the node reports on /diagnostics for its first and
@@ -113,7 +114,7 @@ def _time_a_start(frames: list, env: dict) -> tuple[float, list[float]]:
     environment = {**os.environ, "ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
                    "PYTHONUNBUFFERED": "1", **env}
     started = time.monotonic()
-    node = subprocess.Popen([sys.executable, "-m", "convbki_ros.mapper", "--ros-args", "--params-file",
+    node = subprocess.Popen([sys.executable, "-m", "convbki_ros.main", "--ros-args", "--params-file",
                              str(config_dir() / "mapper.yaml"), "-p", "device:=cpu", "-p", "diagnostics_period:=0.1",
                              "-p", "map_file:=\"\"", "-r", "cloud_in:=/bench/cloud", "-r", "odom:=/bench/odom"],
                             env=environment, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
@@ -194,3 +195,45 @@ def _first_scans(domain: int, frames: list) -> list[float]:
         executor.shutdown()
         node.destroy_node()
         context.try_shutdown()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: the ROS-side figures on bench's drive, written as JSON; ``bench`` runs it."""
+    import argparse
+    import json
+    import sys
+    from pathlib import Path
+
+    from convbki_core.io.atomic import atomic_write_bytes
+    from convbki_core.synth.cached_drive import ensure_drive
+    from convbki_core.tools.bench_figures import drive_figures
+
+    parser = argparse.ArgumentParser(prog="bench_ros", description="bench's figures that run the node's ROS-side "
+                                     "code (PointCloud2 encoding and decoding, odometry lookup, the node's start)")
+    parser.add_argument("--drive-dir", default="out/bench/drive", help="bench's synthetic drive (written if missing)")
+    parser.add_argument("--scans", type=int, default=500, help="scans of the drive to map (as bench)")
+    parser.add_argument("--repeat", type=int, default=30, help="repetitions of each timing (as bench)")
+    parser.add_argument("--seed", type=int, default=5, help="seed of the drive (as bench)")
+    parser.add_argument("--skip-start", action="store_true", help="leave out the node's start figures")
+    parser.add_argument("--json", required=True, help="file the figures are written to")
+    args = parser.parse_args(argv)
+    try:
+        dataset = ensure_drive(Path(args.drive_dir), args.scans, args.seed)
+    except ValueError as error:
+        print(f"bench_ros: error: {error}", file=sys.stderr)
+        return 2
+    _, mapper, frames = drive_figures(dataset, args.scans, args.repeat)
+    figures = encode_figures(mapper, max(3, args.repeat // 5))
+    del mapper
+    figures.update(scan_to_map_figures(frames, args.repeat))
+    if not args.skip_start:
+        figures.update(start_figures(frames))
+        for kind in ("cold", "warm"):
+            figures[f"{kind}_first_scan_ratio"] = (figures[f"{kind}_first_scan_ms"]
+                                                   / max(figures[f"{kind}_tenth_scan_ms"], 1e-6))
+    atomic_write_bytes(Path(args.json), (json.dumps(figures, indent=2) + "\n").encode())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -29,12 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
+from convbki_core.config import MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.metrics import ConfusionMatrix
 from convbki_core.paths import config_dir, kernel_path
+from convbki_core.synth.cached_drive import read_synth_record
 from convbki_core.tools.cli import UserError, positive, run
-from convbki_core.tools.synth import read_synth_record
 from convbki_core.trails import SweptSpace
 from convbki_core.volume import transform_points
 
@@ -60,7 +61,7 @@ def run_module(module: str, *args: str) -> None:
 def score_final_map(map_file: Path, dataset: SemanticKittiSequence) -> dict:
     """Input and final-map scores over every point of the drive (points without map evidence keep the input
     label), and the map's trail voxels where the ground truth marks moving objects."""
-    mapper = ConvBKIMapper(kernel_path("semantic_kitti_compound"), device="cpu", free_space=True)
+    mapper = ConvBKIMapper(MapperConfig.paper(device="cpu", free_space=True), kernel_path("semantic_kitti_compound"))
     mapper.load(map_file)
     swept = SweptSpace(mapper.resolution)
     label_map = dataset.label_map
@@ -137,7 +138,7 @@ def _demo(args: argparse.Namespace) -> int:
     map_file.unlink(missing_ok=True)
     _step(f"3/5 mapper node + play_bag --clock --rate {args.rate} (ROS_DOMAIN_ID {domain})")
     mapper = _python_module(
-        "convbki_ros.mapper", "--ros-args", "--params-file", str(config_dir() / "mapper.yaml"),
+        "convbki_ros.main", "--ros-args", "--params-file", str(config_dir() / "mapper.yaml"),
         "-r", "cloud_in:=/kitti/velo/pointcloud", "-r", "odom:=/kitti/odom", "-p", "use_sim_time:=true",
         "-p", f"map_file:={map_file}", "-p", "stats_period:=1.0", "-p", "cloud_queue_size:=1000",
         "-p", "save_on_shutdown:=false", env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

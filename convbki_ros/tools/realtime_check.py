@@ -215,7 +215,7 @@ def _check(args: argparse.Namespace) -> int:
             return readers[name]
 
         try:
-            node = start("mapper", "the mapper node", "-m", "convbki_ros.mapper", "--ros-args", "--params-file",
+            node = start("mapper", "the mapper node", "-m", "convbki_ros.main", "--ros-args", "--params-file",
                          str(config_dir() / "mapper.yaml"), "-r", "cloud_in:=/kitti/velo/pointcloud",
                          "-r", "odom:=/kitti/odom", "-p", "use_sim_time:=true",
                          "-p", f"publish_period:={args.publish_period}", "-p", f"map_period:={args.map_period}",

@@ -1,7 +1,7 @@
 """``mapper``: the ConvBKI semantic mapping node (``convbki_mapper``).
 
 Run with ``ros2 run convbki_ros mapper --ros-args --params-file config/mapper.yaml``
-or ``python -m convbki_ros.mapper --ros-args ...``. The node itself is
+or ``python -m convbki_ros.main --ros-args ...``. The node itself is
 ``convbki_ros.node.MapperNode``; this module is its command line: ``--help`` (which needs no
 ROS 2), start-up errors as one line with exit code 2, a single-threaded executor (the node
 writes and reads files on a thread of its own, so a large save never holds up the inputs),

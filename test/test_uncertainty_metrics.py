@@ -9,7 +9,11 @@ import pytest
 from kitti_fixture import noisy, pose_about_z, street_scene, write_sequence
 
 from convbki_core import ConvBKIMapper
-from convbki_core.calibration import (
+from convbki_core.config import MapperConfig
+from convbki_core.metrics import ConfusionMatrix
+from convbki_core.paths import kernel_path
+from convbki_core.tools import evaluate
+from convbki_core.uncertainty_metrics import (
     BINS,
     PROBABILITY_FLOOR,
     VARIANCE_THRESHOLDS,
@@ -18,8 +22,6 @@ from convbki_core.calibration import (
     map_concentrations,
     map_distribution,
 )
-from convbki_core.metrics import ConfusionMatrix
-from convbki_core.tools import evaluate
 
 # Four scored points over classes 1..3 (class 0 ignored), and one ignored point.
 PROBABILITIES = np.array([[0.0, 0.9, 0.1, 0.0],     # truth 1: chosen 1 (right), confidence 0.9 -> bin 13
@@ -116,8 +118,8 @@ def test_map_concentrations_give_the_protocol_labels():
     rng = np.random.default_rng(2)
     world, truth = street_scene(rng, count=1500)
     labels = np.select([truth == 40, truth == 48, truth == 50], [9, 11, 13], 18)  # road, sidewalk, building, pole
-    mapper = ConvBKIMapper(evaluate.kernel_path("semantic_kitti_compound"), device="cpu", free_space=True,
-                           local_bounds=((-20.0, -12.0, -3.0), (20.0, 12.0, 4.0)))
+    config = MapperConfig.paper(device="cpu", free_space=True, local_bounds=((-20.0, -12.0, -3.0), (20.0, 12.0, 4.0)))
+    mapper = ConvBKIMapper(config, kernel_path("semantic_kitti_compound"))
     pose = pose_about_z(0.3, [0.0, 0.5, 0.2])
     mapper.integrate(((world - pose[:3, 3]) @ pose[:3, :3]).astype(np.float32), labels, pose)
     queries = np.concatenate([world, [[100.0, 0.0, 0.0], [np.nan, 0.0, 0.0]]])

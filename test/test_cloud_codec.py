@@ -13,8 +13,8 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from convbki_core.records import RECORD
+from convbki_ros import cloud_decoding as pc
 from convbki_ros import cloud_encoding as enc
-from convbki_ros import pointcloud as pc
 from convbki_ros import transforms as tf
 
 DTYPE_CODES = {"f4": pc.FLOAT32, "f8": pc.FLOAT64, "u4": pc.UINT32, "u2": pc.UINT16, "i4": pc.INT32,
