@@ -2,15 +2,18 @@
 
 One scan goes through the paper's global-mapping steps (section "Global Mapping"):
 
-1. move the points into the map frame with the scan's pose (any SE(3));
+1. voxelise the scan, moved into the map frame with its pose (any SE(3)), into the input
+   volume F of the window around the sensor (Eq. 3; ``parts.Voxelizer``);
 2. move the local window to the sensor: the window stays resident (``window.RollingWindow``),
    only the slabs that leave it go to the global store and those that enter come back
    (the paper's query and write-back; new voxels hold the prior);
-3. voxelise the scan into the input volume F (Eq. 3);
-4. apply the ConvBKI update alpha += conv3d(F, K) (Eq. 4) in place: on the CPU as a
-   compiled sparse scatter (``update``), on CUDA (or when asked) with the dense
-   depthwise convolution of ``layer.ConvBKILayer``, the paper's formulation and the
-   reference the fast path is tested against.
+3. apply the ConvBKI update alpha += conv3d(F, K) (Eq. 4) in place with the update backend
+   the configuration chose (``parts``: the compiled sparse scatter on the CPU, a device
+   window on CUDA, or the paper's dense depthwise convolution, the reference);
+4. with free space, add the rays' evidence that the space they cross is empty
+   (``parts.HostFreeSpace`` / ``DeviceFreeSpace``), after the movers' rules (``forgetting``).
+
+The parts are built once, in the constructor, from the ``MapperConfig``.
 
 Public surface: ``integrate``, ``labels_at``, ``voxels``, ``local_voxels``, ``save``,
 ``load``, ``export_ply``, ``reset``.
@@ -25,34 +28,26 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from convbki_core.clamping import check_limit, clamp_torch
-from convbki_core.compiled import HAVE_NUMBA
+from convbki_core.clamping import check_limit
 from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
 from convbki_core.devices import resolve_device
 from convbki_core.forgetting import MoverForgetting
 from convbki_core.free_space import (
     FREE_CLASS,
-    count_rays,
-    free_space_update,
-    free_taps,
-    scan_rays,
-    scratch_counts,
 )
 from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
 from convbki_core.io.map_file import MAP_FORMAT, MAP_VERSION, MapFileError, MapSnapshot, read_map
 from convbki_core.io.ply import write_voxels_ply
 from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
+from convbki_core.parts import KernelFilters, Voxelizer, make_free_space, make_update
 from convbki_core.present_movers import PresentMovers, labels_now, present_movers
 from convbki_core.records import RECORD, records_from_alpha, window_records
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
-from convbki_core.torch_window import TorchFilters, TorchWindow, torch_free_space, torch_update
-from convbki_core.update import FilterPlan, dense_volume, scatter_volume
+from convbki_core.torch_window import TorchWindow
 from convbki_core.volume import (
-    SparseVolume,
     VoxelizeStats,
     WindowGeometry,
     check_pose,
@@ -60,8 +55,6 @@ from convbki_core.volume import (
     transform_points,
     voxel_centres,
     voxel_indices,
-    voxelize,
-    voxelize_scan,
 )
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
 
@@ -170,16 +163,17 @@ class ConvBKIMapper:
         self.sensor_position: np.ndarray | None = None  # map frame (m), at the last scan (or from a loaded file)
         self._removed: list[np.ndarray] = []  # voxels that left the map since the changes were taken
         self._everything_changed = False  # a load replaced the map: every voxel is a change
-        self._plan: FilterPlan | None = None
-        self._free_taps: tuple[np.ndarray, np.ndarray] | None = None
-        self._plan_key: tuple | None = None
-        self._free_counts = scratch_counts(self.geometry.dims) if self.free_space else None
         self.present_movers: PresentMovers | None = None  # the last scan's moving points, never in the map
         self.movable_classes = config.movable_classes()
         self.forgetting = (MoverForgetting(self.movable_classes, kernel.num_classes, self.prior, self.geometry.dims,
                                            kernel.filter_size // 2, self.resolution)
                            if self.free_space and self.movable_classes else None)
-        self._refresh_filters()  # the filters of the first scan, prepared now
+        # The parts, built once: the filters of the first scan are prepared now.
+        self.filters = KernelFilters(self.layer, self.device, on_device=update_path == "torch")
+        self.voxelize = Voxelizer(self.geometry, self.layer, self.ignore_classes, self.window)
+        self.update = make_update(update_path, self.filters, self.layer, self.window)
+        self.free = (make_free_space(self.filters, self.geometry, self.window, self.max_concentration, self.prior)
+                     if self.free_space else None)
 
     # -- properties ------------------------------------------------------------------------
     @property
@@ -225,14 +219,7 @@ class ConvBKIMapper:
                                         self.resolution, self.ignore_classes)
                 points, values = points[~moving], values[~moving]
         origin = self.geometry.origin_for(pose[:3, 3])
-        # Probability rows are calibrated by the kernel's temperature in the voxeliser, so every
-        # update path (fast, dense, torch) receives the same F; labels are never touched.
-        if HAVE_NUMBA:
-            volume = voxelize_scan(points, values, pose, origin, self.geometry.dims, self.resolution,
-                                   self.num_classes, self.ignore_classes, self.window.slot, self.temperature)
-        else:
-            volume = voxelize(transform_points(points, pose), values, origin, self.geometry.dims, self.resolution,
-                              self.num_classes, self.ignore_classes, self.temperature)
+        volume = self.voxelize(points, values, pose, origin)
         voxelized = time.perf_counter()
         self.window.move_to(origin)
         moved = time.perf_counter()
@@ -244,29 +231,14 @@ class ConvBKIMapper:
             self.forgetting.contradicted(volume, self.window)
             forgetting_s = time.perf_counter() - moved
         if volume.num_voxels:
-            update = {"fast": self._update_fast, "dense": self._update_dense, "torch": self._update_torch}
-            result.new_voxels = update[self.update_path](volume, marks)
+            result.new_voxels = self.update(volume, marks)
         if self.forgetting is not None:
             started_rule = time.perf_counter()
             self.forgetting.unsupported(self.window)
             forgetting_s += time.perf_counter() - started_rule
         updated = time.perf_counter()
-        if self.free_space and volume.num_voxels:
-            offsets, tap_weights = self._free_space_taps()
-            ends, weights, through = scan_rays(points, pose, volume, self.resolution)
-            sensor = pose[:3, 3] / self.resolution
-            if self.update_path == "torch":  # the rays are counted here, applied on the device
-                counts = count_rays(sensor, ends, weights, through, self.geometry.dims, self._free_counts)
-                before = self.window.alpha[FREE_CLASS].clone() if self.max_concentration else None
-                result.freed_voxels = torch_free_space(counts, self._free_filter, self.window)
-                counts.fill(0.0)
-                if before is not None:
-                    clamp_torch(self.window.alpha, before, self.max_concentration, self.prior)
-            else:
-                result.freed_voxels = free_space_update(sensor, ends, weights, offsets, tap_weights, origin,
-                                                        self.geometry.dims, self.window.alpha, self.window.mask,
-                                                        self._free_counts, through, self.max_concentration,
-                                                        self.prior)
+        if self.free is not None and volume.num_voxels:
+            result.freed_voxels = self.free(points, pose, volume, origin)
         self.scans_integrated += 1
         self.sensor_position = pose[:3, 3].copy()
         self.present_movers = movers
@@ -276,38 +248,6 @@ class ConvBKIMapper:
                             "free": 1e3 * (finished - updated + forgetting_s),
                             "total": 1e3 * (finished - started)}
         return result
-
-    def _refresh_filters(self) -> None:
-        """The kernel's filters prepared for the scatter and the free-space pass, rebuilt only
-        when its lengths change."""
-        with torch.no_grad():
-            key = (self.kernel.kind, self.kernel.resolution, self.kernel.filter_size,
-                   *(parameter.detach().cpu().numpy().tobytes() for parameter in self.kernel.parameters()))
-            if self._plan_key != key:
-                self._plan = FilterPlan.from_filters(self.kernel.filters().detach().cpu().numpy()[:, 0])
-                self._free_filter = self.kernel.free_filter().detach().cpu().numpy()
-                self._free_taps = free_taps(self._free_filter)
-                if self.update_path == "torch":
-                    self._torch_filters = TorchFilters(self._plan, self.device)
-                self._plan_key = key
-
-    def _filter_plan(self) -> FilterPlan:
-        self._refresh_filters()
-        return self._plan
-
-    def _free_space_taps(self) -> tuple[np.ndarray, np.ndarray]:
-        self._refresh_filters()
-        return self._free_taps
-
-    def _update_fast(self, volume: SparseVolume, marks: int) -> int:
-        return scatter_volume(volume, self._filter_plan(), self.window.alpha, self.window.mask, marks)
-
-    def _update_torch(self, volume: SparseVolume, marks: int) -> int:
-        self._refresh_filters()
-        return torch_update(volume, self._torch_filters, self.window, marks)
-
-    def _update_dense(self, volume: SparseVolume, marks: int) -> int:
-        return dense_volume(volume, self.layer, self.window.alpha, self.window.mask, marks)
 
     # -- reading the map -------------------------------------------------------------------
     def concentrations_at(self, points_map: np.ndarray,

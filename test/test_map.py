@@ -137,7 +137,7 @@ def test_bad_probability_rows_leave_the_map_of_the_good_rows(update_path, voxeli
     """Rows with a NaN/inf, a negative value or a zero sum are dropped and counted; the map is
     exactly the map of the good rows alone, and it saves and loads."""
     if voxeliser == "numpy":
-        monkeypatch.setattr("convbki_core.mapper.HAVE_NUMBA", False)  # the voxeliser used without numba
+        monkeypatch.setattr("convbki_core.parts.HAVE_NUMBA", False)  # the voxeliser used without numba
     rng = np.random.default_rng(12)
     with_bad, good_only = small_mapper(update_path=update_path), small_mapper(update_path=update_path)
     for _ in range(3):
