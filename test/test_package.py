@@ -361,3 +361,25 @@ def test_console_scripts_are_the_tools_and_nothing_re_exports_them() -> None:
             if "tools" not in path.relative_to(REPO).parts:
                 source = path.read_text()
                 assert ".tools." not in source or "import *" not in source, f"{path} re-exports a tool"
+
+
+def _imports(path: Path) -> set[str]:
+    import ast
+
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            found.add(node.module)
+    return found
+
+
+def test_layers_import_one_way() -> None:
+    """The core never imports ROS or the ROS side; the core's library never imports its own
+    programs (``convbki_core.tools``); the programs call the library, never the other way."""
+    for path in (REPO / "convbki_core").rglob("*.py"):
+        names = _imports(path)
+        assert not any(name.split(".")[0] in ("rclpy", "convbki_ros") for name in names), path
+        if "tools" not in path.relative_to(REPO).parts:
+            assert not any(name.startswith("convbki_core.tools") for name in names), path
