@@ -176,6 +176,30 @@ PARAMETERS: tuple[Spec, ...] = (
          "exit (code 2) when map_file exists but cannot be loaded, instead of starting with an empty map; bool"),
 )
 SPECS = {spec.name: spec for spec in PARAMETERS}
+# The parameters under headings, as config/mapper.yaml and docs/node.md list them.
+PARAMETER_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("Grid, window and kernel", (
+        "kernel_file", "num_classes", "resolution", "filter_size", "local_bounds", "prior",)),
+    ("Free space and moving objects", (
+        "free_space", "max_concentration", "forget_movers", "moving_labels",)),
+    ("Device and update path", (
+        "device", "update_path",)),
+    ("Inputs and frames", (
+        "label_space", "input_qos", "map_frame", "pose_source", "transform_timeout", "base_to_sensor",)),
+    ("Map outputs", (
+        "max_variance", "publish_period", "map_period", "updates_depth", "view_radius", "view_max_points",
+        "publish_local", "local_period",)),
+    ("Planner's costmap", (
+        "costmap_profile", "costmap_size", "costmap_max_cells",)),
+    ("Files and map edits", (
+        "map_file", "autosave_period", "save_on_shutdown", "refuse_bad_map_file", "ply_file", "clear_box_min",
+        "clear_box_max",)),
+    ("Queue and robustness (bad input never stops the node, and never changes the map)", (
+        "cloud_queue_size", "cloud_queue_megabytes", "max_points_per_cloud", "pose_wait_timeout", "max_pose_jump",
+        "on_pose_jump", "stamp_backwards_tolerance", "reset_on_stamp_backwards", "odometry_timeout",)),
+    ("Logs and diagnostics", (
+        "stats_period", "diagnostics_period",)),
+)
 
 
 def descriptor(spec: Spec):

@@ -383,3 +383,22 @@ def test_layers_import_one_way() -> None:
         assert not any(name.split(".")[0] in ("rclpy", "convbki_ros") for name in names), path
         if "tools" not in path.relative_to(REPO).parts:
             assert not any(name.startswith("convbki_core.tools") for name in names), path
+
+
+def test_parameters_are_listed_under_the_same_headings_everywhere() -> None:
+    """Every parameter is under one heading of ``PARAMETER_GROUPS``, and config/mapper.yaml
+    and docs/node.md list them under those headings, in that order."""
+    from convbki_ros.params import PARAMETER_GROUPS, SPECS
+
+    grouped = [name for _, names in PARAMETER_GROUPS for name in names]
+    assert sorted(grouped) == sorted(SPECS)
+    yaml_text = (REPO / "config" / "mapper.yaml").read_text()
+    docs = (REPO / "docs" / "node.md").read_text()
+    for title, names in PARAMETER_GROUPS:
+        yaml_section = yaml_text.split(f"    # === {title} ===\n")[1].split("    # === ")[0]
+        listed = [line.split(":")[0].strip(" #") for line in yaml_section.splitlines()
+                  if line.strip(" #").split(":")[0] in SPECS and ":" in line]
+        assert listed == list(names), title
+        docs_section = docs.split(f"### {title}\n")[1].split("\n### ")[0]
+        rows = [line.split("|")[1].strip().strip("`") for line in docs_section.splitlines() if line.startswith("| `")]
+        assert rows == list(names), title
