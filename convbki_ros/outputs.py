@@ -129,6 +129,8 @@ class MapOutputs:
                 try:
                     getattr(self, f"_publish_{what}")()
                 except Exception as error:  # a failed publish must not end the thread
+                    if not self.node.context.ok():  # SIGINT/SIGTERM shut ROS down under it: the node is stopping
+                        return
                     self.node.get_logger().error(f"publishing {what} failed: {error.__class__.__name__}: {error}")
 
     # -- the cycle: updates and view ---------------------------------------------------------

@@ -63,12 +63,14 @@ def node_default_mapper(**options) -> ConvBKIMapper:
     return ConvBKIMapper(config.replace(**{"local_bounds": (BOUNDS[:3], BOUNDS[3:]), "device": "cpu", **options}))
 
 
-def offline_map(scans: int) -> ConvBKIMapper:
-    """The good cloud integrated ``scans`` times at POSE by the mapper object the node uses."""
+def offline_map(scans: int, translation=TRANSLATION) -> ConvBKIMapper:
+    """The good cloud integrated ``scans`` times at POSE (moved to ``translation``) by the mapper
+    object the node uses."""
     label_map = load_label_map("semantic_kitti")
     mapper = node_default_mapper()
+    pose = pose_from_translation_quaternion(np.asarray(translation, np.float64), QUATERNION)
     for _ in range(scans):
-        mapper.integrate(POINTS, label_map.to_learning(LABELS), POSE)
+        mapper.integrate(POINTS, label_map.to_learning(LABELS), pose)
     return mapper
 
 

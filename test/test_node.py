@@ -4,10 +4,12 @@ import signal
 
 import numpy as np
 import pytest
-from mapper_rig import node_default_mapper
-from ros_helpers import NodeLog, Probe, domain_id, start, stop
+from helpers import read_ply
+from mapper_rig import Rig, node_default_mapper
+from ros_helpers import Probe, domain_id, start, stop
 
 from convbki_core.config import MapperConfig
+from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
@@ -97,7 +99,18 @@ def test_node_maps_a_bag_like_the_offline_mapper_and_serves_its_map(drive, tmp_p
         np.testing.assert_allclose(a.alpha[order_a], b.alpha[order_b], rtol=1e-6)
 
         ply = probe.call(Trigger, "/convbki_mapper/export_ply")
-        assert ply.success and (tmp_path / "map.ply").exists(), ply.message
+        assert ply.success and ply.message == f"wrote {shown.sum()} voxels to {tmp_path / 'map.ply'}", ply.message
+        # The PLY holds the shown voxels of the offline map: centres, labels, class colours, variances.
+        vertices = read_ply(tmp_path / "map.ply")
+        assert len(vertices) == shown.sum()
+        ply_centres = np.column_stack([vertices["x"], vertices["y"], vertices["z"]])
+        order = np.lexsort(ply_centres.T)
+        np.testing.assert_array_equal(ply_centres[order], want_centres)
+        np.testing.assert_array_equal(vertices["label"][order], want_labels)
+        colours = np.column_stack([vertices["red"], vertices["green"], vertices["blue"]])[order]
+        np.testing.assert_array_equal(colours, load_label_map("semantic_kitti").colors[want_labels])
+        want_variance = voxels.variance[shown][np.lexsort(voxels.centres[shown].T)]
+        np.testing.assert_allclose(vertices["variance"][order], want_variance, rtol=1e-5)
 
         reset = probe.call(Trigger, "/convbki_mapper/reset")
         assert reset.success
@@ -108,18 +121,19 @@ def test_node_maps_a_bag_like_the_offline_mapper_and_serves_its_map(drive, tmp_p
     assert "Traceback" not in output and "[ERROR]" not in output, output
 
 
-def test_sigint_stops_the_node_cleanly(tmp_path):
-    domain = domain_id()
-    mapper = start_mapper(domain, tmp_path, "-p", "save_on_shutdown:=false")
-    log = NodeLog(mapper)  # reads the output on a thread: waiting for a line cannot block on a silent node
+def test_sigint_stops_the_node_cleanly_and_saves_nothing_when_told_not_to(tmp_path):
+    # A map that changed, so that the default (save_on_shutdown true) would write map_file.
+    rig = Rig(tmp_path, "-p", "save_on_shutdown:=false")
     try:
-        assert log.wait_for("mapper ready", timeout=60), log.text()  # torch import, DDS
-        mapper.send_signal(signal.SIGINT)
-        code = mapper.wait(timeout=30)  # a bound for a hung node, not a measurement
+        assert rig.integrate_good_cloud().voxels > 0
+        rig.process.send_signal(signal.SIGINT)
+        code = rig.process.wait(timeout=30)  # a bound for a hung node, not a measurement
     finally:
-        output = log.close()
+        output = rig.close()
     assert code == 0, output
     assert "Traceback" not in output and "[ERROR]" not in output, output
+    assert not rig.map_file.exists() and not list(rig.map_file.parent.iterdir()), output
+    assert "on shutdown" not in output, output
 
 
 def test_bad_parameters_exit_2_with_a_message(tmp_path):

@@ -410,11 +410,14 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
         # Clouds and no odometry at all: a warning every odometry_timeout, and nothing mapped.
         mark = rig.log.mark()
         warning = r"\[WARN\].*no odometry at all on /odom for [\d.]+ s while clouds arrive on /cloud_in"
+        sent = rig.stats().scans_in
         for _ in range(int(WAIT / 0.2)):  # clouds keep coming until the warning came twice
             if len(rig.log.find(warning, mark)) >= 2:
                 break
             rig.publish(cloud(rig.next_stamp(0.1)))
-            rig.probe.spin_until(lambda: False, 0.2)  # the pace of the clouds
+            sent += 1
+            # The next cloud once the node has counted this one (a /diagnostics report, every 0.2 s, says so).
+            rig.wait_stats(lambda s, sent=sent: s.scans_in == sent)
         assert len(rig.log.find(warning, mark)) == 2, rig.log.text(mark)
         assert rig.wait_stats(lambda s: s.level == 2).integrated == 0  # ERROR on /diagnostics
         stats = rig.wait_stats(lambda s: s.dropped == s.scans_in)
@@ -472,7 +475,8 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
         assert all(result.successful for result in rig.set_parameters(on_pose_jump="new_file"))
         assert not rig.set_parameters(on_pose_jump="split")[0].successful
         mark = rig.log.mark()
-        rig.publish(odometry(rig.next_stamp(), translation=TRANSLATION + [0.0, -80.0, 0.0]))
+        jumped = TRANSLATION + [0.0, -80.0, 0.0]
+        rig.publish(odometry(rig.next_stamp(), translation=jumped))
         segment, following = (rig.map_file.with_name(f"map.segment-{n}.npz") for n in (2, 3))
         rig.wait_log(rf"\[WARN\].*odometry jumped 80.00 m in 1.00 s .*the map so far \({final.voxels} voxels\) is "
                      rf"being saved to {re.escape(str(segment))}; a new map starts for the new segment, saved to "
@@ -482,11 +486,19 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
         assert rig.parameter("map_file") == str(following)
         assert rig.wait_stats(lambda s: s.voxels == 0).integrated == final.integrated + 1
 
-        rig.process.send_signal(signal.SIGINT)
+        # SIGTERM (what a supervisor sends) saves the new segment's map to the map_file now in use:
+        # autosave is turned off first, so only the save on shutdown can write it.
+        assert all(result.successful for result in rig.set_parameters(autosave_period=0.0))
+        last = rig.integrate_good_cloud(translation=jumped)
+        autosaved_segment = following.read_bytes() if following.exists() else b""  # the segment's empty start
+        rig.process.send_signal(signal.SIGTERM)
         assert rig.process.wait(timeout=WAIT) == 0
     finally:
         output = rig.close()
-    assert "Traceback" not in output, output
+    assert "Traceback" not in output and "[ERROR]" not in output, output
+    assert f"on shutdown: saved {last.voxels} voxels to {following}" in output, output
+    assert following.read_bytes() != autosaved_segment
+    expect_file_holds(following, offline_map(1, translation=jumped))
     assert rig.map_file.read_bytes() == autosaved  # the file saved before the resets was never overwritten
     expect_file_holds(rig.map_file, offline_map(1))
 

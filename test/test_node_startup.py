@@ -4,10 +4,15 @@ and read-only parameters refuse to change. Real processes over DDS."""
 
 import re
 
+import numpy as np
 import pytest
 import torch
-from mapper_rig import WAIT, Rig
+from mapper_rig import BOUNDS, LABELS, POINTS, QUATERNION, SECOND, TRANSLATION, WAIT, Rig, node_default_mapper
 from ros_helpers import domain_id, start
+
+from convbki_core.datasets.labels import load_label_map
+from convbki_ros.cloud_decoding import FLOAT32, UINT32, decode_cloud
+from convbki_ros.transforms import pose_from_translation_quaternion
 
 MIXED_LIST = "/**:\n  ros__parameters:\n    local_bounds: [1.0, 2, 3.0, 4.0, 5.0, 6.0]\n"
 BROKEN_YAML = "/**:\n  ros__parameters:\n    resolution: [0.2\n"
@@ -97,9 +102,21 @@ def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_e
 
 @pytest.mark.parametrize("namespace", ["", "/robot1"])
 def test_output_topics_are_relative_to_the_namespace(namespace, tmp_path):
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
     rig = Rig(tmp_path, namespace=namespace)
     try:
+        # semantic_map/local is volatile: subscribed before the scans, so the node sends it after them.
+        local = []
+        subscription = rig.probe.node.create_subscription(
+            PointCloud2, f"{namespace}/semantic_map/local", local.append,
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        assert rig.probe.spin_until(lambda: subscription.get_publisher_count() > 0, WAIT)
+        # A second scan 15 m on moves the window: part of the first scan's voxels leave it.
+        moved = TRANSLATION + [15.0, 0.0, 0.0]
         rig.integrate_good_cloud()
+        rig.integrate_good_cloud(translation=moved)
         wanted = {f"{namespace}/{topic}" for topic in ("semantic_map", "semantic_map/variance", "semantic_map/local")}
         wanted.add("/diagnostics")
 
@@ -108,6 +125,34 @@ def test_output_topics_are_relative_to_the_namespace(namespace, tmp_path):
 
         assert rig.probe.spin_until(lambda: wanted <= names(), WAIT), sorted(names())
         assert rig.map_message(rig.shown_voxels()).width > 0
+
+        # The local window after the second scan (stamped with it) holds what the offline mapper's
+        # window holds after the same scans: the voxels around the sensor, with their labels.
+        def stamp(msg) -> int:
+            return msg.header.stamp.sec * SECOND + msg.header.stamp.nanosec
+
+        assert rig.probe.spin_until(lambda: local and stamp(local[-1]) == rig.stamp, WAIT), \
+            [stamp(msg) for msg in local]
+        window = local[-1]
+        assert window.header.frame_id == "map" and window.height == 1
+        assert {f.name: f.datatype for f in window.fields} == {
+            "x": FLOAT32, "y": FLOAT32, "z": FLOAT32, "rgb": FLOAT32, "label": UINT32, "variance": FLOAT32,
+            "confidence": FLOAT32}
+        decoded = decode_cloud(window, 20)
+        expected = node_default_mapper()
+        label_map = load_label_map("semantic_kitti")
+        for translation in (TRANSLATION, moved):
+            expected.integrate(POINTS, label_map.to_learning(LABELS),
+                               pose_from_translation_quaternion(translation, QUATERNION))
+        voxels, everything = expected.local_voxels(), expected.voxels()
+        shown = voxels.label != 0
+        assert 0 < shown.sum() < (everything.label != 0).sum()  # the window is not the whole map
+        got = np.lexsort(decoded.points.T)
+        want = np.lexsort(voxels.centres[shown].T)
+        np.testing.assert_array_equal(decoded.points[got], voxels.centres[shown][want])
+        np.testing.assert_array_equal(decoded.labels[got], voxels.label[shown][want])
+        low, high = moved + BOUNDS[:3], moved + BOUNDS[3:]
+        assert (decoded.points >= low - 0.2).all() and (decoded.points <= high + 0.2).all()
     finally:
         output = rig.close()
     assert "Traceback" not in output, output

@@ -44,6 +44,21 @@ def test_interpolated_rotation_stays_a_rotation(fraction, yaw0, yaw1):
     rotation = pose[:3, :3]
     np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-9)
     assert abs(np.linalg.det(rotation) - 1.0) < 1e-9
+    # A turn about z stays a turn about z, and its yaw lies between the inputs' on the shorter
+    # arc (through +-pi when that is shorter), as far along it as the stamp is between theirs.
+    np.testing.assert_allclose(rotation[2], [0.0, 0.0, 1.0], atol=1e-9)
+    yaw = np.arctan2(rotation[1, 0], rotation[0, 0])
+    arc = _wrapped(yaw1 - yaw0)
+    np.testing.assert_allclose(abs(_wrapped(yaw - yaw0)) + abs(_wrapped(yaw1 - yaw)), abs(arc), atol=1e-9)
+    travelled, expected = _wrapped(yaw - yaw0), int(fraction * 1e9) * 1e-9 * arc
+    if np.pi - abs(arc) < 1e-6:  # a half turn: either way round is as short
+        travelled, expected = abs(travelled), abs(expected)
+    np.testing.assert_allclose(travelled, expected, atol=1e-9)
+
+
+def _wrapped(angle):
+    """``angle`` in [-pi, pi)."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
 def test_pose_problem_names_non_finite_and_non_unit_poses():

@@ -7,19 +7,42 @@ import sys
 
 import pytest
 
+from convbki_ros.status import Snapshot
 from convbki_ros.tools.realtime_check import LISTENERS, listeners_arg, parse_counters
 
-LINE = ("[INFO] [1.0] [convbki_mapper]: scans in 150, integrated 146, dropped 4 (queue full 3, no pose 1), "
-        "odometry in 150 (rejected 0), queue 2, map voxels 2186145, last update 12 ms, last map publish 310 ms")
+
+def logged(snapshot: Snapshot) -> str:
+    """The counters line as the node logs it every stats_period (``Snapshot.line``, through its logger)."""
+    return f"[INFO] [1712345678.123456789] [convbki_mapper]: {snapshot.line()}"
 
 
-def test_counters_line_with_and_without_queue_peak() -> None:
-    sample = parse_counters(LINE)
-    assert sample == {"scans_in": 150, "integrated": 146, "dropped": 4, "queue": 2, "voxels": 2186145,
-                      "update_ms": 12, "publish_ms": 310, "reasons": {"queue full": 3, "no pose": 1}}
-    newer = parse_counters(LINE.replace("dropped 4 (queue full 3, no pose 1)", "dropped 0") + ", queue peak 3")
-    assert newer["dropped"] == 0 and newer["reasons"] == {} and newer["queue_peak"] == 3
-    assert parse_counters("ConvBKI mapper ready") is None
+def snapshot(**changes) -> Snapshot:
+    values = dict(scans_in=150, integrated=146, dropped={"queue full": 3, "no pose": 1}, odometry_in=151,
+                  odometry_rejected=2, queue=5, queue_peak=7, waiting_for_pose=1, map_voxels=2186145,
+                  last_update_ms=12.4, median_update_ms=11.0, last_publish_ms=309.7, median_publish_ms=300.0,
+                  maps_published=40, median_cycle_ms=25.0, map_version=146, odometry_delay_ms_median=3.0,
+                  odometry_delay_ms_max=9.0, odometry_gap_ms_max=120.0)
+    return Snapshot(**{**values, **changes})
+
+
+def expected_sample(counters: Snapshot) -> dict:
+    return {"scans_in": counters.scans_in, "integrated": counters.integrated, "dropped": counters.dropped_total,
+            "queue": counters.queue, "voxels": counters.map_voxels, "update_ms": round(counters.last_update_ms),
+            "publish_ms": round(counters.last_publish_ms), "queue_peak": counters.queue_peak,
+            "reasons": counters.dropped}
+
+
+def test_the_node_s_counters_line_is_read_back() -> None:
+    with_drops = snapshot()
+    assert parse_counters(logged(with_drops)) == expected_sample(with_drops)
+    # No drops (no reasons in brackets), and odometry stamped in another clock (brackets and a
+    # question mark after the numbers the parser reads).
+    none_dropped = snapshot(scans_in=90, integrated=88, dropped={}, queue=0, queue_peak=3, map_voxels=51,
+                            last_update_ms=7.0, last_publish_ms=0.0, odometry_delay_ms_median=5e9)
+    line = logged(none_dropped)
+    assert "odometry stamps not in the node's clock" in line
+    assert parse_counters(line) == expected_sample(none_dropped)
+    assert parse_counters("[INFO] [1.0] [convbki_mapper]: ConvBKI mapper ready: compound kernel") is None
 
 
 def test_listeners_argument() -> None:

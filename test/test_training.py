@@ -52,19 +52,34 @@ def test_a_start_kernel_that_is_already_best_is_written_back_unchanged(tmp_path,
     assert written["free_ell"] == given["free_ell"] == 0.3
 
 
-def test_the_best_validated_kernel_is_written_and_free_ell_is_kept_by_default(tmp_path, capsys):
+def test_the_best_validated_kernel_is_written_and_free_ell_is_kept_by_default(tmp_path, capsys, monkeypatch):
     write_drive(tmp_path / "data", "01", frames=14, seed=3)
-    start_path, _start = _start_file(tmp_path)
+    start_path, start = _start_file(tmp_path)
+    scored = []  # (lengths, validation mIoU) of every kernel the trainer validated, in order
+    score = trainer.Validator.score
+
+    def spy_score(self, config):
+        miou = score(self, config)
+        scored.append(((list(config.ell_h), list(config.ell_z)), miou))
+        return miou
+
+    monkeypatch.setattr(trainer.Validator, "score", spy_score)
     out = tmp_path / "k.yaml"
     code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05",
                                   "--validate-every", "3"))
     assert code == 0
     printed = capsys.readouterr().out
-    line = next(line for line in printed.splitlines() if line.startswith("validation mIoU: start"))
-    start_miou = float(line.split("start ")[1].split(",")[0])
-    best_miou = float(line.split("best ")[1].split(" ")[0])
-    assert best_miou >= start_miou
-    assert load_kernel_file(out).free_ell == pytest.approx(0.3)  # not learned: the start's value
+    # 18 steps validated every 3, after the start: 7 scores, the first the start kernel's.
+    assert len(scored) == 7 and scored[0][0] == (start.ell_h, start.ell_z)
+    start_miou, (best_lengths, best_miou) = scored[0][1], max(scored[1:], key=lambda entry: entry[1])
+    assert best_miou > start_miou  # training on this drive beats the start on the held-out frames
+    assert scored[-1][1] < best_miou  # the last kernel is not the best: writing the last would fail below
+    written = load_kernel_file(out)
+    assert best_lengths != (start.ell_h, start.ell_z)  # the steps moved the lengths
+    np.testing.assert_allclose(written.ell_h, best_lengths[0], atol=1e-6)  # the file keeps 6 decimals
+    np.testing.assert_allclose(written.ell_z, best_lengths[1], atol=1e-6)
+    assert f"validation mIoU: start {start_miou:.4f}, best {best_miou:.4f}" in printed
+    assert written.free_ell == pytest.approx(0.3)  # not learned: the start's value
     assert "free_ell: learned" not in printed
 
 
