@@ -8,7 +8,6 @@ next to this interpreter (the venv's), so the repo's own build/ and install/ are
 
 from __future__ import annotations
 
-import inspect
 import os
 import shutil
 import subprocess
