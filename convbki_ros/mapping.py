@@ -367,8 +367,8 @@ class MappingCore:
     def run(self) -> None:
         """Integrate queued clouds as their poses become known, until ``stop()``."""
         while True:
-            timeout = self.node.param("transform_timeout" if self.pose_source == "tf" else "pose_wait_timeout")
-            decision = self.queue.next(timeout, self.clock_ns)
+            name = "transform_timeout" if self.pose_source == "tf" else "pose_wait_timeout"
+            decision = self.queue.next(lambda name=name: self.node.param(name), self.clock_ns)
             if decision is None:
                 return
             try:

@@ -136,14 +136,17 @@ class CloudQueue:
         self.bytes -= pending.nbytes
         return pending
 
-    def next(self, pose_wait_timeout: float, clock_ns=lambda: 0) -> Decision | None:
+    def next(self, pose_wait_timeout, clock_ns=lambda: 0) -> Decision | None:
         """Block until a cloud can be decided (or ``stop()``); None when stopping.
 
         ``pose_wait_timeout``: seconds of the node's clock (``clock_ns()``) a cloud may wait for
-        its odometry; 0 = as long as the queue has room for it.
+        its odometry; 0 = as long as the queue has room for it. A callable is read at every look,
+        so that a change at run time applies to the clouds already waiting.
         """
+        read = pose_wait_timeout if callable(pose_wait_timeout) else lambda: pose_wait_timeout
         with self.changed:
             while not self.stopping:
+                pose_wait_timeout = read()
                 decision = self._decide(pose_wait_timeout, clock_ns)
                 if decision is not None:
                     return decision

@@ -62,16 +62,20 @@ def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_e
     from rcl_interfaces.srv import SetParameters
 
     params = tmp_path / "params.yaml"
-    params.write_text("/**:\n  ros__parameters:\n    resolutoin: 0.3\n    map_period: 1000.0\n")
-    # map_period and stats_period so long that, unless the change re-creates their timers,
-    # the map would not be published nor the counters logged while the test runs.
+    params.write_text("/**:\n  ros__parameters:\n    resolutoin: 0.3\n    map_period: 1000.0\n"
+                      "    publish_period: 1000.0\n")
+    # map_period, publish_period and stats_period so long that, unless the change re-creates their
+    # timers, the map and its updates would not be published nor the counters logged while the test runs.
     rig = Rig(tmp_path, "--params-file", str(params), "-p", "filter_size:=3", "-p", "stats_period:=1000.0")
     try:
+        from sensor_msgs.msg import PointCloud2
+
+        updates = rig.probe.subscribe(PointCloud2, "/semantic_map/updates")
         assert rig.log.find(r"\[WARN\].*unknown parameters ignored \(misspelt\?\): resolutoin;")
         assert rig.log.find(r"\[WARN\].*set explicitly, overriding the kernel file .*: filter_size 3 \(kernel: 5\)")
         assert rig.log.find(r"mapper ready: compound kernel, 0.2 m voxels, f = 3,")
         rig.integrate_good_cloud()
-        assert not rig.maps and not rig.log.find(r"scans in \d+, integrated")
+        assert not rig.maps and not updates and not rig.log.find(r"scans in \d+, integrated")
 
         client = rig.probe.node.create_client(SetParameters, "/convbki_mapper/set_parameters")
 
@@ -91,6 +95,7 @@ def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_e
         assert rig.set_parameters(publish_period=2)[0].successful
         assert rig.parameter("publish_period") == 2.0 and isinstance(rig.parameter("publish_period"), float)
         assert rig.set_parameters(publish_period=0.2)[0].successful
+        assert rig.probe.spin_until(lambda: bool(updates), WAIT), "no updates after publish_period became 0.2 s"
         assert set_parameter("map_period", 0.2).successful
         assert rig.probe.spin_until(lambda: bool(rig.maps), WAIT), "no map after map_period became 0.2 s"
         assert set_parameter("stats_period", 0.2).successful

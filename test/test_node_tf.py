@@ -8,7 +8,7 @@ loop closure) half-way through the drive.
 """
 
 import numpy as np
-from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds, node_default_mapper
+from mapper_rig import LABELS, POINTS, WAIT, Rig, cloud, expect_file_holds, node_default_mapper
 from test_node_frames import BOUNDS, MOUNT, assert_same_voxels, shown_voxels
 
 from convbki_core.datasets.labels import load_label_map
@@ -82,6 +82,19 @@ def test_a_cloud_whose_transform_never_comes_is_dropped_and_said(tmp_path):
         rig.wait_log(r"\[WARN\].*dropping cloud stamped 1001\.000 s in frame 'velo_link' after waiting "
                      r"transform_timeout = 0\.3 s: no transform from map_frame 'map' to the odometry's 'odom' "
                      r"\(frames 'map' and 'odom' are unknown\)", since=0)
+
+        # transform_timeout 0 at run time: the next cloud waits (four reports, 0.8 s, outlast the
+        # 0.3 s before) until map -> odom comes, and is then mapped.
+        assert rig.set_parameters(transform_timeout=0.0)[0].successful
+        stamp = rig.next_stamp()
+        rig.publish(pose_to_odometry(BASE_IN_ODOM[0], stamp, "odom", "velo_link"), cloud(stamp))
+        rig.wait_stats(lambda s: s.scans_in == 2)
+        seen = len(rig.diagnostics)
+        assert rig.probe.spin_until(lambda: len(rig.diagnostics) >= seen + 4, WAIT)
+        stats = rig.stats()
+        assert (stats.integrated, stats.dropped) == (0, 1), stats
+        rig.publish_tf(pose_to_transform_stamped(np.eye(4), 0, "map", "odom"), static=True)
+        assert rig.wait_stats(lambda s: s.integrated == 1).dropped == 1
     finally:
         output = rig.close()
     assert "Traceback" not in output, output

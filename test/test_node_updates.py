@@ -73,6 +73,13 @@ def test_updates_rebuild_the_map_and_the_view_is_bounded(tmp_path):
         centre = TRANSLATION + [50.0, 3.0, 0.0]
         assert len(view) <= 3000
         assert (np.hypot(view["x"] - centre[0], view["y"] - centre[1]) <= 12.0 + 1e-4).all()
+
+        # A smaller view at run time: the next scan's view keeps to it.
+        assert all(result.successful for result in rig.set_parameters(view_radius=5.0, view_max_points=50))
+        rig.integrate_good_cloud(translation=TRANSLATION + [50.0, 3.0, 0.0])
+        assert rig.probe.spin_until(lambda: views[-1].width == 50, WAIT), views[-1].width
+        view = records_of(views[-1])
+        assert (np.hypot(view["x"] - centre[0], view["y"] - centre[1]) <= 5.0 + 1e-4).all()
     finally:
         output = rig.close()
     assert "Traceback" not in output and "[ERROR]" not in output, output
