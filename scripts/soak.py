@@ -4,7 +4,7 @@
     .venv/bin/python scripts/soak.py --scans 2000 --out out/soak
 
 Not a test: a full-size drive of thousands of scans is far too long for one. The measuring
-loop lives in ``convbki_core.tools.soak_measure`` so that test/test_soak.py runs a short
+loop lives in ``convbki_core.tools.soak_measure`` so that test/core/test_soak.py runs a short
 version of it. See ``--help`` for the columns and outputs.
 """
 

@@ -1,19 +1,53 @@
-"""Helpers only the tests need: readers of what the package writes, and small wrappers
-over its internals that the tests use as probes. The package itself never needs them."""
+"""Helpers only the core's tests need (no ROS): a simple LiDAR for street scenes, readers of
+what the package writes, and small wrappers over its internals that the tests use as probes.
+The package itself never needs them. The ROS side's helpers are in ros_helpers.py."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
 from convbki_core.free_space import _walk_ray
 from convbki_core.io.kernel_file import load_kernel_file
+from convbki_core.io.map_file import read_map
 from convbki_core.io.ply import PLY_DTYPE
 from convbki_core.kernels import ConvBKIKernel
-from convbki_ros.transforms import pose_from_translation_quaternion
+
+# A street for the simple LiDAR below: SemanticKITTI learning ids, and a house front across it
+# (what the LiDAR sees through the space a car has left).
+CAR, ROAD, BUILDING, POLE = 1, 9, 13, 18
+BUILDING_ACROSS = (np.array([12.0, -12.0, 0.0]), np.array([12.5, 12.0, 4.0]), BUILDING)
+
+
+def cast(sensor: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray, int]], max_range: float = 16.0):
+    """Returns (points in the world, labels) of a 64-beam, 0.5-degree LiDAR at ``sensor``:
+    the nearest hit of each ray on the ground (z = 0, road) or on an axis-aligned box."""
+    azimuth = np.radians(np.arange(0, 360, 0.5))
+    elevation = np.radians(np.linspace(-25, 3, 64))
+    a, e = np.meshgrid(azimuth, elevation)
+    directions = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    best = np.full(len(directions), np.inf)
+    label = np.zeros(len(directions), np.int64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ground = np.where(directions[:, 2] < 0, -sensor[2] / directions[:, 2], np.inf)
+        best, label = np.where(ground < best, ground, best), np.where(ground < best, ROAD, label)
+        for low, high, box_label in boxes:
+            t0, t1 = (low - sensor) / directions, (high - sensor) / directions
+            enter = np.nanmax(np.minimum(t0, t1), axis=1)
+            leave = np.nanmin(np.maximum(t0, t1), axis=1)
+            hit = (enter <= leave) & (enter > 0) & (enter < best)
+            best, label = np.where(hit, enter, best), np.where(hit, box_label, label)
+    keep = best < max_range
+    return sensor + directions[keep] * best[keep, None], label[keep]
+
+
+def sorted_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
+    """(metadata, indices, alpha) of a map file with the voxels in x, y, z order."""
+    metadata, indices, alpha = read_map(path)
+    order = np.lexsort(indices.T[::-1])
+    return metadata, indices[order], alpha[order]
 
 
 def crossed_voxels(start: np.ndarray, end_voxel: np.ndarray, through: bool = False) -> list[tuple[int, int, int]]:
@@ -44,29 +78,3 @@ def tap_offsets(filter_size: int, resolution: float, dtype=torch.float64):
 
 def kernel_from_file(path: str | Path) -> ConvBKIKernel:
     return ConvBKIKernel.from_config(load_kernel_file(path))
-
-
-def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` of (x, y, z, w) quaternions (rotation b, then a)."""
-    ax, ay, az, aw = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
-    bx, by, bz, bw = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
-    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw,
-                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
-
-
-def odometry_to_pose(msg: Any) -> np.ndarray:
-    """nav_msgs/Odometry (or a Pose, PoseStamped, PoseWithCovariance) -> 4x4 pose."""
-    pose = msg
-    while hasattr(pose, "pose"):
-        pose = pose.pose
-    p, o = pose.position, pose.orientation
-    return pose_from_translation_quaternion(np.array([p.x, p.y, p.z], np.float64),
-                                            np.array([o.x, o.y, o.z, o.w], np.float64))
-
-
-def unpack_rgb(packed: np.ndarray) -> np.ndarray:
-    """(...) float32 packed 0x00RRGGBB -> (..., 3) uint8 RGB."""
-    bits = np.ascontiguousarray(packed, dtype=np.float32).view(np.uint32)
-    return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], axis=-1).astype(np.uint8)

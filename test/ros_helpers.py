@@ -9,8 +9,12 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from convbki_ros.dds import use_large_data_profile
+from convbki_ros.transforms import pose_from_translation_quaternion
 
 REPO = Path(__file__).resolve().parents[1]
 _domains = itertools.count()
@@ -155,3 +159,29 @@ class NodeLog:
         self.process.wait(timeout=timeout)
         self._thread.join(timeout=timeout)
         return self.text()
+
+
+def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a * b`` of (x, y, z, w) quaternions (rotation b, then a)."""
+    ax, ay, az, aw = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
+    bx, by, bz, bw = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw,
+                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
+
+
+def odometry_to_pose(msg: Any) -> np.ndarray:
+    """nav_msgs/Odometry (or a Pose, PoseStamped, PoseWithCovariance) -> 4x4 pose."""
+    pose = msg
+    while hasattr(pose, "pose"):
+        pose = pose.pose
+    p, o = pose.position, pose.orientation
+    return pose_from_translation_quaternion(np.array([p.x, p.y, p.z], np.float64),
+                                            np.array([o.x, o.y, o.z, o.w], np.float64))
+
+
+def unpack_rgb(packed: np.ndarray) -> np.ndarray:
+    """(...) float32 packed 0x00RRGGBB -> (..., 3) uint8 RGB."""
+    bits = np.ascontiguousarray(packed, dtype=np.float32).view(np.uint32)
+    return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], axis=-1).astype(np.uint8)

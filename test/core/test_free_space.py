@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import crossed_voxels
+from helpers import BUILDING, BUILDING_ACROSS, CAR, POLE, ROAD, cast, crossed_voxels
 from reference import sparse_kernel_np
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
@@ -26,9 +26,6 @@ from convbki_core.free_space import (
 )
 from convbki_core.window import CHANGED, TOUCHED
 
-CAR, ROAD, BUILDING, POLE = 1, 9, 13, 18
-# A house front across the street: what the LiDAR sees through the space a car has left.
-BUILDING_ACROSS = (np.array([12.0, -12.0, 0.0]), np.array([12.5, 12.0, 4.0]), BUILDING)
 BOUNDS = ((-12.0, -12.0, -3.0), (12.0, 12.0, 3.0))
 
 
@@ -339,28 +336,6 @@ def test_free_space_off_leaves_class_zero_at_the_prior_and_on_needs_class_zero_i
 
 
 # -- scenes: a tiny ray caster over a ground plane and boxes ---------------------------------------
-
-def cast(sensor: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray, int]], max_range: float = 16.0):
-    """Returns (points in the world, labels) of a 64-beam, 0.5-degree LiDAR at ``sensor``:
-    the nearest hit of each ray on the ground (z = 0, road) or on an axis-aligned box."""
-    azimuth = np.radians(np.arange(0, 360, 0.5))
-    elevation = np.radians(np.linspace(-25, 3, 64))
-    a, e = np.meshgrid(azimuth, elevation)
-    directions = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
-    best = np.full(len(directions), np.inf)
-    label = np.zeros(len(directions), np.int64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ground = np.where(directions[:, 2] < 0, -sensor[2] / directions[:, 2], np.inf)
-        best, label = np.where(ground < best, ground, best), np.where(ground < best, ROAD, label)
-        for low, high, box_label in boxes:
-            t0, t1 = (low - sensor) / directions, (high - sensor) / directions
-            enter = np.nanmax(np.minimum(t0, t1), axis=1)
-            leave = np.nanmin(np.maximum(t0, t1), axis=1)
-            hit = (enter <= leave) & (enter > 0) & (enter < best)
-            best, label = np.where(hit, enter, best), np.where(hit, box_label, label)
-    keep = best < max_range
-    return sensor + directions[keep] * best[keep, None], label[keep]
-
 
 def integrate_world(mapper: ConvBKIMapper, sensor: np.ndarray, boxes) -> None:
     points, labels = cast(sensor, boxes)

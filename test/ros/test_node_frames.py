@@ -6,14 +6,13 @@ odometry is the LiDAR's own pose, with the mount from ``base_to_sensor`` or from
 """
 
 import numpy as np
-from mapper_rig import LABELS, POINTS, Rig, cloud, expect_file_holds, node_default_mapper, odometry
+from mapper_rig import BOUNDS, LABELS, POINTS, Rig, cloud, expect_file_holds, node_default_mapper, odometry
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_translation_quaternion
 
-BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]
 # The LiDAR 1.8 m above base_link, 0.4 m ahead, yawed by 0.2 rad and pitched a little.
 MOUNT_TRANSLATION = [0.4, 0.0, 1.8]
 MOUNT_QUATERNION = [0.0, 0.05, 0.1, 1.0] / np.linalg.norm([0.0, 0.05, 0.1, 1.0])

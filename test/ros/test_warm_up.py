@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 # In a fresh interpreter: warm up a mapper set up as the node sets it up, count every compiled
 # signature of every kernel, then map scans the way the node does (PointCloud2 in, decoded,

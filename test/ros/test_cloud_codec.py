@@ -8,9 +8,9 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from helpers import odometry_to_pose, quaternion_multiply, unpack_rgb
 from hypothesis import assume, given
 from hypothesis import strategies as st
+from ros_helpers import odometry_to_pose, quaternion_multiply, unpack_rgb
 
 from convbki_core.records import RECORD
 from convbki_ros import cloud_decoding as pc

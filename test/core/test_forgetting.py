@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_free_space import BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
+from helpers import BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
 
 from convbki_core import ConvBKIMapper
 from convbki_core.config import MapperConfig

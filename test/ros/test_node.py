@@ -5,7 +5,7 @@ import signal
 import numpy as np
 import pytest
 from helpers import read_ply
-from mapper_rig import Rig, node_default_mapper
+from mapper_rig import BOUNDS, Rig, node_default_mapper
 from ros_helpers import Probe, domain_id, start, stop
 
 from convbki_core.config import MapperConfig
@@ -17,7 +17,6 @@ from convbki_core.tools.synth import main as synth
 from convbki_ros.cloud_decoding import FLOAT32, UINT32, decode_cloud
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
 
-BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]
 FRAMES = 5
 
 

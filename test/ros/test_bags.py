@@ -14,15 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from helpers import odometry_to_pose
 from kitti_fixture import pose_about_z, write_sequence
-from ros_helpers import Probe, domain_id
+from ros_helpers import Probe, domain_id, odometry_to_pose
 
 from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.tools import kitti_to_bag, play_bag
 from convbki_ros.transforms import stamp_to_ns, transform_to_pose
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 EPOCH_NS = 1_700_000_000_000_000_000
 TIMES = [0.0, 0.1037, 0.2071, 0.3109]
 FRAME_SIZES = [300, 301, 280, 333]

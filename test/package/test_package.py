@@ -20,7 +20,7 @@ import yaml
 
 pytestmark = pytest.mark.package
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PACKAGE = "convbki_ros"
 
 # Every executable the package installs: exe -> (module, flags its --help must explain).
@@ -401,3 +401,14 @@ def test_parameters_are_listed_under_the_same_headings_everywhere() -> None:
         docs_section = docs.split(f"### {title}\n")[1].split("\n### ")[0]
         rows = [line.split("|")[1].strip().strip("`") for line in docs_section.splitlines() if line.startswith("| `")]
         assert rows == list(names), title
+
+
+def test_the_core_tests_run_without_ros() -> None:
+    """test/core and the helpers it uses import neither rclpy nor convbki_ros: the method's
+    tests run where no ROS 2 is installed."""
+    tests = REPO / "test"
+    for path in [*(tests / "core").glob("*.py"), tests / "helpers.py", tests / "reference.py",
+                 tests / "kitti_fixture.py", tests / "conftest.py"]:
+        names = _imports(path)
+        assert not any(name.split(".")[0] in ("rclpy", "convbki_ros", "ros_helpers", "mapper_rig")
+                       for name in names), path

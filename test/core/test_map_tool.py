@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import read_ply
+from helpers import read_ply, sorted_map
 from kitti_fixture import write_drive
 
 from convbki_core.clamping import DEFAULT_LIMIT
@@ -23,18 +23,11 @@ from convbki_core.store import VoxelStore
 from convbki_core.tools import evaluate, map_tool
 from convbki_core.tools.synth import main as synth
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 BOUNDS = ((-20.0, -12.0, -3.0), (20.0, 12.0, 4.0))
 FRAMES = 12
 HALF = FRAMES // 2
 PRIOR = 1e-3
-
-
-def sorted_map(path):
-    """(metadata, indices, alpha) of a map file with the voxels in x, y, z order."""
-    metadata, indices, alpha = read_map(path)
-    order = np.lexsort(indices.T[::-1])
-    return metadata, indices[order], alpha[order]
 
 
 def map_frames(dataset, start, stop, path, **options):

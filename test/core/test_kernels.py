@@ -132,7 +132,7 @@ def test_kernel_file_round_trip(tmp_path, kind):
     assert not list(tmp_path.glob(".*tmp")), "no temporary file may be left behind"
 
 
-PUBLISHED = yaml.safe_load((Path(__file__).resolve().parent / "data" / "published_kernel_lengths.yaml").read_text())
+PUBLISHED = yaml.safe_load((Path(__file__).resolve().parents[1] / "data" / "published_kernel_lengths.yaml").read_text())
 
 
 @pytest.mark.parametrize("kind", ["single", "per_class", "compound"])

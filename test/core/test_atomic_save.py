@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import sorted_map
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -45,7 +46,7 @@ from convbki_core.io.atomic import (
 )
 from convbki_core.io.map_file import MAP_VERSION, read_map
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 MARKERS = 2000  # voxels whose concentrations carry the version number
 GRID = (300, 12, 20)  # the map: a 60 m x 2.4 m x 4 m slab of 0.2 m voxels (72,000 voxels)
 
@@ -165,10 +166,9 @@ class LineReader:
         return line.decode()
 
 
-def sorted_map(path: Path) -> tuple[int, np.ndarray, np.ndarray]:
-    metadata, indices, alpha = read_map(path)
-    order = np.lexsort(indices.T[::-1])
-    return metadata["scans_integrated"], indices[order], alpha[order]
+def scans_and_sorted_map(path: Path) -> tuple[int, np.ndarray, np.ndarray]:
+    metadata, indices, alpha = sorted_map(path)
+    return metadata["scans_integrated"], indices, alpha
 
 
 def kill_points(writes: int) -> list[tuple[str, int, int]]:
@@ -195,7 +195,7 @@ def test_map_save_survives_kill_9_at_every_point_of_a_save(tmp_path):
         assert ready.startswith("ready "), ready
         writes = int(ready.split()[1])
         assert writes >= 3, "a save writes its file in several pieces, so a kill can land between them"
-        version, reference_index, reference_alpha = sorted_map(path)
+        version, reference_index, reference_alpha = scans_and_sorted_map(path)
         assert version == 0 and len(reference_index) == int(np.prod(GRID))
         marker = np.zeros(len(reference_index), bool)
         marker[:MARKERS] = True  # the grid's first rows are also first in sorted order
@@ -233,14 +233,14 @@ def test_map_save_survives_kill_9_at_every_point_of_a_save(tmp_path):
             # Stale files never pile up: a save first removes the temporary files of dead writers
             # (the earlier rounds'), so only the staging file of the child just killed is left.
             assert temp_files(path) == staging
-            version, index, alpha = sorted_map(path)  # the file must load after every kill
+            version, index, alpha = scans_and_sorted_map(path)  # the file must load after every kill
             assert version == (this_version if renamed else last_done), (phase, count, version)
             np.testing.assert_array_equal(index, reference_index)
             assert (alpha[marker] == float(version)).all()
             np.testing.assert_array_equal(alpha[~marker], reference_alpha[~marker])
             # NAME.prev is a whole map too: an older version, or the same one when the kill came between
             # the save's two renames.
-            previous_version, previous_index, _ = sorted_map(previous_path(path))
+            previous_version, previous_index, _ = scans_and_sorted_map(previous_path(path))
             between_renames = (phase, count) in {("replaced", 1), ("replace", 2)}
             assert previous_version == version if between_renames else previous_version < version, \
                 (phase, count, previous_version, version)

@@ -26,7 +26,7 @@ from convbki_core.tools import bench, evaluate, train
 from convbki_core.tools import synth as synthetic
 from convbki_ros.tools import demo, kitti_to_bag, play_bag
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SMALL_WINDOW = ["--local-bounds", "-8", "-8", "-2", "8", "8", "2", "--device", "cpu"]
 
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_free_space import BOUNDS, BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
+from helpers import BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
+from test_free_space import BOUNDS
 
 from convbki_core import ConvBKIMapper
 from convbki_core.config import MapperConfig
