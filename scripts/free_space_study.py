@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from convbki_core.config import DEFAULTS
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.paths import kernel_path
@@ -64,8 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     positions = range(len(dataset))
     runs = {}
     for free_space in (False, True):
-        run = evaluate_kernel(dataset, positions, kernel_path("semantic_kitti_compound"), "cpu", 1e-3, None, None,
-                              free_space=free_space)
+        run = evaluate_kernel(dataset, positions, kernel_path("semantic_kitti_compound"),
+                              DEFAULTS.replace(device="cpu", free_space=free_space), None, None)
         voxels = run.mapper.voxels()
         runs[free_space] = (run, voxels)
     figures = {}

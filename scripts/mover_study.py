@@ -21,7 +21,7 @@ import json
 import sys
 from pathlib import Path
 
-from convbki_core.config import PAPER_KERNEL
+from convbki_core.config import DEFAULTS, PAPER_KERNEL
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.metrics import ConfusionMatrix
@@ -50,12 +50,13 @@ def study(root: Path) -> dict:
     movable = dataset.label_map.movable_classes
     input_scores = ConfusionMatrix(dataset.label_map.num_classes, dataset.label_map.ignore_classes)
     # Plain ConvBKI: every point is mapped as its static class, nothing is ever emptied.
-    plain = evaluate_kernel(dataset, positions, kernel, "cpu", 1e-3, input_scores, None, show_progress=False,
-                            free_space=False, moving_labels=False)
+    cpu = DEFAULTS.replace(device="cpu")
+    plain = evaluate_kernel(dataset, positions, kernel, cpu.replace(free_space=False), input_scores, None,
+                            show_progress=False, moving_labels=False)
     # Free space and clamping alone (the defaults of the version before the movers' rules).
-    free = evaluate_kernel(dataset, positions, kernel, "cpu", 1e-3, None, None, show_progress=False,
-                           moving_labels=False, forget_movers=False)
-    product = evaluate_kernel(dataset, positions, kernel, "cpu", 1e-3, None, None, show_progress=False)
+    free = evaluate_kernel(dataset, positions, kernel, cpu.replace(forget_movers=False), None, None,
+                           show_progress=False, moving_labels=False)
+    product = evaluate_kernel(dataset, positions, kernel, cpu, None, None, show_progress=False)
     runs = {"plain": plain, "free": free, "product": product}
     iou_input = input_scores.iou()
     ious = {name: run.map_scores.iou() for name, run in runs.items()}
