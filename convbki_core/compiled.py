@@ -123,6 +123,7 @@ def kernel_cache() -> KernelCache:
 
 if HAVE_NUMBA:
     prange = numba.prange
+    get_num_threads = numba.get_num_threads
 
     def njit(**options):
         """``numba.njit(**options)``, cached wherever this process can keep the machine code."""

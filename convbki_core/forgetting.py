@@ -55,7 +55,7 @@ from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
 
 if HAVE_NUMBA:
-    from convbki_core.compiled import njit, prange
+    from convbki_core.compiled import get_num_threads, njit, prange
 
 FREE_CLASS = 0
 # Bits of ``MoverForgetting.columns``: the column may hold a movable voxel (the support rule
@@ -104,12 +104,20 @@ class MoverForgetting:
         self.columns &= np.uint8(_FLAGGED)  # the movable returns near a column are this scan's
         if not volume.num_voxels:
             return 0
+        if HAVE_NUMBA and not isinstance(window.alpha, torch.Tensor):
+            # One compiled pass: the voxels' places in the torus, the classes the scan saw there,
+            # the reset, and the flags around movable evidence.
+            with parallel_region():
+                count = int(_contradicted_and_flag_numba(
+                    window.alpha, volume.linear, np.asarray(volume.dims, np.int64),
+                    np.asarray(volume.origin, np.int64), self.dims, volume.features, self.movable,
+                    np.float32(self.prior), self.columns, self.reach))
+            self.reset_voxels += count
+            return count
         physical = np.mod(unravel_linear(volume.linear, volume.dims) + volume.origin, self.dims)
         seen = volume.features.argmax(axis=1)
         if isinstance(window.alpha, torch.Tensor):
             count = _contradicted_torch(window.alpha, physical, seen, self.movable, self.prior)
-        elif HAVE_NUMBA:
-            count = int(_contradicted_numba(window.alpha, physical, seen, self.movable, np.float32(self.prior)))
         else:
             count = _contradicted_numpy(window.alpha, physical, seen, self.movable, self.prior)
         # Any movable evidence, also in a voxel whose returns are mostly static: its spread can
@@ -162,8 +170,12 @@ class MoverForgetting:
                                        self.min_empty)
         elif HAVE_NUMBA:
             with parallel_region():
+                # The flagged columns as one list, so that the threads share them evenly (movers
+                # gather in a few rows of the window).
+                flagged = np.flatnonzero(self.columns).astype(np.int64)
                 count = int(_unsupported_numba(window.alpha, window.mask, np.asarray(window.origin, np.int64),
-                                               self.movable, self.columns, np.float32(self.prior), self.min_empty))
+                                               self.movable, self.columns, flagged, np.float32(self.prior),
+                                               self.min_empty))
         else:
             count = _unsupported_numpy(window.alpha, window.mask, np.asarray(window.origin, np.int64),
                                        self.movable, self.columns, np.float32(self.prior), self.min_empty)
@@ -299,19 +311,72 @@ if HAVE_NUMBA:
         return count
 
     @njit(parallel=True, nogil=True)
-    def _unsupported_numba(alpha, mask, origin, movable, columns, prior, min_empty):  # pragma: no cover - compiled
+    def _contradicted_and_flag_numba(alpha, linear, volume_dims, volume_origin, dims, features, movable, prior, columns,
+                                     reach):  # pragma: no cover - compiled
+        """``MoverForgetting.contradicted`` in one pass over the scan's voxels (as the numpy
+        path: unravel, argmax, ``_contradicted_numpy``, ``_flag_around`` twice). The voxels are
+        distinct, so the threads never write the same one."""
+        count_voxels, classes = features.shape
+        floor = prior * np.float32(alpha.shape[0] - 1) * np.float32(1 + 1e-6)
+        physical = np.empty((count_voxels, 2), np.int64)
+        bits = np.zeros(count_voxels, np.uint8)
+        reset = np.zeros(count_voxels, np.int64)
+        for i in prange(count_voxels):
+            rest = linear[i] // volume_dims[2]
+            x = (rest // volume_dims[1] + volume_origin[0]) % dims[0]
+            y = (rest % volume_dims[1] + volume_origin[1]) % dims[1]
+            z = (linear[i] % volume_dims[2] + volume_origin[2]) % dims[2]
+            physical[i, 0], physical[i, 1] = x, y
+            best, seen, evidence = features[i, 0], 0, False
+            for c in range(classes):
+                value = features[i, c]
+                if value > best:
+                    best, seen = value, c
+                evidence |= movable[c] and value > 0
+            if evidence:
+                bits[i] = _FLAGGED
+            if movable[seen]:
+                bits[i] = _FLAGGED | _NEAR_MOVERS
+            # No class ever falls below the prior, so a voxel whose movable classes all hold just
+            # the prior has a static most likely class, or no evidence: skip its other classes.
+            if not _holds_movable(alpha, movable, x, y, z, prior):
+                continue
+            held = 1
+            top = alpha[1, x, y, z]
+            total = np.float32(0.0)
+            for c in range(1, alpha.shape[0]):
+                value = alpha[c, x, y, z]
+                total += value
+                if value > top:
+                    top, held = value, c
+            if movable[held] and total > floor and seen != held:
+                for c in range(1, alpha.shape[0]):
+                    alpha[c, x, y, z] = prior
+                reset[i] = 1
+        size_x, size_y = columns.shape
+        for i in range(count_voxels):
+            if bits[i] == 0:
+                continue
+            for dx in range(-reach, reach + 1):
+                x = (physical[i, 0] + dx) % size_x
+                for dy in range(-reach, reach + 1):
+                    columns[x, (physical[i, 1] + dy) % size_y] |= bits[i]
+        return reset.sum()
+
+    @njit(parallel=True, nogil=True)
+    def _unsupported_numba(alpha, mask, origin, movable, columns, flagged, prior, min_empty):  # pragma: no cover
         """The rule of 2 over the flagged columns; each class's run of a column is read in one
         pass (contiguous in z), as the costmap reads the window."""
-        size_x, size_y, size_z = mask.shape
+        size_y, size_z = mask.shape[1], mask.shape[2]
         classes = alpha.shape[0]
-        counts = np.zeros(size_x, np.int64)
-        for x in prange(size_x):
+        threads = min(get_num_threads(), max(1, flagged.shape[0]))
+        counts = np.zeros(threads, np.int64)
+        for part in prange(threads):
             rest = np.empty(size_z, np.float32)  # sum of the classes 1 .. C-1 per voxel
             best = np.empty(size_z, np.float32)
             held = np.empty(size_z, np.int64)
-            for y in range(size_y):
-                if columns[x, y] == 0:
-                    continue
+            for k in range(part, flagged.shape[0], threads):  # interleaved: neighbouring columns on both threads
+                x, y = flagged[k] // size_y, flagged[k] % size_y
                 # A column none of whose voxels holds a movable class above the prior has no
                 # voxel for the rule (no class falls below it): its movable runs alone decide.
                 found = False
@@ -355,7 +420,7 @@ if HAVE_NUMBA:
                     if empty_below >= min_empty and marks & TOUCHED == 0:
                         alpha[0, x, y, z] = max(free, rest[z] + np.float32(1.0))
                         mask[x, y, z] = marks | CHANGED
-                        counts[x] += 1
+                        counts[part] += 1
                     else:
                         if on_ground and not near and marks & TOUCHED != 0:
                             mask[x, y, z] = marks & ~TOUCHED  # the ground's spread only: the rays decide

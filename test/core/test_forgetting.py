@@ -146,8 +146,9 @@ def test_the_compiled_rules_equal_the_numpy_rules(seed, min_empty):
     compiled_alpha, compiled_mask, compiled_columns = alpha.copy(), mask.copy(), columns.copy()
     prior = np.float32(1e-3)
     emptied = _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty)
-    assert emptied == _unsupported_numba(compiled_alpha, compiled_mask, origin, movable, compiled_columns, prior,
-                                         min_empty)
+    flagged = np.flatnonzero(compiled_columns).astype(np.int64)
+    assert emptied == _unsupported_numba(compiled_alpha, compiled_mask, origin, movable, compiled_columns, flagged,
+                                         prior, min_empty)
     assert emptied > (5 if min_empty == 1 else 0)  # the random columns hold trails
     np.testing.assert_allclose(compiled_alpha, alpha, rtol=1e-6)
     np.testing.assert_array_equal(compiled_mask, mask)
@@ -161,6 +162,37 @@ def test_the_compiled_rules_equal_the_numpy_rules(seed, min_empty):
     reset = _contradicted_numpy(alpha, physical, seen, movable, 1e-3)
     assert reset == _contradicted_numba(compiled, physical, seen, movable, np.float32(1e-3)) and reset > 0
     np.testing.assert_array_equal(compiled, alpha)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_contradiction_pass_equals_the_numpy_one(seed, monkeypatch):
+    """The compiled pass (unravel, argmax, reset, flags in one loop) leaves the window and the
+    column flags as the numpy path does, on a scan whose voxels mix classes and wrap around
+    the torus."""
+    from types import SimpleNamespace
+
+    import convbki_core.forgetting as forgetting
+    from convbki_core.volume import voxelize
+
+    alpha, _ = random_window(seed)
+    dims = np.array(alpha.shape[1:], np.int64)
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(0.0, 1.0, (300, 3)) * dims * 0.2 * [0.3, 1.0, 1.0]  # a third of the x rows
+    labels = rng.integers(1, alpha.shape[0], len(points))
+    origin = np.array([4, 3, 9], np.int64)  # the window's torus wraps inside the scan's volume
+    volume = voxelize(points + origin * 0.2, labels, origin, dims, 0.2, alpha.shape[0])
+    results = []
+    for compiled in (True, False):
+        monkeypatch.setattr(forgetting, "HAVE_NUMBA", compiled)
+        rules = forgetting.MoverForgetting((1, 4, 5), alpha.shape[0], 1e-3, dims, 1, 0.2)
+        rules.columns[:] = 1
+        window = SimpleNamespace(alpha=alpha.copy())
+        results.append((rules.contradicted(volume, window), window.alpha, rules.columns.copy()))
+    (count, compiled_alpha, compiled_columns), (expected, numpy_alpha, numpy_columns) = results
+    assert count == expected and count > 0
+    np.testing.assert_array_equal(compiled_alpha, numpy_alpha)
+    np.testing.assert_array_equal(compiled_columns, numpy_columns)
+    assert (numpy_columns == 3).any() and (numpy_columns == 1).any()
 
 
 @pytest.mark.parametrize("mislabelled", [0.0, 0.05])
