@@ -173,9 +173,10 @@ class MoverForgetting:
                 # The flagged columns as one list, so that the threads share them evenly (movers
                 # gather in a few rows of the window).
                 flagged = np.flatnonzero(self.columns).astype(np.int64)
+                threads = min(get_num_threads(), max(1, len(flagged)))
                 count = int(_unsupported_numba(window.alpha, window.mask, np.asarray(window.origin, np.int64),
                                                self.movable, self.columns, flagged, np.float32(self.prior),
-                                               self.min_empty))
+                                               self.min_empty, threads))
         else:
             count = _unsupported_numpy(window.alpha, window.mask, np.asarray(window.origin, np.int64),
                                        self.movable, self.columns, np.float32(self.prior), self.min_empty)
@@ -364,12 +365,12 @@ if HAVE_NUMBA:
         return reset.sum()
 
     @njit(parallel=True, nogil=True)
-    def _unsupported_numba(alpha, mask, origin, movable, columns, flagged, prior, min_empty):  # pragma: no cover
+    def _unsupported_numba(alpha, mask, origin, movable, columns, flagged, prior, min_empty,
+                           threads):  # pragma: no cover - compiled
         """The rule of 2 over the flagged columns; each class's run of a column is read in one
         pass (contiguous in z), as the costmap reads the window."""
         size_y, size_z = mask.shape[1], mask.shape[2]
         classes = alpha.shape[0]
-        threads = min(get_num_threads(), max(1, flagged.shape[0]))
         counts = np.zeros(threads, np.int64)
         for part in prange(threads):
             rest = np.empty(size_z, np.float32)  # sum of the classes 1 .. C-1 per voxel

@@ -148,7 +148,7 @@ def test_the_compiled_rules_equal_the_numpy_rules(seed, min_empty):
     emptied = _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty)
     flagged = np.flatnonzero(compiled_columns).astype(np.int64)
     assert emptied == _unsupported_numba(compiled_alpha, compiled_mask, origin, movable, compiled_columns, flagged,
-                                         prior, min_empty)
+                                         prior, min_empty, 2)
     assert emptied > (5 if min_empty == 1 else 0)  # the random columns hold trails
     np.testing.assert_allclose(compiled_alpha, alpha, rtol=1e-6)
     np.testing.assert_array_equal(compiled_mask, mask)

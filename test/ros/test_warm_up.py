@@ -16,9 +16,12 @@ REPO = Path(__file__).resolve().parents[2]
 # signature of every kernel, then map scans the way the node does (PointCloud2 in, decoded,
 # labels and probabilities, window moves, outputs, a save) and count again.
 NOTHING_NEW = r"""
-import json, sys, tempfile
+import json, sys, tempfile, warnings
 import numpy as np
 import numba
+from numba.core.errors import NumbaWarning
+
+warnings.simplefilter("error", NumbaWarning)  # e.g. a kernel that cannot be cached: every start would compile it
 from convbki_core.config import MapperConfig
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
