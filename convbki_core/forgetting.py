@@ -146,17 +146,19 @@ class MoverForgetting:
         if self.origin is None:  # a new window (or one loaded from a map file): look everywhere once
             self.columns[:] = _FLAGGED
         elif not np.array_equal(origin, self.origin):
-            for axis in (0, 1):
+            for axis in (0, 1, 2):
                 shift = int(origin[axis] - self.origin[axis])
                 if shift:
                     rows = np.arange(min(abs(shift), int(self.dims[axis])))
                     new = (origin[axis] + (self.dims[axis] - 1 - rows if shift > 0 else rows)) % self.dims[axis]
                     if axis == 0:
                         self.columns[new, :] |= _FLAGGED
-                    else:
+                    elif axis == 1:
                         self.columns[:, new] |= _FLAGGED
-            if origin[2] != self.origin[2] and isinstance(mask, np.ndarray):
-                self.columns |= ((mask & EVIDENCE) != 0).any(axis=2).astype(np.uint8)
+                    elif isinstance(mask, np.ndarray):
+                        # Only a column whose entering layers hold evidence can have gained a
+                        # movable voxel (an unflagged column held none).
+                        self.columns |= ((mask[:, :, new] & EVIDENCE) != 0).any(axis=2).astype(np.uint8)
         self.origin = origin.copy()
 
     # -- 2. a mover needs support --------------------------------------------------------------
