@@ -109,7 +109,7 @@ class MapperConfig:
             if name not in _FLAT:
                 raise TypeError(f"MapperConfig has no setting {name!r} (known: {', '.join(sorted(_FLAT))})")
             group, attribute = _FLAT[name]
-            if name in ("local_bounds",):
+            if name == "local_bounds":
                 value = tuple(tuple(float(v) for v in corner) for corner in value)
             elif name in ("ignore_classes", "movable_classes") and value is not None:
                 value = tuple(int(c) for c in value)

@@ -288,29 +288,35 @@ if HAVE_NUMBA:
             found |= movable[c] and alpha[c, x, y, z] > prior
         return found
 
+    @njit(nogil=True, inline="always")
+    def _reset_if_contradicted(alpha, movable, x, y, z, seen, prior):  # pragma: no cover - compiled
+        """Reset the classes of voxel (x, y, z) when its most likely class is movable, it holds
+        class evidence and this scan saw ``seen`` there; returns whether it did."""
+        # No class ever falls below the prior, so a voxel whose movable classes all hold just
+        # the prior has a static most likely class, or no evidence: skip its other classes.
+        if not _holds_movable(alpha, movable, x, y, z, prior):
+            return False
+        classes = alpha.shape[0]
+        held = 1
+        best = alpha[1, x, y, z]
+        total = np.float32(0.0)
+        for c in range(1, classes):
+            value = alpha[c, x, y, z]
+            total += value
+            if value > best:
+                best, held = value, c
+        if not (movable[held] and total > prior * np.float32(classes - 1) * np.float32(1 + 1e-6) and seen != held):
+            return False
+        for c in range(1, classes):
+            alpha[c, x, y, z] = prior
+        return True
+
     @njit(nogil=True)
     def _contradicted_numba(alpha, physical, seen, movable, prior):  # pragma: no cover - compiled
-        classes = alpha.shape[0]
-        floor = prior * np.float32(classes - 1) * np.float32(1 + 1e-6)
         count = 0
         for i in range(physical.shape[0]):
-            x, y, z = physical[i, 0], physical[i, 1], physical[i, 2]
-            # No class ever falls below the prior, so a voxel whose movable classes all hold just
-            # the prior has a static most likely class, or no evidence: skip its other classes.
-            if not _holds_movable(alpha, movable, x, y, z, prior):
-                continue
-            held = 1
-            best = alpha[1, x, y, z]
-            total = np.float32(0.0)
-            for c in range(1, classes):
-                value = alpha[c, x, y, z]
-                total += value
-                if value > best:
-                    best, held = value, c
-            if movable[held] and total > floor and seen[i] != held:
-                for c in range(1, classes):
-                    alpha[c, x, y, z] = prior
-                count += 1
+            count += _reset_if_contradicted(alpha, movable, physical[i, 0], physical[i, 1], physical[i, 2], seen[i],
+                                            prior)
         return count
 
     @njit(parallel=True, nogil=True)
@@ -320,7 +326,6 @@ if HAVE_NUMBA:
         path: unravel, argmax, ``_contradicted_numpy``, ``_flag_around`` twice). The voxels are
         distinct, so the threads never write the same one."""
         count_voxels, classes = features.shape
-        floor = prior * np.float32(alpha.shape[0] - 1) * np.float32(1 + 1e-6)
         physical = np.empty((count_voxels, 2), np.int64)
         bits = np.zeros(count_voxels, np.uint8)
         reset = np.zeros(count_voxels, np.int64)
@@ -340,22 +345,7 @@ if HAVE_NUMBA:
                 bits[i] = _FLAGGED
             if movable[seen]:
                 bits[i] = _FLAGGED | _NEAR_MOVERS
-            # No class ever falls below the prior, so a voxel whose movable classes all hold just
-            # the prior has a static most likely class, or no evidence: skip its other classes.
-            if not _holds_movable(alpha, movable, x, y, z, prior):
-                continue
-            held = 1
-            top = alpha[1, x, y, z]
-            total = np.float32(0.0)
-            for c in range(1, alpha.shape[0]):
-                value = alpha[c, x, y, z]
-                total += value
-                if value > top:
-                    top, held = value, c
-            if movable[held] and total > floor and seen != held:
-                for c in range(1, alpha.shape[0]):
-                    alpha[c, x, y, z] = prior
-                reset[i] = 1
+            reset[i] = _reset_if_contradicted(alpha, movable, x, y, z, seen, prior)
         size_x, size_y = columns.shape
         for i in range(count_voxels):
             if bits[i] == 0:

@@ -108,14 +108,18 @@ class TorchUpdate:
         return torch_update(volume, self.filters.refresh().torch_filters, self.window, marks)
 
 
-class HostFreeSpace:
-    """The rays of a scan as free evidence (class 0) in the host window, with clamping."""
+class _FreeSpace:
+    """What both free-space backends hold: the filters, the window, clamping and the ray counts."""
 
-    def __init__(self, filters: KernelFilters, geometry: WindowGeometry, window: RollingWindow,
+    def __init__(self, filters: KernelFilters, geometry: WindowGeometry, window: RollingWindow | TorchWindow,
                  max_concentration: float, prior: float):
         self.filters, self.geometry, self.window = filters, geometry, window
         self.max_concentration, self.prior = max_concentration, prior
         self.counts = scratch_counts(geometry.dims)
+
+
+class HostFreeSpace(_FreeSpace):
+    """The rays of a scan as free evidence (class 0) in the host window, with clamping."""
 
     def __call__(self, points: np.ndarray, pose: np.ndarray, volume: SparseVolume, origin: np.ndarray) -> int:
         offsets, tap_weights = self.filters.refresh().free_taps
@@ -126,14 +130,8 @@ class HostFreeSpace:
                                  self.prior)
 
 
-class DeviceFreeSpace:
+class DeviceFreeSpace(_FreeSpace):
     """The rays counted on the host (the traversal is sequential), applied in the device window."""
-
-    def __init__(self, filters: KernelFilters, geometry: WindowGeometry, window: TorchWindow,
-                 max_concentration: float, prior: float):
-        self.filters, self.geometry, self.window = filters, geometry, window
-        self.max_concentration, self.prior = max_concentration, prior
-        self.counts = scratch_counts(geometry.dims)
 
     def __call__(self, points: np.ndarray, pose: np.ndarray, volume: SparseVolume, origin: np.ndarray) -> int:
         ends, weights, through = scan_rays(points, pose, volume, self.geometry.resolution)

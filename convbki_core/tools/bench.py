@@ -91,10 +91,11 @@ ROS_START_KEYS = ("cold_start_s", "warm_start_s", "cold_first_scan_ms", "cold_te
                   "warm_first_scan_ms", "warm_tenth_scan_ms", "warm_first_scan_ratio")
 
 
-def ros_side_figures(args: argparse.Namespace) -> dict:
+def ros_side_figures(args: argparse.Namespace, drive_map: Path | None = None) -> dict:
     """The figures that run the node's ROS-side code, from ``convbki_ros.tools.bench_ros`` in its
-    own process (the core never imports convbki_ros), on the same drive; each None (not
-    measured) where convbki_ros is not installed or that process fails."""
+    own process (the core never imports convbki_ros), on the same drive and, when given, the map
+    bench made of it (``drive_map``, a map file); each None (not measured) where convbki_ros is
+    not installed or that process fails."""
     keys = ROS_ENCODE_KEYS + ROS_SCAN_TO_MAP_KEYS + (() if args.skip_start else ROS_START_KEYS)
     if importlib.util.find_spec("convbki_ros") is None:
         return dict.fromkeys(keys)
@@ -104,6 +105,8 @@ def ros_side_figures(args: argparse.Namespace) -> dict:
                    "--repeat", str(args.repeat), "--seed", str(args.seed), "--json", str(out)]
         if args.skip_start:
             command.append("--skip-start")
+        if drive_map is not None:
+            command += ["--map", str(drive_map)]
         finished = subprocess.run(command, stdin=subprocess.DEVNULL, capture_output=True, text=True)
         if finished.returncode != 0 or not out.exists():
             reason = (finished.stderr.strip().splitlines() or ["no output"])[-1]
@@ -193,6 +196,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _bench(args: argparse.Namespace) -> int:
+    with tempfile.TemporaryDirectory(prefix="bench_") as scratch:
+        return _bench_with_scratch(args, Path(scratch))
+
+
+def _bench_with_scratch(args: argparse.Namespace, scratch: Path) -> int:
     torch.set_num_threads(os.cpu_count() or 1)
     dataset = ensure_drive(Path(args.drive_dir), args.scans, args.seed, on_simulate=lambda: print(
         f"{PROG}: simulating a {args.scans}-scan drive into {args.drive_dir} (cached for later runs)",
@@ -210,6 +218,8 @@ def _bench(args: argparse.Namespace) -> int:
     figures["bytes_per_voxel"] = store_bytes / max(len(mapper.store), 1)
     figures["window_mb"] = window_bytes / 1e6
     figures["bytes_per_voxel_with_window"] = (store_bytes + window_bytes) / max(len(mapper), 1)
+    drive_map = scratch / "drive_map.npz"  # the ROS-side figures encode this map, not a second mapping of the drive
+    mapper.save(drive_map)
     del mapper
     gc.collect()
     figures["update_probs_ms"] = probabilities_figure(frames, min(args.repeat, 10), args.device)
@@ -238,7 +248,7 @@ def _bench(args: argparse.Namespace) -> int:
         plot.parent.mkdir(parents=True, exist_ok=True)
         save_plot(sweep, ablation_rows, plot)
         figures["plot"] = str(plot)
-    figures.update(ros_side_figures(args))
+    figures.update(ros_side_figures(args, drive_map))
     figures["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(format_report(figures, ablation_rows))
     if args.json:

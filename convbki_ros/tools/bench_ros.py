@@ -215,6 +215,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=30, help="repetitions of each timing (as bench)")
     parser.add_argument("--seed", type=int, default=5, help="seed of the drive (as bench)")
     parser.add_argument("--skip-start", action="store_true", help="leave out the node's start figures")
+    parser.add_argument("--map", default=None, help="the map bench made of the drive (a map file); without it the "
+                        "drive is mapped here")
     parser.add_argument("--json", required=True, help="file the figures are written to")
     args = parser.parse_args(argv)
     try:
@@ -222,7 +224,14 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as error:
         print(f"bench_ros: error: {error}", file=sys.stderr)
         return 2
-    _, mapper, frames = drive_figures(dataset, args.scans, args.repeat)
+    if args.map:
+        mapper = paper_mapper()
+        mapper.load(args.map)
+        # The frames bench times its other figures on: from the second half of the drive.
+        first = args.scans // 2
+        frames = [dataset[position] for position in range(first, min(args.scans, first + args.repeat))]
+    else:
+        _, mapper, frames = drive_figures(dataset, args.scans, args.repeat)
     figures = encode_figures(mapper, max(3, args.repeat // 5))
     del mapper
     figures.update(scan_to_map_figures(frames, args.repeat))

@@ -418,6 +418,16 @@ def test_bench_measures_the_ros_side_figures_in_a_process_of_their_own(tmp_path)
     figures = bench.ros_side_figures(args)
     assert set(figures) == set(bench.ROS_ENCODE_KEYS + bench.ROS_SCAN_TO_MAP_KEYS)
     assert figures["encoded_voxels"] > 1000 and figures["encode_ms_per_million"] > 0 and figures["scan_to_map_ms"] > 0
+    # Given bench's own map of the drive, bench_ros encodes that map instead of mapping the drive again.
+    from convbki_core.offline import paper_mapper
+    from convbki_core.synth.cached_drive import ensure_drive
+
+    mapper = paper_mapper(local_bounds=((-8.0, -8.0, -2.0), (8.0, 8.0, 2.0)))
+    frame = ensure_drive(tmp_path / "drive", 4, 5)[0]
+    mapper.integrate(frame.points, frame.input_values, frame.pose)
+    mapper.save(tmp_path / "small.npz")
+    with_map = bench.ros_side_figures(args, tmp_path / "small.npz")
+    assert with_map["encoded_voxels"] == len(mapper.voxels()) != figures["encoded_voxels"]
 
 
 def test_demo_missing_dataset_creates_nothing(tmp_path, capsys):
