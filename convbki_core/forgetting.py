@@ -96,6 +96,20 @@ class MoverForgetting:
         self.columns[:] = 0
         self.origin = None
 
+    def warm_up(self, scratch) -> None:
+        """Both rules on a copy of these rules over the scratch window (``parts.Scratch``), with
+        the scan's evidence in it and window moves along every axis in between."""
+        small = MoverForgetting(np.flatnonzero(self.movable), len(self.movable), self.prior, scratch.geometry.dims,
+                                self.reach, scratch.geometry.resolution)
+        small.movable[:] = True  # every class movable, so that the rules find voxels to act on
+        small.movable[FREE_CLASS] = False
+        window = scratch.window
+        for origin in (scratch.origin, *scratch.origins()):
+            window.move_to(origin)
+            small.window_moved(origin, window.mask)
+            small.contradicted(scratch.volume, window)
+            small.unsupported(window)
+
     # -- 1. returns that contradict a mover ----------------------------------------------------
     def contradicted(self, volume: SparseVolume, window) -> int:
         """Reset the class evidence of the voxels of this scan's returns (``volume``) whose

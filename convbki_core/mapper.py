@@ -41,7 +41,7 @@ from convbki_core.io.map_file import MAP_FORMAT, MAP_VERSION, MapFileError, MapS
 from convbki_core.io.ply import write_voxels_ply
 from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
-from convbki_core.parts import KernelFilters, Voxelizer, make_free_space, make_update
+from convbki_core.parts import KernelFilters, Scratch, Voxelizer, make_free_space, make_update
 from convbki_core.present_movers import PresentMovers, labels_now, present_movers
 from convbki_core.records import RECORD, records_from_alpha, window_records
 from convbki_core.statistics import dirichlet_statistics
@@ -192,6 +192,15 @@ class ConvBKIMapper:
     @property
     def resolution(self) -> float:
         return self.geometry.resolution
+
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) every kernel of this mapper's parts: the window,
+        the voxeliser, the update backend, the free-space backend and the movers' rules each
+        run themselves on a scratch window of their own (``parts.Scratch``). The map is not
+        touched; call it before mapping (``warm_up.warm_up`` also warms the outputs and files)."""
+        for part in (self.window, self.voxelize, self.update, self.free, self.forgetting):
+            if part is not None:
+                part.warm_up(Scratch(self.resolution, self.num_classes, self.prior, self.ignore_classes, self.window))
 
     # -- the update ------------------------------------------------------------------------
     def integrate(self, points: np.ndarray, values: np.ndarray, pose: np.ndarray,

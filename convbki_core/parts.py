@@ -11,8 +11,11 @@ space.
 * ``KernelFilters``: the kernel's filters prepared for all of them, rebuilt only when the
   kernel's lengths change (training changes them between scans).
 
-Each part is warmed up by running it: ``warm_up`` drives a throwaway mapper, which holds the
-same parts, through every call, so each kernel compiles with the argument types it will see.
+Each part owns its warm-up: ``part.warm_up(scratch)`` runs the part's own code on a
+``Scratch``, a small window of the kind the mapper holds, so that every kernel the part will
+run is compiled (or loaded from numba's cache) with the argument types it will see, before
+the first scan, while the mapper's own window is not touched. ``ConvBKIMapper.warm_up`` runs
+them all.
 """
 
 from __future__ import annotations
@@ -24,10 +27,66 @@ from convbki_core.clamping import clamp_torch
 from convbki_core.compiled import HAVE_NUMBA
 from convbki_core.free_space import FREE_CLASS, count_rays, free_space_update, free_taps, scan_rays, scratch_counts
 from convbki_core.layer import ConvBKILayer
+from convbki_core.store import VoxelStore
 from convbki_core.torch_window import TorchFilters, TorchWindow, torch_free_space, torch_update
 from convbki_core.update import FilterPlan, dense_volume, scatter_volume
-from convbki_core.volume import SparseVolume, WindowGeometry, transform_points, voxelize, voxelize_scan
-from convbki_core.window import RollingWindow
+from convbki_core.volume import SparseVolume, WindowGeometry, transform_points, unravel_linear, voxelize, voxelize_scan
+from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
+
+# Every mark an update sets (with free space, TOUCHED too): the warm-ups update with all of them.
+ALL_MARKS = EVIDENCE | CHANGED | TOUCHED
+
+
+class Scratch:
+    """Where a part runs for its warm-up: a small window of the same kind as ``like`` (host
+    arrays, or torch tensors on its device), with the mapper's classes and prior, its own
+    store, and one scan (a ground patch, a wall and a box in front of the sensor) voxelised
+    into it. numba compiles a kernel once per combination of argument types, not of sizes,
+    so what a part runs here is what it will run on the mapper's window."""
+
+    HALF_EXTENT = (16, 16, 6)  # voxels each side of the sensor: room for a filter of up to 31 voxels
+
+    def __init__(self, resolution: float, num_classes: int, prior: float, ignore_classes: tuple[int, ...],
+                 like: RollingWindow):
+        half = np.asarray(self.HALF_EXTENT) * resolution
+        self.geometry = WindowGeometry(resolution, tuple(-half), tuple(half))
+        self.num_classes, self.prior, self.ignore_classes = num_classes, prior, ignore_classes
+        store = VoxelStore(num_classes, prior=prior)
+        dims = self.geometry.dims
+        self.window = (TorchWindow(dims, num_classes, prior, store, True, like.device)
+                       if isinstance(like, TorchWindow) else RollingWindow(dims, num_classes, prior, store, True))
+        rng = np.random.default_rng(0)
+        scale = resolution / 0.2
+        ground = np.column_stack([rng.uniform(-2.5, 2.5, (300, 2)) * scale, np.full(300, -0.9 * scale)])
+        wall = np.column_stack([np.full(120, 1.6 * scale), rng.uniform(-2.0, 2.0, 120) * scale,
+                                rng.uniform(-0.9, 0.9, 120) * scale])
+        box = rng.uniform([-1.5, -1.5, -0.8], [-0.5, -0.5, 0.2], (80, 3)) * scale
+        self.points = np.concatenate([ground, wall, box])  # sensor frame (m), float64
+        usable = [c for c in range(num_classes) if c not in ignore_classes] or [0]
+        self.labels = rng.choice(np.asarray(usable, np.int64), len(self.points))
+        rows = rng.uniform(0.0, 1.0, (len(self.points), num_classes)).astype(np.float32)
+        self.probabilities = rows / rows.sum(axis=1, keepdims=True)
+        self.pose = np.eye(4)
+        self.origin = self.geometry.origin_for(self.pose[:3, 3])
+        self.window.move_to(self.origin)
+        self.volume = voxelize(self.points, self.labels, self.origin, dims, resolution, num_classes, ignore_classes)
+        self._hold_the_scan()
+
+    def _hold_the_scan(self) -> None:
+        """The scan's evidence in the window (without its spread): moves then carry voxels."""
+        x, y, z = np.mod(unravel_linear(self.volume.linear, self.volume.dims) + self.origin, self.geometry.dims).T
+        evidence = self.volume.features.T + self.prior
+        if isinstance(self.window, TorchWindow):
+            x, y, z = (torch.as_tensor(axis, device=self.window.device) for axis in (x, y, z))
+            evidence = torch.as_tensor(evidence, device=self.window.device)
+        self.window.alpha[:, x, y, z] = evidence
+        self.window.mask[x, y, z] = EVIDENCE | CHANGED
+
+    def origins(self) -> list[np.ndarray]:
+        """Window origins for moves: a few slabs along each axis and back, then home again."""
+        step = np.asarray(self.HALF_EXTENT) // 3
+        return [self.origin + step * np.asarray(move) for move in ((1, 0, 0), (1, 1, 0), (1, 1, 1), (0, -1, 1),
+                                                                    (0, 0, 0))]
 
 
 class KernelFilters:
@@ -62,14 +121,26 @@ class Voxelizer:
         self.geometry, self.layer, self.ignore_classes, self.window = geometry, layer, ignore_classes, window
 
     def __call__(self, points: np.ndarray, values: np.ndarray, pose: np.ndarray, origin: np.ndarray) -> SparseVolume:
-        kernel = self.layer.kernel
         # Probability rows are calibrated by the kernel's temperature here, so every update
         # backend receives the same F; labels are never touched.
+        return self._voxelize(points, values, pose, origin, self.layer.kernel.temperature)
+
+    def _voxelize(self, points, values, pose, origin, temperature: float | None) -> SparseVolume:
+        classes = self.layer.kernel.num_classes
         if HAVE_NUMBA:
             return voxelize_scan(points, values, pose, origin, self.geometry.dims, self.geometry.resolution,
-                                 kernel.num_classes, self.ignore_classes, self.window.slot, kernel.temperature)
+                                 classes, self.ignore_classes, self.window.slot, temperature)
         return voxelize(transform_points(points, pose), values, origin, self.geometry.dims, self.geometry.resolution,
-                        kernel.num_classes, self.ignore_classes, kernel.temperature)
+                        classes, self.ignore_classes, temperature)
+
+    def warm_up(self, scratch: Scratch) -> None:
+        """Every input a scan can bring: float64 and float32 points, labels and probability rows,
+        probabilities tempered or not (the temperature is an argument of the compiled pass)."""
+        small = Voxelizer(scratch.geometry, self.layer, self.ignore_classes, scratch.window)
+        for points in (scratch.points, scratch.points.astype(np.float32)):
+            small._voxelize(points, scratch.labels, scratch.pose, scratch.origin, None)
+            for temperature in (None, 0.5):
+                small._voxelize(points, scratch.probabilities, scratch.pose, scratch.origin, temperature)
 
 
 class FastUpdate:
@@ -83,6 +154,9 @@ class FastUpdate:
     def __call__(self, volume: SparseVolume, marks: int) -> int:
         return scatter_volume(volume, self.filters.refresh().plan, self.window.alpha, self.window.mask, marks)
 
+    def warm_up(self, scratch: Scratch) -> None:
+        FastUpdate(self.filters, scratch.window)(scratch.volume, ALL_MARKS)
+
 
 class DenseUpdate:
     """alpha += conv3d(F, K) as the paper writes it: the dense depthwise convolution."""
@@ -94,6 +168,9 @@ class DenseUpdate:
 
     def __call__(self, volume: SparseVolume, marks: int) -> int:
         return dense_volume(volume, self.layer, self.window.alpha, self.window.mask, marks)
+
+    def warm_up(self, scratch: Scratch) -> None:
+        DenseUpdate(self.layer, scratch.window)(scratch.volume, ALL_MARKS)
 
 
 class TorchUpdate:
@@ -107,6 +184,10 @@ class TorchUpdate:
     def __call__(self, volume: SparseVolume, marks: int) -> int:
         return torch_update(volume, self.filters.refresh().torch_filters, self.window, marks)
 
+    def warm_up(self, scratch: Scratch) -> None:
+        """On a GPU this also loads the device's kernels, as nvblox warms CUDA up before it starts."""
+        TorchUpdate(self.filters, scratch.window)(scratch.volume, ALL_MARKS)
+
 
 class _FreeSpace:
     """What both free-space backends hold: the filters, the window, clamping and the ray counts."""
@@ -116,6 +197,11 @@ class _FreeSpace:
         self.filters, self.geometry, self.window = filters, geometry, window
         self.max_concentration, self.prior = max_concentration, prior
         self.counts = scratch_counts(geometry.dims)
+
+    def warm_up(self, scratch: Scratch) -> None:
+        """The rays of the scratch scan, with this backend's clamping."""
+        small = type(self)(self.filters, scratch.geometry, scratch.window, self.max_concentration, self.prior)
+        small(scratch.points, scratch.pose, scratch.volume, scratch.origin)
 
 
 class HostFreeSpace(_FreeSpace):

@@ -1,20 +1,24 @@
-"""Compile every kernel a mapper will run before its first scan arrives.
+"""Compile every kernel a mapper and its outputs will run before the first scan arrives.
 
 numba compiles a kernel at its first call, once per combination of argument types (or
 loads the machine code from its cache, which also takes a moment). A node that said
 "ready" and then compiled on its first scans would fall seconds behind a 10 Hz LiDAR and
-drop what queued meanwhile. ``warm_up(mapper)`` therefore runs a throwaway mapper with the
-same kernel, classes, prior, update path and device on a small window through everything
-mapping and its outputs call: scans with labels and with probabilities (float32 and
-float64 points, tempered and not), window moves (slabs out to the store and back), free
-space with clamping, a forgotten box, the map's changes, statistics and point records,
-the shown map, the planner's costmap, queries inside and outside the window, a save to a temporary file, its
-load and a PLY export. The mapper itself is not touched; ``warm_up(config, kernel)`` takes the
-mapper's configuration instead, so that it can run while that mapper allocates its
-window (a third of a gigabyte at the paper's grid, which numpy fills without holding the GIL).
+drop what queued meanwhile. ``warm_up`` therefore builds a throwaway mapper with the same
+kernel, classes, prior, update path and device on a small window, with free space, clamping
+and the movers' rules on (the node can turn them on at run time), and
 
-On a GPU the same run also loads the device's kernels, as nvblox warms CUDA up before it
-builds its node.
+1. lets each of its parts warm itself up (``ConvBKIMapper.warm_up``: the window, the
+   voxeliser with every kind of input, the update backend, the free-space backend and the
+   movers' rules, each on a scratch window of its own);
+2. drives it through what the node's outputs and files call on a mapper: a few scans and
+   window moves, the map's changes, statistics and point records, the shown map, the
+   planner's costmap, queries inside and outside the window, a forgotten box, a save to a
+   temporary file, its load and a PLY export.
+
+The mapper itself is not touched; ``warm_up(config, kernel)`` takes the mapper's
+configuration instead, so that it can run while that mapper allocates its window (a third of
+a gigabyte at the paper's grid, which numpy fills without holding the GIL). On a GPU the same
+run also loads the device's kernels, as nvblox warms CUDA up before it builds its node.
 """
 
 from __future__ import annotations
@@ -71,11 +75,6 @@ def _labels(rng: np.random.Generator, count: int, num_classes: int, ignored: tup
     return rng.choice(np.asarray(usable, np.int64), count)
 
 
-def _probabilities(rng: np.random.Generator, count: int, num_classes: int) -> np.ndarray:
-    rows = rng.uniform(0.0, 1.0, (count, num_classes)).astype(np.float32)
-    return rows / rows.sum(axis=1, keepdims=True)
-
-
 def _pose(x: float, y: float, yaw: float) -> np.ndarray:
     pose = np.eye(4)
     pose[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
@@ -83,7 +82,7 @@ def _pose(x: float, y: float, yaw: float) -> np.ndarray:
     return pose
 
 
-def throwaway_mapper(config: MapperConfig, kernel, temperature: float | None = None) -> ConvBKIMapper:
+def throwaway_mapper(config: MapperConfig, kernel) -> ConvBKIMapper:
     """A mapper like one made from ``config`` and ``kernel`` (its kernel, grid, prior, device and
     update path) on a small window, with free space, clamping and the movers' rules on, so
     that their kernels are compiled whatever the configuration says."""
@@ -97,22 +96,18 @@ def throwaway_mapper(config: MapperConfig, kernel, temperature: float | None = N
     movable = config.classes.movable_classes or (min(1, kernel.num_classes - 1),)
     small = config.replace(local_bounds=(tuple(-half), tuple(half)), ignore_classes=ignored, track_changes=True,
                            free_space=True, max_concentration=1.0, forget_movers=True, movable_classes=movable)
-    mapper = ConvBKIMapper(small, kernel)
-    mapper.kernel.temperature = temperature
-    return mapper
+    return ConvBKIMapper(small, kernel)
 
 
-def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, probabilities: bool, folder: Path | None) -> None:
-    """Everything a node or an offline run calls on a mapper, once (files in ``folder``; none:
-    no temporary folder can be written, so saving and loading compile at their first use)."""
+def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, folder: Path | None) -> None:
+    """What a node's outputs and files call on a mapper, once (files in ``folder``; none: no
+    temporary folder can be written, so saving and loading compile at their first use)."""
     resolution, classes = mapper.resolution, mapper.num_classes
     palette = packed_palette(np.zeros((classes, 3), np.uint8))
     step = 6 * resolution  # a window move of six slabs
     for number, (x, y, yaw) in enumerate([(0.0, 0.0, 0.0), (step, 0.0, 0.3), (step, step, -0.2), (0.0, 0.0, 0.1)]):
         points = _scene(rng, resolution, shift=-0.4 * (number % 2))
-        values = _probabilities(rng, len(points), classes) if probabilities else \
-            _labels(rng, len(points), classes, mapper.ignore_classes)
-        mapper.integrate(points.astype(np.float32 if number % 2 else np.float64), values, _pose(x, y, yaw))
+        mapper.integrate(points, _labels(rng, len(points), classes, mapper.ignore_classes), _pose(x, y, yaw))
     probe = _scene(rng, resolution, shift=0.0)
     mapper.labels_at(probe)
     mapper.labels_at(probe + step * 40, within_window=False)
@@ -152,10 +147,10 @@ def warm_up(mapper: ConvBKIMapper | MapperConfig | None = None, kernel=None) -> 
     else:
         config = mapper or DEFAULTS.replace(device="cpu")
         kernel = kernel if kernel is not None else config.kernel_path()
-    rng = np.random.default_rng(0)
+    throwaway = throwaway_mapper(config, kernel)
+    throwaway.warm_up()
     with _scratch_folder() as folder:
-        for temperature, probabilities in ((None, False), (None, True), (0.5, True)):
-            _exercise(throwaway_mapper(config, kernel, temperature), rng, probabilities, folder)
+        _exercise(throwaway, np.random.default_rng(0), folder)
     return WarmUpReport(time.perf_counter() - started, kernel_cache(), threading_layer())
 
 

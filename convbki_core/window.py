@@ -133,6 +133,19 @@ class RollingWindow:
                 self._load(lo, hi)
         self.origin = origin.copy()
 
+    def warm_up(self, scratch) -> None:
+        """Moves of the scratch window (``parts.Scratch``, a window of this kind) along every
+        axis and back, with the scan's evidence in it: slabs to its store and back, the
+        changes taken, the voxels listed and looked up, a box forgotten, the window flushed."""
+        window = scratch.window
+        for origin in scratch.origins():
+            window.move_to(origin)
+            window.take_changes()
+        indices, _ = window.items()
+        window.lookup(indices[window.inside(indices)])
+        window.forget_box(scratch.origin, scratch.origin + 2)
+        window.flush()
+
     def flush(self) -> None:
         """Move everything to the store and forget the window's position."""
         if self.origin is not None:

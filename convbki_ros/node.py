@@ -32,6 +32,7 @@ from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
@@ -89,10 +90,11 @@ class MapperNode(Node):
         # The reader keeps as many clouds as the queue: DDS may deliver a burst after holding
         # messages back, and a shorter history would drop the oldest of it.
         self.create_subscription(PointCloud2, "cloud_in", self.core.on_cloud,
-                                 self._input_qos(self.param("cloud_queue_size")), callback_group=inputs)
+                                 self._input_qos(self.param("cloud_queue_size")), callback_group=inputs,
+                                 event_callbacks=self._count_publishers("cloud_in"))
         if self.core.pose_source == "odometry":  # with poses from TF alone there is no odometry to read
             self.create_subscription(Odometry, "odom", self.core.on_odometry, self._input_qos(ODOMETRY_DEPTH),
-                                     callback_group=odometry_group)
+                                     callback_group=odometry_group, event_callbacks=self._count_publishers("odom"))
         self.status.uses_odometry = self.core.pose_source == "odometry"
         self.outputs = MapOutputs(self)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -155,6 +157,12 @@ class MapperNode(Node):
         for spec in PARAMETERS:
             if spec.name != "kernel_file":
                 declare(self, spec, kernel_values.get(spec.name))
+
+    def _count_publishers(self, name: str) -> SubscriptionEventCallbacks:
+        """Event callbacks that keep the count of publishers the reader of input ``name`` has
+        matched, reported on /diagnostics (a player can wait for it before its first message)."""
+        self.status.publishers_matched(name, 0)
+        return SubscriptionEventCallbacks(matched=lambda info: self.status.publishers_matched(name, info.current_count))
 
     def _input_qos(self, depth: int):
         if check_choice("input_qos", self.param("input_qos")) == "sensor_data":

@@ -77,6 +77,7 @@ class Snapshot:
     odometry_delay_ms_median: float = 0.0
     odometry_delay_ms_max: float = 0.0
     odometry_gap_ms_max: float = 0.0
+    publishers: dict[str, int] = field(default_factory=dict)  # per input: the publishers its reader has matched
 
     @property
     def dropped_total(self) -> int:
@@ -124,6 +125,10 @@ class MapperStatus:
     last_odometry_received: float | None = None
     started: float = field(default_factory=time.monotonic)  # reset when the node is ready
     uses_odometry: bool = True  # False: poses come from TF alone (pose_source tf)
+    # Per input ("cloud_in", "odom"): how many publishers the node's reader has matched. DDS
+    # matches each side of a connection on its own: a player's writer can count this reader
+    # while the reader has not yet matched the writer, and what is sent meanwhile is lost.
+    publishers: dict[str, int] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _dropped_at_last_report: int = 0
 
@@ -150,6 +155,10 @@ class MapperStatus:
         with self._lock:
             self.odometry_delay_ns.append(delay_ns)
             self.odometry_arrival_ns.append(time.monotonic_ns())
+
+    def publishers_matched(self, name: str, count: int) -> None:
+        with self._lock:
+            self.publishers[name] = count
 
     def drop(self, reason: str, count: int = 1) -> None:
         if count:
@@ -184,7 +193,7 @@ class MapperStatus:
                 self.publish_ms[-1] if self.publish_ms else 0.0,
                 statistics.median(self.publish_ms) if self.publish_ms else 0.0,
                 self.maps_published, statistics.median(self.cycle_ms) if self.cycle_ms else 0.0, map_version,
-                *self._odometry_delays())
+                *self._odometry_delays(), dict(self.publishers))
 
     def _odometry_delays(self) -> tuple[float, float, float]:
         """(median delay, largest delay, longest arrival gap) of the recent odometry, in ms (lock held)."""
@@ -242,5 +251,6 @@ def diagnostic_values(snapshot: Snapshot) -> list[tuple[str, str]]:
         ("odometry_delay_ms_median", f"{snapshot.odometry_delay_ms_median:.1f}"),
         ("odometry_delay_ms_max", f"{snapshot.odometry_delay_ms_max:.1f}"),
         ("odometry_gap_ms_max", f"{snapshot.odometry_gap_ms_max:.1f}"),
+        *((f"publishers.{name}", count) for name, count in sorted(snapshot.publishers.items())),
     ]
     return [(key, str(value)) for key, value in values]

@@ -90,6 +90,7 @@ class Stats:
     level: int
     message: str
     last_save: str
+    publishers: dict  # per input: publishers matched by the node's reader
 
     @classmethod
     def parse(cls, array) -> "Stats":
@@ -100,7 +101,9 @@ class Stats:
         return cls(int(values["scans_in"]), int(values["integrated"]), int(values["dropped"]), reasons,
                    int(values["odometry_in"]), int(values["odometry_rejected"]), int(values["map_voxels"]),
                    int(values["map_version"]), int(values["maps_published"]), status.level[0], status.message,
-                   values.get("last_save", ""))
+                   values.get("last_save", ""),
+                   {key.removeprefix("publishers."): int(value) for key, value in values.items()
+                    if key.startswith("publishers.")})
 
 
 class Rig:

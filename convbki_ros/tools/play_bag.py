@@ -12,6 +12,12 @@ With ``--wait-for-node NODE`` the clouds go out as fast as that node keeps up: t
 reads the node's ``/diagnostics`` (clouds received and queued) and keeps at most half of its
 queue in flight, so a bag is mapped faster than real time with none dropped.
 
+DDS matches the two ends of a connection separately: the player's writers can count a
+subscriber whose reader has not yet matched them, and what is sent in between reaches no one.
+The player therefore gives subscribers a second after its writers matched; with
+``--wait-for-inputs NODE`` (implied by ``--wait-for-node``) it waits instead until the node's
+``/diagnostics`` report a matched publisher on each of its inputs.
+
 The player tells the truth about delivery: at the end it waits for every subscriber to
 acknowledge every reliable message, and exits 1, naming the topic and the count, when some
 were not acknowledged or a subscriber went away during the replay.
@@ -116,6 +122,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pace the clouds to the progress of NODE (fully qualified, default "
                    f"{DEFAULT_NODE}) as its /diagnostics report it: at most half of its cloud queue in flight, "
                    "none dropped; at the end, wait until it has taken every cloud and print what it did")
+    p.add_argument("--wait-for-inputs", nargs="?", const=DEFAULT_NODE, default=None, metavar="NODE",
+                   help="before the first message, wait until NODE (default "
+                   f"{DEFAULT_NODE}) reports on /diagnostics a matched publisher on each of its inputs, so "
+                   "that its first messages cannot be lost to DDS still matching the node's side (implied "
+                   "by --wait-for-node; without either, a fixed second is given instead)")
     p.add_argument("--clock", action="store_true",
                    help="also publish /clock (rosgraph_msgs/Clock) from the bag stamps, "
                    "for nodes run with use_sim_time:=true")
@@ -130,8 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "have a subscriber (stops waiting 1 s after the first one matches), so "
                    "the first messages are not lost (default: %(default)s)")
     p.add_argument("--start-delay", default=0.0, type=seconds_arg, metavar="S",
-                   help="sleep S seconds more before the first message (default: %(default)s; a second is "
-                   "always given once subscribers matched, for their side to match too)")
+                   help="sleep S seconds more before the first message (default: %(default)s; once "
+                   "subscribers matched, a second is given for their side to match too, unless "
+                   "--wait-for-inputs or --wait-for-node saw it match)")
     p.add_argument("--deserialize", action="store_true",
                    help="always deserialise and convert messages to the installed types "
                    "(slower; by default the bag's bytes are published unchanged when the "
@@ -191,6 +203,7 @@ class NodeProgress:
     queue: int
     queue_limit: int
     reasons: dict[str, int]
+    publishers: dict[str, int]  # per input of the node: the publishers its reader has matched
 
 
 class NodePacer:
@@ -225,9 +238,11 @@ class NodePacer:
                 continue
             values = {item.key: item.value for item in status.values}
             reasons = {key[len("dropped."):]: _count(values, key) for key in values if key.startswith("dropped.")}
+            publishers = {key[len("publishers."):]: _count(values, key) for key in values
+                          if key.startswith("publishers.")}
             self.latest = NodeProgress(_count(values, "scans_in"), _count(values, "integrated"),
                                        _count(values, "dropped"), _count(values, "queue"),
-                                       _count(values, "queue_limit", 40), reasons)
+                                       _count(values, "queue_limit", 40), reasons, publishers)
             self.heard = time.monotonic()
 
     def _spin(self, seconds: float) -> None:
@@ -245,6 +260,17 @@ class NodePacer:
             self._spin(0.1)
         self.baseline = self.latest
         return True
+
+    def wait_for_inputs(self, timeout: float, ok: Callable[[], bool]) -> list[str]:
+        """Block until the node reports a matched publisher on each of its inputs (its readers
+        have matched the player's writers, so nothing sent from now on is lost to matching), or
+        ``timeout``; the inputs still without one. A node that reports no inputs has none to wait for."""
+        deadline = time.monotonic() + timeout
+        while True:
+            unmatched = sorted(name for name, count in self.latest.publishers.items() if count < 1)
+            if not unmatched or time.monotonic() > deadline or not ok():
+                return unmatched
+            self._spin(0.05)
 
     @property
     def window(self) -> int:
@@ -621,12 +647,21 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
         try:
             node = rclpy.create_node(NODE_NAME)
             bulk_node = rclpy.create_node(f"{NODE_NAME}_bulk", context=bulk_context)
-            pacer = NodePacer(node, args.wait_for_node) if args.wait_for_node else None
-            if pacer is not None and not pacer.wait_for_node(NODE_START_TIMEOUT_S, rclpy.ok):
+            watched = args.wait_for_node or args.wait_for_inputs
+            watch = NodePacer(node, watched) if watched else None
+            if watch is not None and not watch.wait_for_node(NODE_START_TIMEOUT_S, rclpy.ok):
                 return 0
+            pacer = watch if args.wait_for_node else None
             player = BagPlayer(node, reader, args, bulk_node, pacer)
             matched = player.wait_for_subscribers(args.wait_subscribers)
-            delay = args.start_delay + (MATCH_GRACE_S if matched else 0.0)
+            confirmed = False  # the node said its readers matched the player's writers
+            if matched and watch is not None:
+                unmatched = watch.wait_for_inputs(args.wait_subscribers + MATCHING_S, rclpy.ok)
+                confirmed = not unmatched
+                if unmatched:
+                    node.get_logger().info(f"{watched} reports no publisher matched on {', '.join(unmatched)}; "
+                                           "starting anyway")
+            delay = args.start_delay + (MATCH_GRACE_S if matched and not confirmed else 0.0)
             if delay > 0 and not _sleep_until(time.monotonic() + delay, rclpy.ok):
                 return 0
             started = time.monotonic()

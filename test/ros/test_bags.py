@@ -445,8 +445,8 @@ def test_the_pacer_gives_up_clouds_the_node_never_received_and_says_how_many(mon
     pacer.target, pacer.published, pacer.lost, pacer.received_seen = "/convbki_mapper", 0, 0, 0
     pacer.dropped = pacer.missing = 0
     pacer.first_sent, pacer.heard, pacer.progress_at = None, clock.now, clock.now
-    pacer.baseline = play_bag.NodeProgress(10, 10, 0, 0, 100, {})
-    pacer.latest = play_bag.NodeProgress(11, 11, 0, 0, 100, {})  # the node got 1 of the 4
+    pacer.baseline = play_bag.NodeProgress(10, 10, 0, 0, 100, {}, {})
+    pacer.latest = play_bag.NodeProgress(11, 11, 0, 0, 100, {}, {})  # the node got 1 of the 4
 
     def spin(seconds):  # time passes while the node keeps reporting the same counts
         clock.now += max(seconds, 0.5)

@@ -58,12 +58,18 @@ class Replay:
 
     def play_when_ready(self, ready_within: float) -> None:
         assert self.log.wait_for(r"mapper ready", timeout=ready_within), self.log.text()
-        player = start("convbki_ros.tools.play_bag", self.domain, self.bag)
+        # --wait-for-inputs: the first message goes out once the node's readers have matched the
+        # player's writers (a fixed grace lost the first odometry on a loaded machine).
+        player = start("convbki_ros.tools.play_bag", self.domain, self.bag, "--wait-for-inputs")
         # The probe spins while the bag plays, so no report is lost to a full reader queue.
         assert self.probe.spin_until(lambda: player.poll() is not None, 120), "play_bag did not finish"
         output = player.communicate()[0]
         assert player.returncode == 0 and f"/kitti/velo/pointcloud {FRAMES}" in output, output
+        assert "starting anyway" not in output, output
         self.reports_at_the_end = len(self.diagnostics)
+        # While clouds came, the node's readers counted the player's writers on both inputs.
+        during = [stats for stats in map(Stats.parse, self.diagnostics) if 0 < stats.scans_in < FRAMES]
+        assert during and all(stats.publishers == {"cloud_in": 1, "odom": 1} for stats in during), during
 
     def reports_after_the_end(self, count: int) -> list[Stats]:
         wanted = self.reports_at_the_end + count
@@ -108,6 +114,9 @@ def test_under_the_workqueue_threading_layer_a_whole_replay_maps_with_every_outp
             replay.diagnostics[-1]).integrated == FRAMES, 60), replay.log.text()
         stats = Stats.parse(replay.diagnostics[-1])
         assert stats.dropped == 0 and replay.process.poll() is None, stats
+        # The player gone, the node's readers count no publisher any more.
+        assert replay.probe.spin_until(lambda: Stats.parse(replay.diagnostics[-1]).publishers == {
+            "cloud_in": 0, "odom": 0}, 30), Stats.parse(replay.diagnostics[-1])
         received = {topic: len(messages) for topic, messages in replay.outputs.items()}
         assert received["semantic_map/updates"] >= 2 and received["semantic_map/local"] >= 2, received
         assert received["semantic_map/view"] >= 1 and received["semantic_map"] >= 1, received

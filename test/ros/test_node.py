@@ -62,7 +62,7 @@ def test_node_maps_a_bag_like_the_offline_mapper_and_serves_its_map(drive, tmp_p
     try:
         maps = probe.subscribe(PointCloud2, "/semantic_map", latched=True)
         variances = probe.subscribe(PointCloud2, "/semantic_map/variance", latched=True)
-        player = start("convbki_ros.tools.play_bag", domain, drive / "bag", "--rate", "2", "--wait-subscribers", "20")
+        player = start("convbki_ros.tools.play_bag", domain, drive / "bag", "--rate", "2", "--wait-for-inputs")
         expected = offline_map(drive)
         voxels = expected.voxels()
         shown = voxels.label != 0  # the published map leaves out voxels seen empty (class 0)

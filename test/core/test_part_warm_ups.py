@@ -1,0 +1,84 @@
+"""Each part of a mapper owns its warm-up: run on a scratch window, it compiles its own kernels
+(and only then are they there), the mapper's map is not touched, and after all of them mapping
+scans of every kind of input compiles nothing more in the parts' modules."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+# In a fresh interpreter: which compiled kernels each part's warm-up brings, module by module,
+# then what mapping four kinds of scans adds after all of them.
+SCRIPT = r"""
+import json, sys
+import numpy as np
+import numba
+from convbki_core.config import MapperConfig
+from convbki_core.datasets.labels import load_label_map
+from convbki_core.mapper import ConvBKIMapper
+from convbki_core.parts import Scratch
+from convbki_core.paths import kernel_path
+
+MODULES = ("volume", "window", "store", "update", "free_space", "forgetting")
+
+def signatures():
+    found = {}
+    for module in MODULES:
+        for attribute, value in vars(sys.modules[f"convbki_core.{module}"]).items():
+            if isinstance(value, numba.core.dispatcher.Dispatcher):
+                found[f"{module}.{attribute}"] = len(value.signatures)
+    return found
+
+def modules_gained(before, after):
+    return sorted({name.split(".")[0] for name in after if after[name] > before.get(name, 0)})
+
+labels = load_label_map("semantic_kitti")
+config = MapperConfig.paper(local_bounds=((-12, -12, -2.6), (12, 12, 2.6)), device="cpu",
+                            ignore_classes=labels.ignore_classes, movable_classes=labels.movable_classes,
+                            track_changes=True, free_space=True, max_concentration=300.0)
+mapper = ConvBKIMapper(config, kernel_path("semantic_kitti_compound"))
+report = {"parts": {}}
+for name in ("window", "voxelize", "update", "free", "forgetting"):
+    before = signatures()
+    getattr(mapper, name).warm_up(Scratch(mapper.resolution, mapper.num_classes, mapper.prior,
+                                          mapper.ignore_classes, mapper.window))
+    report["parts"][name] = modules_gained(before, signatures())
+report["untouched"] = [len(mapper.store), mapper.window.count(), mapper.window.origin is None,
+                       mapper.scans_integrated]
+before = signatures()
+rng = np.random.default_rng(1)
+for scan in range(4):
+    points = rng.uniform([-10, -10, -2], [10, 10, 1], (3000, 3))
+    if scan == 1:
+        points = points.astype(np.float32)
+    if scan < 2:
+        values = rng.integers(1, 20, 3000)
+    else:
+        values = rng.uniform(0, 1, (3000, 20)).astype(np.float32)
+        values /= values.sum(axis=1, keepdims=True)
+    mapper.kernel.temperature = 0.5 if scan == 3 else None
+    pose = np.eye(4)
+    pose[:3, 3] = [1.7 * scan, 0.4 * scan, 0.3 * scan]
+    mapper.integrate(points, values, pose)
+report["new"] = {name: count for name, count in signatures().items() if count != before.get(name, 0)}
+report["mapped"] = len(mapper.voxels())
+print(json.dumps(report))
+"""
+
+
+def test_each_part_compiles_its_own_kernels_on_a_scratch_window_and_then_mapping_compiles_nothing():
+    result = subprocess.run([sys.executable, "-c", SCRIPT], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    parts = report["parts"]
+    # The window's moves bring the window's and the store's kernels (slabs out and back).
+    assert {"window", "store"} <= set(parts["window"]), parts
+    assert parts["voxelize"] == ["volume"], parts
+    assert parts["update"] == ["update"], parts
+    assert "free_space" in parts["free"], parts
+    assert parts["forgetting"] == ["forgetting"], parts
+    assert report["untouched"] == [0, 0, True, 0], report["untouched"]
+    assert report["new"] == {}, report["new"]
+    assert report["mapped"] > 1000, report
