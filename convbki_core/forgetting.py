@@ -42,7 +42,9 @@ have emptied what the other part saw (the docs measure it). The rule of 2 reads 
 columns, so the mapper keeps, per column of the window, whether it may hold a movable
 voxel (flagged around every voxel to which this scan brings movable evidence, and where the
 window brought in voxels from the store); a column found without one is unflagged, so the
-rule visits only where movers have been.
+rule visits only where movers have been. A column whose movers are all empty keeps a mark of
+its own and is visited again only when this scan's evidence made one of them occupied (the
+spread of a static return can), which leaves the same map as visiting every column.
 """
 
 from __future__ import annotations
@@ -59,8 +61,10 @@ if HAVE_NUMBA:
 
 FREE_CLASS = 0
 # Bits of ``MoverForgetting.columns``: the column may hold a movable voxel (the support rule
-# visits it); a movable return of this scan lies within the kernel's reach of it.
-_FLAGGED, _NEAR_MOVERS = 1, 2
+# visits it); a movable return of this scan lies within the kernel's reach of it; the column
+# holds only movers the rays or the rule emptied (the compiled rule visits it when this scan's
+# evidence reached one of its voxels: nothing else can make them occupied again).
+_FLAGGED, _NEAR_MOVERS, _EMPTIED = 1, 2, 4
 # Metres of empty space under a movable voxel that make it float: rays that pass under a parked
 # car (its ground clearance) find a voxel or two empty, the space a bus has left far more.
 MIN_EMPTY_BELOW = 0.6
@@ -115,7 +119,7 @@ class MoverForgetting:
         """Reset the class evidence of the voxels of this scan's returns (``volume``) whose
         movable class they contradict; flag the columns around movable evidence. Call after the
         window moved to the scan's origin and before the update."""
-        self.columns &= np.uint8(_FLAGGED)  # the movable returns near a column are this scan's
+        self.columns &= np.uint8(_FLAGGED | _EMPTIED)  # the movable returns near a column are this scan's
         if not volume.num_voxels:
             return 0
         if HAVE_NUMBA and not isinstance(window.alpha, torch.Tensor):
@@ -225,6 +229,16 @@ def _contradicted_torch(alpha, physical, seen, movable, prior) -> int:
     return int(reset.sum())
 
 
+def _occupied_sum(occupied):
+    """The classes 1 .. C-1 of voxels summed one class after another, in float32 (numpy or
+    torch): the order the compiled rule adds them in, so that every path takes the same
+    decision at a voxel whose free share is a tie."""
+    total = occupied[0].clone() if isinstance(occupied, torch.Tensor) else occupied[0].copy()
+    for row in occupied[1:]:
+        total += row
+    return total
+
+
 def _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty) -> int:
     """The rule of 2 over the flagged columns, vectorised across them (the no-numba path)."""
     xs, ys = np.nonzero(columns)
@@ -234,16 +248,17 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty) 
     near = (columns[xs, ys] & _NEAR_MOVERS) != 0
     empty_below = np.zeros(len(xs), np.int64)  # empty voxels met since the last static one
     on_ground = np.zeros(len(xs), bool)  # the voxel just below is occupied by a static class
-    still_movable = np.zeros(len(xs), bool)
+    still_movable = np.zeros(len(xs), bool)  # an occupied mover stays in the column
+    emptied = np.zeros(len(xs), bool)  # a mover the rays or the rule emptied stays in the column
     count = 0
     for step in range(size_z):
         z = (origin[2] + step) % size_z
         marks = mask[xs, ys, z]
         values = alpha[:, xs, ys, z]
         evident = (marks & EVIDENCE) != 0
-        total = values.sum(axis=0)
-        empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * total)
         occupied = values[1:]
+        rest = _occupied_sum(occupied)
+        empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * (values[FREE_CLASS] + rest))
         # A voxel whose classes all hold the prior has no most likely class: it is not a mover.
         is_movable = evident & ~empty & movable[occupied.argmax(axis=0) + 1] & (occupied.max(axis=0) > prior)
         trail = is_movable & (empty_below >= min_empty) & ((marks & TOUCHED) == 0)
@@ -251,14 +266,16 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty) 
         if fringe.any():  # reached by the ground's spread, no mover near: the rays decide
             mask[xs[fringe], ys[fringe], z] &= np.uint8(0xFF & ~TOUCHED)
         if trail.any():
-            rest = occupied[:, trail].sum(axis=0)
-            alpha[FREE_CLASS, xs[trail], ys[trail], z] = np.maximum(values[FREE_CLASS, trail], rest + 1.0)
+            alpha[FREE_CLASS, xs[trail], ys[trail], z] = np.maximum(values[FREE_CLASS, trail], rest[trail] + 1.0)
             mask[xs[trail], ys[trail], z] |= np.uint8(CHANGED)
             count += int(trail.sum())
         still_movable |= is_movable & ~trail
+        # An emptied mover keeps the column in view (later spread can make it occupied again).
+        emptied |= trail | (evident & empty & movable[occupied.argmax(axis=0) + 1] & (occupied.max(axis=0) > prior))
         empty_below = np.where(evident & ~empty & ~is_movable, 0, empty_below + empty)
         on_ground = evident & ~empty & ~is_movable
-    columns[xs[~still_movable], ys[~still_movable]] = 0
+    columns[xs[still_movable], ys[still_movable]] |= np.uint8(_FLAGGED)
+    columns[xs[~still_movable], ys[~still_movable]] = np.where(emptied[~still_movable], _EMPTIED, 0)
     return count
 
 
@@ -268,21 +285,21 @@ def _unsupported_torch(alpha, mask, origin, movable, prior, near, min_empty) -> 
     movable_t = torch.as_tensor(movable, device=alpha.device)
     empty_below = torch.zeros(mask.shape[:2], dtype=torch.int64, device=alpha.device)
     on_ground = torch.zeros(mask.shape[:2], dtype=torch.bool, device=alpha.device)
+    rests = _occupied_sum(alpha[1:])  # the rule changes class 0 only: one sum for the whole window
     count = 0
     for step in range(size_z):
         z = int((origin[2] + step) % size_z)
         marks = mask[:, :, z]
         values = alpha[:, :, :, z]
         evident = (marks & EVIDENCE) != 0
-        total = values.sum(dim=0)
-        empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * total)
         occupied = values[1:]
+        rest = rests[:, :, z]
+        empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * (values[FREE_CLASS] + rest))
         is_movable = evident & ~empty & movable_t[occupied.argmax(dim=0) + 1] & (occupied.amax(dim=0) > prior)
         trail = is_movable & (empty_below >= min_empty) & ((marks & TOUCHED) == 0)
         fringe = is_movable & ~trail & on_ground & ~near & ((marks & TOUCHED) != 0)
         mask[:, :, z] &= ~(fringe.to(torch.uint8) * TOUCHED)
         if bool(trail.any()):
-            rest = occupied.sum(dim=0)
             alpha[FREE_CLASS, :, :, z] = torch.where(trail, torch.maximum(values[FREE_CLASS], rest + 1.0),
                                                      values[FREE_CLASS])
             mask[:, :, z] |= trail.to(torch.uint8) * CHANGED
@@ -370,6 +387,27 @@ if HAVE_NUMBA:
                     columns[x, (physical[i, 1] + dy) % size_y] |= bits[i]
         return reset.sum()
 
+    @njit(nogil=True, inline="always")
+    def _reoccupied(alpha, mask, movable, x, y, prior):  # pragma: no cover - compiled
+        """A voxel of column (x, y) that this scan's evidence reached is an occupied mover:
+        only such a voxel can have changed a column that held emptied movers alone."""
+        for z in range(mask.shape[2]):
+            if mask[x, y, z] & TOUCHED == 0:
+                continue
+            rest = np.float32(0.0)
+            best = alpha[1, x, y, z]
+            held = 1
+            for c in range(1, alpha.shape[0]):
+                value = alpha[c, x, y, z]
+                rest += value
+                if value > best:
+                    best = value
+                    held = c
+            free = alpha[0, x, y, z]
+            if not free > EMPTY_SHARE * (free + rest) and movable[held] and best > prior:
+                return True
+        return False
+
     @njit(parallel=True, nogil=True)
     def _unsupported_numba(alpha, mask, origin, movable, columns, flagged, prior, min_empty,
                            threads):  # pragma: no cover - compiled
@@ -384,6 +422,8 @@ if HAVE_NUMBA:
             held = np.empty(size_z, np.int64)
             for k in range(part, flagged.shape[0], threads):  # interleaved: neighbouring columns on both threads
                 x, y = flagged[k] // size_y, flagged[k] % size_y
+                if columns[x, y] & _FLAGGED == 0 and not _reoccupied(alpha, mask, movable, x, y, prior):
+                    continue  # emptied movers only, and this scan's evidence made none of them occupied
                 # A column none of whose voxels holds a movable class above the prior has no
                 # voxel for the rule (no class falls below it): its movable runs alone decide.
                 found = False
@@ -408,7 +448,8 @@ if HAVE_NUMBA:
                 near = columns[x, y] & _NEAR_MOVERS != 0
                 empty_below = 0  # empty voxels met since the last static one
                 on_ground = False  # the voxel just below is occupied by a static class
-                still_movable = False
+                still_movable = False  # an occupied mover stays in the column
+                emptied = False  # a mover the rays or the rule emptied stays in the column
                 for step in range(size_z):
                     z = (origin[2] + step) % size_z
                     marks = mask[x, y, z]
@@ -419,6 +460,9 @@ if HAVE_NUMBA:
                     if free > EMPTY_SHARE * (free + rest[z]):
                         empty_below += 1
                         on_ground = False
+                        # Later evidence (the spread of a static return) can make it occupied,
+                        # and a mover, again.
+                        emptied |= movable[held[z]] and best[z] > prior
                         continue
                     if not movable[held[z]] or best[z] <= prior:  # static, or no class above the prior
                         empty_below = 0
@@ -428,11 +472,14 @@ if HAVE_NUMBA:
                         alpha[0, x, y, z] = max(free, rest[z] + np.float32(1.0))
                         mask[x, y, z] = marks | CHANGED
                         counts[part] += 1
+                        emptied = True
                     else:
                         if on_ground and not near and marks & TOUCHED != 0:
                             mask[x, y, z] = marks & ~TOUCHED  # the ground's spread only: the rays decide
                         still_movable = True
                     on_ground = False
-                if not still_movable:
-                    columns[x, y] = 0
+                if still_movable:
+                    columns[x, y] |= _FLAGGED
+                else:
+                    columns[x, y] = _EMPTIED if emptied else 0
         return counts.sum()

@@ -54,7 +54,13 @@ def test_fast_path_equals_dense_reference(seed, kind, filter_size, probabilities
     for key, alpha in want.items():
         np.testing.assert_allclose(got[key], alpha, rtol=1e-5)
     probe = rng.uniform(-2, 2, (300, 3)) + position
-    np.testing.assert_array_equal(fast.labels_at(probe)[0], dense.labels_at(probe)[0])
+    # Equal labels wherever the two largest concentrations are farther apart than the paths'
+    # rounding (a near tie, within the tolerance above, may fall either way).
+    alpha, has_evidence = dense.concentrations_at(probe)
+    top_two = np.sort(alpha, axis=1)[:, -2:]
+    decided = ~has_evidence | (top_two[:, 1] - top_two[:, 0] > 1e-5 * top_two[:, 1])
+    assert decided.mean() > 0.9
+    np.testing.assert_array_equal(fast.labels_at(probe)[0][decided], dense.labels_at(probe)[0][decided])
 
 
 @given(st.integers(0, 2**31 - 1))

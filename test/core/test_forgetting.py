@@ -11,10 +11,13 @@ from helpers import BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
 from convbki_core import ConvBKIMapper
 from convbki_core.config import MapperConfig
 from convbki_core.forgetting import (
+    _EMPTIED,
+    _FLAGGED,
     _contradicted_numba,
     _contradicted_numpy,
     _unsupported_numba,
     _unsupported_numpy,
+    _unsupported_torch,
 )
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
 
@@ -193,6 +196,80 @@ def test_the_compiled_contradiction_pass_equals_the_numpy_one(seed, monkeypatch)
     np.testing.assert_array_equal(compiled_alpha, numpy_alpha)
     np.testing.assert_array_equal(compiled_columns, numpy_columns)
     assert (numpy_columns == 3).any() and (numpy_columns == 1).any()
+
+
+def test_a_mover_the_rays_emptied_and_static_spread_made_occupied_again_is_still_found():
+    """One column: road at the bottom, three empty voxels, then a car voxel the rays emptied.
+    A visit that finds only that emptied car keeps the column in view; when a later scan's
+    static spread (no return in the voxel) makes it occupied again, a car floating over empty
+    space, the next scan that does not reach it empties it. The compiled rule (which visits
+    flagged columns, and kept-in-view ones only where the scan's evidence made a mover occupied
+    again), the numpy rule and the torch rule (every column) do the same at every step."""
+    import torch
+
+    road, car, prior = 2, 1, np.float32(1e-3)
+    movable = np.zeros(9, np.bool_)
+    movable[[1, 4, 5]] = True
+    origin = np.zeros(3, np.int64)
+    alpha = np.full((9, 4, 4, 8), prior, np.float32)
+    mask = np.zeros((4, 4, 8), np.uint8)
+    mask[1, 1, :5] = EVIDENCE
+    alpha[road, 1, 1, 0] = 10.0
+    alpha[0, 1, 1, 1:4] = 10.0
+    alpha[0, 1, 1, 4], alpha[car, 1, 1, 4] = 6.0, 5.0  # empty: class 0 holds more than half
+    columns = np.zeros((4, 4), np.uint8)
+    columns[1, 1] = _FLAGGED
+    rules = {"compiled": [alpha.copy(), mask.copy(), columns.copy()], "numpy": [alpha.copy(), mask.copy(),
+                                                                             columns.copy()],
+             "torch": [torch.from_numpy(alpha.copy()), torch.from_numpy(mask.copy()), None]}
+
+    def visit() -> dict:
+        emptied = {}
+        for name, (a, m, c) in rules.items():
+            if name == "compiled":
+                emptied[name] = _unsupported_numba(a, m, origin, movable, c, np.flatnonzero(c).astype(np.int64),
+                                                   prior, 2, 2)
+            elif name == "numpy":
+                emptied[name] = _unsupported_numpy(a, m, origin, movable, c, prior, 2)
+            else:
+                emptied[name] = _unsupported_torch(a, m, origin, movable, float(prior),
+                                                   torch.zeros((4, 4), dtype=torch.bool), 2)
+        return emptied
+
+    def everywhere(change) -> None:
+        for a, m, _ in rules.values():
+            change(a, m)
+
+    assert visit() == {"compiled": 0, "numpy": 0, "torch": 0}
+    assert rules["compiled"][2][1, 1] == _EMPTIED and rules["numpy"][2][1, 1] == _EMPTIED
+
+    # A scan whose evidence reaches the voxel but leaves it empty: nothing to do, still in view.
+    def reached(a, m):
+        a[road, 1, 1, 4] += 0.5
+        m[1, 1, 4] |= TOUCHED
+    everywhere(reached)
+    assert visit() == {"compiled": 0, "numpy": 0, "torch": 0}
+    assert rules["compiled"][2][1, 1] == _EMPTIED
+
+    # The road's spread makes it occupied again, a car (5 > 3.5) over 0.6 m of empty space: this
+    # scan reached it, so it stays for now, and the column is flagged again.
+    def spread(a, m):
+        a[road, 1, 1, 4] += 3.0
+    everywhere(spread)
+    assert visit() == {"compiled": 0, "numpy": 0, "torch": 0}
+    assert rules["compiled"][2][1, 1] & _FLAGGED and rules["numpy"][2][1, 1] & _FLAGGED
+
+    # The next scan does not reach it (free space cleared the marks): a trail, emptied.
+    def not_reached(a, m):
+        m[1, 1, 4] &= ~TOUCHED if isinstance(m, torch.Tensor) else np.uint8(0xFF & ~TOUCHED)
+    everywhere(not_reached)
+    assert visit() == {"compiled": 1, "numpy": 1, "torch": 1}
+    expected = 5.0 + 3.5 + 1.0 + 7 * float(prior)  # the classes 1 .. 8 (car, road, six at the prior), plus one
+    for a, _, _ in rules.values():
+        assert float(a[0, 1, 1, 4]) == pytest.approx(expected, rel=1e-6)
+    np.testing.assert_array_equal(rules["compiled"][0], rules["torch"][0].numpy())
+    np.testing.assert_array_equal(rules["numpy"][0], rules["torch"][0].numpy())
+    assert rules["compiled"][2][1, 1] == _EMPTIED
 
 
 @pytest.mark.parametrize("mislabelled", [0.0, 0.05])
