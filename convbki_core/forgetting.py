@@ -286,7 +286,8 @@ def _unsupported_torch(alpha, mask, origin, movable, prior, near, min_empty) -> 
     empty_below = torch.zeros(mask.shape[:2], dtype=torch.int64, device=alpha.device)
     on_ground = torch.zeros(mask.shape[:2], dtype=torch.bool, device=alpha.device)
     rests = _occupied_sum(alpha[1:])  # the rule changes class 0 only: one sum for the whole window
-    count = 0
+    # Counted on the device and read once at the end: a read per layer would wait for the GPU 26 times.
+    count = torch.zeros((), dtype=torch.int64, device=alpha.device)
     for step in range(size_z):
         z = int((origin[2] + step) % size_z)
         marks = mask[:, :, z]
@@ -299,14 +300,13 @@ def _unsupported_torch(alpha, mask, origin, movable, prior, near, min_empty) -> 
         trail = is_movable & (empty_below >= min_empty) & ((marks & TOUCHED) == 0)
         fringe = is_movable & ~trail & on_ground & ~near & ((marks & TOUCHED) != 0)
         mask[:, :, z] &= ~(fringe.to(torch.uint8) * TOUCHED)
-        if bool(trail.any()):
-            alpha[FREE_CLASS, :, :, z] = torch.where(trail, torch.maximum(values[FREE_CLASS], rest + 1.0),
-                                                     values[FREE_CLASS])
-            mask[:, :, z] |= trail.to(torch.uint8) * CHANGED
-            count += int(trail.sum())
+        alpha[FREE_CLASS, :, :, z] = torch.where(trail, torch.maximum(values[FREE_CLASS], rest + 1.0),
+                                                 values[FREE_CLASS])
+        mask[:, :, z] |= trail.to(torch.uint8) * CHANGED
+        count += trail.sum()
         empty_below = torch.where(evident & ~empty & ~is_movable, 0, empty_below + empty.to(torch.int64))
         on_ground = evident & ~empty & ~is_movable
-    return count
+    return int(count)
 
 
 if HAVE_NUMBA:
