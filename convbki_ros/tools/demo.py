@@ -148,8 +148,9 @@ def _demo(args: argparse.Namespace) -> int:
         with log_path.open("w") as log:
             reader = LineReader(mapper, log)
             reader.wait_for("mapper ready", timeout=120)
+            # --wait-for-inputs: the first message goes out once the node's readers have matched.
             player = _python_module("convbki_ros.tools.play_bag", str(bag), "--clock", "--rate", str(args.rate),
-                                    env=env)
+                                    "--wait-for-inputs", env=env)
             while True:  # follow the node's counters until every scan is in
                 line = reader.next(timeout=30)
                 match = COUNTERS.search(line)

@@ -14,7 +14,7 @@ exactly that with the package's own programs, each in its own process over DDS:
   encodes and sends what is watched) and records when each message arrives;
 * ``--busy-cores`` processes that each keep one core busy all along, standing for another
   program on the robot's computer;
-* ``play_bag --clock --rate 1``.
+* ``play_bag --clock --rate 1 --wait-for-inputs``.
 
 It prints and writes (``OUT/realtime.json``) the node's own counters (scans in, integrated,
 dropped and why, queue peak, update and publish times, map voxels), the node's peak resident
@@ -234,7 +234,8 @@ def _check(args: argparse.Namespace) -> int:
                     reader.wait_for("listener ready" if name.startswith("listener_") else "busy", timeout=60)
             played = time.monotonic()
             player = subprocess.Popen([sys.executable, "-m", "convbki_ros.tools.play_bag", str(bag), "--clock",
-                                       "--rate", str(args.rate)], env=env, stdin=subprocess.DEVNULL)
+                                       "--rate", str(args.rate), "--wait-for-inputs"], env=env,
+                                      stdin=subprocess.DEVNULL)
             unchanged_since = None  # when the counters last changed after the bag ended
             while True:
                 line = node.next(timeout=30)
