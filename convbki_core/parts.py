@@ -44,7 +44,7 @@ class Scratch:
     into it. numba compiles a kernel once per combination of argument types, not of sizes,
     so what a part runs here is what it will run on the mapper's window."""
 
-    HALF_EXTENT = (16, 16, 6)  # voxels each side of the sensor: room for a filter of up to 31 voxels
+    HALF_EXTENT = (16, 16, 6)  # voxels each side of the sensor: room for the scan and a few slabs of moves
 
     def __init__(self, resolution: float, num_classes: int, prior: float, ignore_classes: tuple[int, ...],
                  like: RollingWindow):
