@@ -260,7 +260,8 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty) 
         rest = _occupied_sum(occupied)
         empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * (values[FREE_CLASS] + rest))
         # A voxel whose classes all hold the prior has no most likely class: it is not a mover.
-        is_movable = evident & ~empty & movable[occupied.argmax(axis=0) + 1] & (occupied.max(axis=0) > prior)
+        mover_held = movable[occupied.argmax(axis=0) + 1] & (occupied.max(axis=0) > prior)
+        is_movable = evident & ~empty & mover_held
         trail = is_movable & (empty_below >= min_empty) & ((marks & TOUCHED) == 0)
         fringe = is_movable & ~trail & on_ground & ~near & ((marks & TOUCHED) != 0)
         if fringe.any():  # reached by the ground's spread, no mover near: the rays decide
@@ -271,7 +272,7 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty) 
             count += int(trail.sum())
         still_movable |= is_movable & ~trail
         # An emptied mover keeps the column in view (later spread can make it occupied again).
-        emptied |= trail | (evident & empty & movable[occupied.argmax(axis=0) + 1] & (occupied.max(axis=0) > prior))
+        emptied |= trail | (evident & empty & mover_held)
         empty_below = np.where(evident & ~empty & ~is_movable, 0, empty_below + empty)
         on_ground = evident & ~empty & ~is_movable
     columns[xs[still_movable], ys[still_movable]] |= np.uint8(_FLAGGED)
@@ -320,6 +321,20 @@ if HAVE_NUMBA:
         return found
 
     @njit(nogil=True, inline="always")
+    def _occupied_classes(alpha, x, y, z):  # pragma: no cover - compiled
+        """(sum, largest, most likely class) of the classes 1 .. C-1 of voxel (x, y, z), summed
+        in class order in float32 (the order every path of the rules adds them in)."""
+        held = 1
+        best = alpha[1, x, y, z]
+        total = np.float32(0.0)
+        for c in range(1, alpha.shape[0]):
+            value = alpha[c, x, y, z]
+            total += value
+            if value > best:
+                best, held = value, c
+        return total, best, held
+
+    @njit(nogil=True, inline="always")
     def _reset_if_contradicted(alpha, movable, x, y, z, seen, prior):  # pragma: no cover - compiled
         """Reset the classes of voxel (x, y, z) when its most likely class is movable, it holds
         class evidence and this scan saw ``seen`` there; returns whether it did."""
@@ -328,14 +343,7 @@ if HAVE_NUMBA:
         if not _holds_movable(alpha, movable, x, y, z, prior):
             return False
         classes = alpha.shape[0]
-        held = 1
-        best = alpha[1, x, y, z]
-        total = np.float32(0.0)
-        for c in range(1, classes):
-            value = alpha[c, x, y, z]
-            total += value
-            if value > best:
-                best, held = value, c
+        total, _, held = _occupied_classes(alpha, x, y, z)
         if not (movable[held] and total > prior * np.float32(classes - 1) * np.float32(1 + 1e-6) and seen != held):
             return False
         for c in range(1, classes):
@@ -394,15 +402,7 @@ if HAVE_NUMBA:
         for z in range(mask.shape[2]):
             if mask[x, y, z] & TOUCHED == 0:
                 continue
-            rest = np.float32(0.0)
-            best = alpha[1, x, y, z]
-            held = 1
-            for c in range(1, alpha.shape[0]):
-                value = alpha[c, x, y, z]
-                rest += value
-                if value > best:
-                    best = value
-                    held = c
+            rest, best, held = _occupied_classes(alpha, x, y, z)
             free = alpha[0, x, y, z]
             if not free > EMPTY_SHARE * (free + rest) and movable[held] and best > prior:
                 return True
