@@ -345,13 +345,15 @@ def _gathered_grid(indices: np.ndarray, alpha: np.ndarray, origin: np.ndarray, d
 def grid_of_window(window, resolution: float, profile: TraversabilityProfile, prior: float) -> CostGrid:
     """``window_grid`` of a mapper's window (``RollingWindow`` or ``TorchWindow``) over its
     footprint: read in place where its arrays are in host memory (numpy, or torch on the CPU),
-    from its voxels gathered where they are on a GPU."""
+    skipping the class runs its ``classes_by_column`` says hold the prior; from its voxels
+    gathered where they are on a GPU."""
     alpha, mask = window.alpha, window.mask
     if not isinstance(alpha, np.ndarray):
         if alpha.device.type != "cpu":
             return _gathered_grid(*window.items(), window.origin, window.dims, resolution, profile, prior)
         alpha, mask = alpha.numpy(), mask.numpy()
-    return window_grid(alpha, mask, window.origin, window.dims, resolution, profile, prior)
+    return window_grid(alpha, mask, window.origin, window.dims, resolution, profile, prior,
+                       window.classes_by_column())
 
 
 def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
@@ -370,154 +372,247 @@ def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
 
 
 def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray, resolution: float,
-                profile: TraversabilityProfile, prior: float) -> CostGrid:
+                profile: TraversabilityProfile, prior: float, classes: np.ndarray | None = None) -> CostGrid:
     """The costs of the dense torus window's columns (``RollingWindow``'s ``alpha`` (C, X, Y, Z),
     ``mask``, ``origin``, ``dims``) over its footprint: equal to ``rasterise(column_costs(
-    *window.items(), ...))`` on that footprint, without gathering the voxels. Two compiled
-    passes over the columns (per voxel its cost and whether it is ground or empty; then each
-    column's ground and band), the neighbours' ground for hidden columns in between."""
+    *window.items(), ...))`` on that footprint, without gathering the voxels. ``classes``
+    (X, Y) uint64, the window's ``classes_by_column``: the class runs of a column whose bit is
+    clear hold the prior and are not read; None: every run is read.
+
+    One compiled pass over the columns computes each column's voxel costs and ground, and the
+    cell of every column whose ground it saw; the columns whose ground is hidden take their
+    neighbours' ground and are computed again in a second pass (a few of them)."""
     origin = np.asarray(origin, np.int64)
     if not HAVE_NUMBA:  # the same rules, through the voxels gathered
         return _gathered_grid(*gather_window(alpha, mask.copy(), origin, dims), origin, dims, resolution, profile,
                               prior)
     size_x, size_y = mask.shape[:2]
-    risk = np.empty(mask.shape)
-    kind = np.empty(mask.shape, np.uint8)
-    top_ground = np.empty((size_x, size_y), np.int64)
-    lowest = np.empty((size_x, size_y), np.int64)
+    dims = np.asarray(dims, np.int64)
+    read_all = classes is None
+    if read_all:
+        classes = np.zeros((size_x, size_y), np.uint64)
     weights = _moment_weights(profile)
+    rules = np.array([float(resolution), profile.min_obstacle_height, profile.robot_height, profile.min_evidence,
+                      profile.risk_sigma, float(prior) * alpha.shape[0]])
+    base = _prior_moments(weights, prior)
+    # In global order: row y of the grid is the column at origin + y (the torus unrolled).
+    values = np.empty((size_y, size_x), np.int8)
+    top = np.empty((size_x, size_y), np.int64)
+    hidden = np.empty((size_x, size_y), np.bool_)
+    ground_z = np.empty((size_x, size_y), np.int64)  # filled where ``hidden``
     with parallel_region():
-        _voxel_pass(alpha, mask, origin, np.asarray(dims, np.int64), weights, np.float32(prior),
-                    _prior_moments(weights, prior), float(prior) * alpha.shape[0], profile.min_evidence,
-                    profile.risk_sigma, risk, kind, top_ground, lowest)
-    # Global order (column origin + i at row i) for the neighbours, whose adjacency the torus breaks.
-    order_x = (origin[0] + np.arange(size_x)) % size_x
-    order_y = (origin[1] + np.arange(size_y)) % size_y
-    top = top_ground[np.ix_(order_x, order_y)]
-    low = lowest[np.ix_(order_x, order_y)]
-    has_ground = top > _NO_GROUND
-    observed = low < _NO_VOXEL
-    ground_z = np.where(has_ground, top, low - 1)
-    hidden = observed & ~has_ground
-    if hidden.any() and has_ground.any():
-        margin = NEIGHBOUR_PASSES
-        grid = np.full((size_x + 2 * margin, size_y + 2 * margin), np.nan)
-        grid[margin:-margin, margin:-margin] = np.where(has_ground, top.astype(np.float64), np.nan)
-        estimate = _spread_ground(grid)[margin:-margin, margin:-margin]
-        found = hidden & ~np.isnan(estimate)
-        ground_z[found] = np.round(estimate[found]).astype(np.int64)
-    physical_ground = np.empty_like(ground_z)
-    physical_ground[np.ix_(order_x, order_y)] = ground_z
-    values = np.empty((size_x, size_y), np.int8)
-    with parallel_region():
-        _column_pass(risk, kind, origin, np.asarray(dims, np.int64), physical_ground, float(resolution),
-                     profile.min_obstacle_height, profile.robot_height, values)
-    return CostGrid(origin[:2].copy(), np.ascontiguousarray(values[np.ix_(order_x, order_y)].T), float(resolution))
+        _grounded_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
+                          values, top, hidden, ground_z)
+    if hidden.any():
+        has_ground = top > _NO_GROUND
+        if has_ground.any():
+            margin = NEIGHBOUR_PASSES
+            grid = np.full((size_x + 2 * margin, size_y + 2 * margin), np.nan)
+            grid[margin:-margin, margin:-margin] = np.where(has_ground, top.astype(np.float64), np.nan)
+            wanted = np.zeros(grid.shape, np.bool_)
+            wanted[margin:-margin, margin:-margin] = hidden
+            estimate = _spread_ground_near(grid, wanted, NEIGHBOUR_PASSES)[margin:-margin, margin:-margin]
+            found = hidden & ~np.isnan(estimate)
+            ground_z[found] = np.round(estimate[found]).astype(np.int64)
+        cells = np.argwhere(hidden)
+        with parallel_region():
+            _hidden_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
+                            cells, ground_z[hidden], values)
+    return CostGrid(origin[:2].copy(), values, float(resolution))
 
 
 _NO_GROUND = np.iinfo(np.int64).min
 _NO_VOXEL = np.iinfo(np.int64).max
 _EVIDENT, _GROUND, _EMPTY = 1, 2, 4
 _TINY = np.finfo(np.float64).tiny
+# The profile's numbers as the compiled passes take them (one float64 array).
+_RESOLUTION, _MIN_HEIGHT, _ROBOT_HEIGHT, _MIN_EVIDENCE, _RISK_SIGMA, _PRIOR_TOTAL = range(6)
 
 if HAVE_NUMBA:
 
-    @njit(parallel=True, nogil=True)
-    def _voxel_pass(alpha, mask, origin, dims, weights, prior, base, prior_total, min_evidence, risk_sigma, risk,
-                    kind, top_ground, lowest):  # pragma: no cover - compiled
-        """Per voxel with evidence: its risk and kind bits (``_voxel_risks``' rules); per column:
-        the ground voxel's global z (``column_costs``' rule) and the lowest voxel's. The voxels
-        of a column are visited upwards in global z, so the first obstacle is known on the way."""
-        size_x, size_y, size_z = mask.shape
+    @njit(nogil=True, inline="always")
+    def _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base, rules, runs, read_all, sums, risk,
+                       kind):  # pragma: no cover - compiled
+        """One column's voxels (physical x, y): per step up the window (global z = origin z +
+        step) its risk and kind bits (``_voxel_risks``' rules) into ``risk``, ``kind``; returns
+        (its ground voxel's global z by ``column_costs``' rule, its lowest voxel's, whether it
+        holds an occupied voxel that is not ground). ``runs``:
+        the column's bits of the classes to read (all when ``read_all``, each run checked)."""
+        size_z = mask.shape[2]
         classes = alpha.shape[0]
-        for x in prange(size_x):
-            sums = np.empty((5, size_z))  # the column's moments per physical z
-            for y in range(size_y):
-                ground_below = _NO_GROUND  # the highest ground voxel under the first obstacle
-                ground_any = _NO_GROUND
-                obstacle_seen = False
-                low = _NO_VOXEL
-                evident = False
+        evident = False
+        for step in range(size_z):
+            kind[step] = 0
+            evident |= (mask[x, y, step] & EVIDENCE) != 0
+        if not evident:
+            return _NO_GROUND, _NO_VOXEL, False
+        # Class by class along z: a class's run of the column is contiguous in memory, where the
+        # classes of one voxel lie a whole class plane apart. A run at the prior adds nothing and
+        # is skipped: most classes of a column hold no evidence.
+        for k in range(5):
+            sums[k, :] = base[k]
+        prior64 = np.float64(prior)
+        for c in range(classes):
+            if read_all:
+                held = False
                 for z in range(size_z):
-                    kind[x, y, z] = 0
-                    evident |= mask[x, y, z] & EVIDENCE != 0
-                if not evident:
-                    top_ground[x, y] = _NO_GROUND
-                    lowest[x, y] = _NO_VOXEL
+                    held |= alpha[c, x, y, z] != prior
+                if not held:
                     continue
-                # Class by class along z: each class's run of the column is contiguous in memory,
-                # where the classes of one voxel lie a whole class plane apart. A run at the prior
-                # adds nothing (most classes of a column hold no evidence) and is skipped.
-                for k in range(5):
-                    sums[k, :] = base[k]
-                prior64 = np.float64(prior)
-                for c in range(classes):
-                    held = False
-                    for z in range(size_z):
-                        held |= alpha[c, x, y, z] != prior
-                    if not held:
-                        continue
-                    w0, w1, w2, w3, w4 = weights[0, c], weights[1, c], weights[2, c], weights[3, c], weights[4, c]
-                    for z in range(size_z):  # one contiguous run: vectorised
-                        value = np.float64(alpha[c, x, y, z]) - prior64
-                        sums[0, z] += value * w0
-                        sums[1, z] += value * w1
-                        sums[2, z] += value * w2
-                        sums[3, z] += value * w3
-                        sums[4, z] += value * w4
-                for step in range(size_z):
-                    global_z = origin[2] + step
-                    z = global_z % dims[2]
-                    if mask[x, y, z] & EVIDENCE == 0:
-                        continue
-                    m0 = sums[0, z]
-                    m1 = sums[1, z]
-                    m2 = sums[2, z]
-                    m3 = sums[3, z]
-                    m4 = sums[4, z]
-                    if not m0 - prior_total >= min_evidence:
-                        continue
-                    low = min(low, global_z)
-                    if m4 / m0 > EMPTY_SHARE:
-                        risk[x, y, z] = 0.0
-                        kind[x, y, z] = _EVIDENT | _EMPTY
-                        continue
-                    occupied = max(m0 - m4, _TINY)
-                    mean = m1 / occupied
-                    variance = max(m2 / occupied - mean * mean, 0.0) / (occupied + 1.0)
-                    risk[x, y, z] = min(max(mean + risk_sigma * np.sqrt(variance), 0.0), 100.0)
-                    if m3 / occupied > GROUND_SHARE:
-                        kind[x, y, z] = _EVIDENT | _GROUND
-                        ground_any = global_z
-                        if not obstacle_seen:
-                            ground_below = global_z
-                    else:
-                        kind[x, y, z] = _EVIDENT
-                        obstacle_seen = True
-                top_ground[x, y] = ground_below if ground_below != _NO_GROUND else ground_any
-                lowest[x, y] = low
+            elif c > 0 and ((runs >> np.uint64(c)) & np.uint64(1)) == 0:
+                continue  # class 0 (empty space) is always read: free space adds it without a bit
+            w0, w1, w2, w3, w4 = weights[0, c], weights[1, c], weights[2, c], weights[3, c], weights[4, c]
+            for z in range(size_z):  # one contiguous run: vectorised
+                value = np.float64(alpha[c, x, y, z]) - prior64
+                sums[0, z] += value * w0
+                sums[1, z] += value * w1
+                sums[2, z] += value * w2
+                sums[3, z] += value * w3
+                sums[4, z] += value * w4
+        ground_below = _NO_GROUND  # the highest ground voxel under the first obstacle
+        ground_any = _NO_GROUND
+        obstacle_seen = False
+        low = _NO_VOXEL
+        z = origin[2] % dims[2] - 1  # the physical z of each step, without a division per voxel
+        for step in range(size_z):
+            global_z = origin[2] + step
+            z = z + 1 if z + 1 < size_z else 0
+            if (mask[x, y, z] & EVIDENCE) == 0:
+                continue
+            m0, m1, m2, m3, m4 = sums[0, z], sums[1, z], sums[2, z], sums[3, z], sums[4, z]
+            if not m0 - rules[_PRIOR_TOTAL] >= rules[_MIN_EVIDENCE]:
+                continue
+            low = min(low, global_z)
+            if m4 / m0 > EMPTY_SHARE:
+                risk[step] = 0.0
+                kind[step] = _EVIDENT | _EMPTY
+                continue
+            occupied = max(m0 - m4, _TINY)
+            mean = m1 / occupied
+            variance = max(m2 / occupied - mean * mean, 0.0) / (occupied + 1.0)
+            risk[step] = min(max(mean + rules[_RISK_SIGMA] * np.sqrt(variance), 0.0), 100.0)
+            if m3 / occupied > GROUND_SHARE:
+                kind[step] = _EVIDENT | _GROUND
+                ground_any = global_z
+                if not obstacle_seen:
+                    ground_below = global_z
+            else:
+                kind[step] = _EVIDENT
+                obstacle_seen = True
+        return (ground_below if ground_below != _NO_GROUND else ground_any), low, obstacle_seen
+
+    @njit(nogil=True, inline="always")
+    def _column_value(risk, kind, origin_z, ground, rules):  # pragma: no cover - compiled
+        """The cell of a column whose ground is at global z ``ground``: the most costly of its
+        ground voxel and its band voxels, -1 unless something non-empty is in the band or its
+        ground was seen."""
+        cost = -np.inf
+        observed = False
+        for step in range(kind.shape[0]):
+            bits = kind[step]
+            if bits == 0:
+                continue
+            global_z = origin_z + step
+            above = (global_z - ground) * rules[_RESOLUTION]
+            in_band = above >= rules[_MIN_HEIGHT] - 1e-9 and above <= rules[_ROBOT_HEIGHT] + 1e-9
+            surface = (bits & _GROUND) != 0 and global_z == ground
+            if in_band or surface:
+                cost = max(cost, risk[step])
+                if surface or (bits & _EMPTY) == 0:
+                    observed = True
+        return np.int8(np.rint(min(max(cost, 0.0), 100.0))) if observed else np.int8(-1)
 
     @njit(parallel=True, nogil=True)
-    def _column_pass(risk, kind, origin, dims, ground_z, resolution, min_obstacle_height, robot_height,
-                     values):  # pragma: no cover - compiled
-        """Per column: the most costly of its ground voxel and its band voxels, -1 unless
-        something non-empty is in the band or its ground was seen."""
-        size_x, size_y, size_z = kind.shape
+    def _grounded_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, values, top,
+                          hidden, low_ground):  # pragma: no cover - compiled
+        """Every column: its ground voxel into ``top``, its cell into ``values`` where it saw its
+        own ground or holds no obstacle (then its ground does not matter), else whether it is a
+        hidden-ground column with an obstacle into ``hidden`` and the height under its lowest
+        voxel into ``low_ground``; all in global order."""
+        size_x, size_y, size_z = mask.shape
         for x in prange(size_x):
+            sums = np.empty((5, size_z))  # the column's moments per physical z
+            risk = np.empty(size_z)
+            kind = np.empty(size_z, np.uint8)
+            column_x = (x - origin[0]) % size_x
+            column_y = (0 - origin[1]) % size_y - 1
             for y in range(size_y):
-                cost = -np.inf
-                observed = False
-                ground = ground_z[x, y]
-                for z in range(size_z):
-                    bits = kind[x, y, z]
-                    if bits == 0:
+                column_y = column_y + 1 if column_y + 1 < size_y else 0
+                ground, lowest, obstacle = _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base,
+                                                          rules, classes[x, y], read_all, sums, risk, kind)
+                top[column_x, column_y] = ground
+                hidden[column_x, column_y] = ground == _NO_GROUND and obstacle
+                if ground != _NO_GROUND:
+                    values[column_y, column_x] = _column_value(risk, kind, origin[2], ground, rules)
+                elif obstacle:
+                    # Its ground is taken from its neighbours' in a second pass; failing that, the
+                    # height just under its lowest voxel.
+                    values[column_y, column_x] = -1
+                    low_ground[column_x, column_y] = lowest - 1
+                else:
+                    values[column_y, column_x] = -1  # nothing seen, or only empty space
+
+    @njit(parallel=True, nogil=True)
+    def _hidden_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, cells, ground_z,
+                        values):  # pragma: no cover - compiled
+        """The columns at global-order ``cells`` (n, 2), whose ground is hidden, with the ground
+        ``ground_z`` (n,) estimated for them: their cells into ``values``."""
+        size_x, size_y, size_z = mask.shape
+        count = cells.shape[0]
+        chunk = 256
+        for first in prange((count + chunk - 1) // chunk):
+            sums = np.empty((5, size_z))
+            risk = np.empty(size_z)
+            kind = np.empty(size_z, np.uint8)
+            for i in range(first * chunk, min(count, (first + 1) * chunk)):
+                column_x, column_y = cells[i, 0], cells[i, 1]
+                x = (origin[0] + column_x) % size_x
+                y = (origin[1] + column_y) % size_y
+                _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base, rules, classes[x, y], read_all,
+                               sums, risk, kind)  # the same voxels as in the first pass
+                values[column_y, column_x] = _column_value(risk, kind, origin[2], ground_z[i], rules)
+
+    @njit(nogil=True)
+    def _spread_ground_near(grid, wanted, passes):  # pragma: no cover - compiled
+        """``_spread_ground`` where it matters: the same values at the ``wanted`` cells, computed
+        only over the cells within ``passes`` of one (pass p fills the cells that a wanted
+        cell's value depends on after p passes: those within passes - p of it)."""
+        size_x, size_y = grid.shape
+        reach = np.full((size_x, size_y), -1, np.int64)  # passes - the distance to a wanted cell
+        for x in range(size_x):
+            for y in range(size_y):
+                if wanted[x, y]:
+                    reach[x, y] = passes
+        for level in range(passes, 1, -1):
+            for x in range(size_x):
+                for y in range(size_y):
+                    if reach[x, y] != level:
                         continue
-                    global_z = origin[2] + (z - origin[2]) % dims[2]
-                    above = (global_z - ground) * resolution
-                    in_band = above >= min_obstacle_height - 1e-9 and above <= robot_height + 1e-9
-                    surface = (bits & _GROUND) != 0 and global_z == ground
-                    if in_band or surface:
-                        cost = max(cost, risk[x, y, z])
-                        if surface or (bits & _EMPTY) == 0:
-                            observed = True
-                values[x, y] = np.int8(np.rint(min(max(cost, 0.0), 100.0))) if observed else np.int8(-1)
+                    for dx in (-1, 0, 1):
+                        for dy in (-1, 0, 1):
+                            nx, ny = x + dx, y + dy
+                            if 0 <= nx < size_x and 0 <= ny < size_y and reach[nx, ny] < level - 1:
+                                reach[nx, ny] = level - 1
+        filled_x = np.empty(size_x * size_y, np.int64)
+        filled_y = np.empty(size_x * size_y, np.int64)
+        filled = np.empty(size_x * size_y)
+        for level in range(1, passes + 1):
+            count = 0
+            for x in range(size_x):
+                for y in range(size_y):
+                    if reach[x, y] < level or not np.isnan(grid[x, y]):
+                        continue
+                    total = 0.0
+                    found = 0
+                    for dx in (-1, 0, 1):
+                        for dy in (-1, 0, 1):
+                            nx, ny = x + dx, y + dy
+                            if (dx or dy) and 0 <= nx < size_x and 0 <= ny < size_y and not np.isnan(grid[nx, ny]):
+                                total += grid[nx, ny]
+                                found += 1
+                    if found:
+                        filled_x[count], filled_y[count], filled[count] = x, y, total / found
+                        count += 1
+            for i in range(count):  # after the pass, as ``_spread_ground`` reads the grid before it
+                grid[filled_x[i], filled_y[i]] = filled[i]
+        return grid

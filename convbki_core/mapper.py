@@ -241,6 +241,7 @@ class ConvBKIMapper:
             forgetting_s = time.perf_counter() - moved
         if volume.num_voxels:
             result.new_voxels = self.update(volume, marks)
+            self.window.note_scan(volume, self.kernel.filter_size // 2)
         if self.forgetting is not None:
             started_rule = time.perf_counter()
             self.forgetting.unsupported(self.window)

@@ -67,22 +67,33 @@ class TorchWindow(RollingWindow):
             self.store.write(indices, rows)
         self.alpha[:, gx, gy, gz] = float(self.prior)
         self.mask[gx, gy, gz] = 0
+        self._columns_left(*self._physical(lo, hi))
         return indices
 
     def _load(self, lo: np.ndarray, hi: np.ndarray) -> None:
         linear, alpha = self.store.take_window(lo, hi - lo)
         if linear.size == 0:
             return
-        physical = torch.as_tensor((unravel_linear(linear, hi - lo) + lo) % self.dims, device=self.device)
+        on_host = (unravel_linear(linear, hi - lo) + lo) % self.dims
+        physical = torch.as_tensor(on_host, device=self.device)
         x, y, z = physical[:, 0], physical[:, 1], physical[:, 2]
         self.alpha[:, x, y, z] = torch.as_tensor(alpha, device=self.device).T
         self.mask[x, y, z] = EVIDENCE
+        self._columns_loaded(on_host, alpha)
+
+    def _in_host_memory(self) -> bool:
+        return self.device.type == "cpu"
+
+    def _host_alpha(self) -> np.ndarray:
+        return self.alpha.numpy()
 
     def clear(self) -> None:
         self.alpha.fill_(float(self.prior))
         self.mask.fill_(0)
         self.origin = None
         self._evicted_changes.clear()
+        if self._class_columns is not None:
+            self._class_columns.fill(0)
 
     def _gather(self, select: int, clear: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(global indices, alpha) of the voxels with a bit of ``select``; then clear ``clear``."""

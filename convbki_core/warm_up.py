@@ -34,13 +34,14 @@ import numpy as np
 
 from convbki_core.compiled import KernelCache, kernel_cache, threading_layer
 from convbki_core.config import DEFAULTS, MapperConfig
-from convbki_core.costmap import TraversabilityProfile, column_costs, grid_of_window
+from convbki_core.costmap import TraversabilityProfile, column_costs, grid_of_window, window_grid
 from convbki_core.free_space import FREE_CLASS
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.records import change_records, packed_palette, view_records
 from convbki_core.shown_map import ShownMap
+from convbki_core.window import EVIDENCE, classes_held
 
 # The throwaway window: big enough for a filter of up to 31 voxels and a few moves.
 HALF_EXTENT = (3.2, 3.2, 1.2)  # metres at 0.2 m; scaled with the resolution
@@ -99,6 +100,18 @@ def throwaway_mapper(config: MapperConfig, kernel) -> ConvBKIMapper:
     return ConvBKIMapper(small, kernel)
 
 
+def _hidden_ground(classes: int, resolution: float, prior: float, profile: TraversabilityProfile) -> None:
+    """The costmap's passes for a column whose ground is hidden (a car on the road): a drive's
+    first grids may have none, and its later ones then compile them."""
+    alpha = np.full((classes, 4, 4, 4), np.float32(prior), np.float32)
+    mask = np.zeros((4, 4, 4), np.uint8)
+    alpha[1, 0, 0, 0] += 10.0  # ground (the warm-up profile's class 1) in one column
+    alpha[classes - 1, 1, 0, 1] += 10.0  # an obstacle over hidden ground next to it
+    mask[0, 0, 0] = mask[1, 0, 1] = EVIDENCE
+    window_grid(alpha, mask, np.zeros(3, np.int64), np.array([4, 4, 4]), resolution, profile, prior,
+                classes_held(alpha, prior))
+
+
 def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, folder: Path | None) -> None:
     """What a node's outputs and files call on a mapper, once (files in ``folder``; none: no
     temporary folder can be written, so saving and loading compile at their first use)."""
@@ -122,6 +135,7 @@ def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, folder: Path | No
     mapper.local_voxels()
     profile = TraversabilityProfile("warm-up", np.linspace(0.0, 100.0, classes), (1,))
     grid_of_window(mapper.window, resolution, profile, mapper.prior)
+    _hidden_ground(classes, resolution, mapper.prior, profile)
     column_costs(*mapper.items(), resolution, profile, mapper.prior)
     half = 2 * resolution
     forgotten = mapper.forget_box((-half, -half, -half), (half, half, half))

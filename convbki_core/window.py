@@ -13,6 +13,15 @@ The mask has two bits: ``EVIDENCE`` (the voxel holds evidence) and ``CHANGED`` (
 concentrations changed since the map's changes were last taken). With ``track_changes``,
 a changed voxel that leaves the window before its change is taken is remembered, so
 ``take_changes`` misses nothing; outputs that send only what changed are built on it.
+
+Readers that go through every column of the window (the planner's costmap) need not read a
+class's run of a column when all of it holds the prior, and most runs do: a column holds
+evidence of a few classes. Once asked for (``classes_by_column``), the window keeps per
+column a bit per class that may be above the prior there, a superset kept current from what
+can raise a class: a scan's class evidence reaches the columns within the kernel's half-width
+of its occupied voxels (``note_scan``), and voxels come back from the store. Everything else
+that writes concentrations only adds empty-space evidence (class 0, whose run is always read),
+scales the evidence above the prior, or resets classes to the prior.
 """
 
 from __future__ import annotations
@@ -32,6 +41,8 @@ if HAVE_NUMBA:
 EVIDENCE = 1
 CHANGED = 2
 TOUCHED = 4
+# The most classes whose runs ``classes_by_column`` keeps a bit for (one uint64 per column).
+MAX_CLASS_BITS = 64
 
 
 def box_difference(first_lo: np.ndarray, first_hi: np.ndarray, second_lo: np.ndarray,
@@ -72,6 +83,10 @@ class RollingWindow:
         # kept only for a map whose changes are taken (``track_changes``), or they would pile up.
         self.track_changes = bool(track_changes)
         self._evicted_changes: list[tuple[np.ndarray, np.ndarray]] = []
+        # Per column (X, Y) uint64: bit c set where class c may be above the prior somewhere in
+        # the column; None until a reader asks for it (``classes_by_column``).
+        self._class_columns: np.ndarray | None = None
+        self._column_scratch: np.ndarray | None = None  # (2, X, Y) zeros for ``note_scan``
 
     def _allocate(self) -> None:
         """The window's arrays: concentrations at the prior, no evidence. Every page is written
@@ -106,6 +121,7 @@ class RollingWindow:
             self.store.write(local + lo, rows)
         self.alpha[np.ix_(np.arange(self.num_classes), px, py, pz)] = self.prior
         self.mask[np.ix_(px, py, pz)] = 0
+        self._columns_left(px, py, pz)
         return local + lo
 
     def _load(self, lo: np.ndarray, hi: np.ndarray) -> None:
@@ -116,6 +132,48 @@ class RollingWindow:
         physical = (unravel_linear(linear, hi - lo) + lo) % self.dims
         self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]] = alpha.T
         self.mask[physical[:, 0], physical[:, 1], physical[:, 2]] = 1
+        self._columns_loaded(physical, alpha)
+
+    # -- which classes each column holds -----------------------------------------------------
+    def classes_by_column(self) -> np.ndarray | None:
+        """(X, Y) uint64 by physical column: bit c set where class c may hold more than the prior
+        in the column (every run whose bit is clear holds exactly the prior). The first call
+        reads the whole window and from then on the window keeps the bits current. None for a
+        window of more than ``MAX_CLASS_BITS`` classes or whose arrays are not in host memory."""
+        if self.num_classes > MAX_CLASS_BITS or not self._in_host_memory():
+            return None
+        if self._class_columns is None:
+            self._class_columns = classes_held(self._host_alpha(), self.prior)
+            self._column_scratch = np.zeros((2, *self._class_columns.shape), np.uint64)
+        return self._class_columns
+
+    def _in_host_memory(self) -> bool:
+        return True
+
+    def _host_alpha(self) -> np.ndarray:
+        return self.alpha
+
+    def note_scan(self, volume, half: int) -> None:
+        """A scan's evidence was added: its classes may now be above the prior in the columns
+        within ``half`` (the filter's half-width) of its occupied voxels (``SparseVolume``
+        ``volume``, placed on this window's origin)."""
+        if self._class_columns is None or volume.num_voxels == 0:
+            return
+        _note_scan_classes(volume.linear, volume.features, np.asarray(self.origin, np.int64), self.dims, int(half),
+                           self._class_columns, self._column_scratch)
+
+    def _columns_left(self, px: np.ndarray, py: np.ndarray, pz: np.ndarray) -> None:
+        """Columns emptied whole (the window moved along x or y) hold no class any more."""
+        if self._class_columns is not None and len(pz) == self.dims[2]:
+            self._class_columns[np.ix_(px, py)] = 0
+
+    def _columns_loaded(self, physical: np.ndarray, alpha: np.ndarray) -> None:
+        """Voxels came back from the store: their classes above the prior, per column."""
+        if self._class_columns is None or not len(physical):
+            return
+        bits = np.uint64(1) << np.arange(alpha.shape[1], dtype=np.uint64)
+        held = np.bitwise_or.reduce(np.where(alpha != self.prior, bits, np.uint64(0)), axis=1)
+        np.bitwise_or.at(self._class_columns, (physical[:, 0], physical[:, 1]), held)
 
     def move_to(self, origin: np.ndarray) -> None:
         """Make the window cover global indices origin .. origin + dims - 1."""
@@ -135,9 +193,12 @@ class RollingWindow:
 
     def warm_up(self, scratch) -> None:
         """Moves of the scratch window (``parts.Scratch``, a window of this kind) along every
-        axis and back, with the scan's evidence in it: slabs to its store and back, the
-        changes taken, the voxels listed and looked up, a box forgotten, the window flushed."""
+        axis and back, with the scan's evidence in it: its classes by column kept from a scan,
+        slabs to its store and back, the changes taken, the voxels listed and looked up, a box
+        forgotten, the window flushed."""
         window = scratch.window
+        window.classes_by_column()  # from now on kept by the window: its scans and moves below
+        window.note_scan(scratch.volume, 2)
         for origin in scratch.origins():
             window.move_to(origin)
             window.take_changes()
@@ -158,6 +219,8 @@ class RollingWindow:
         self.mask.fill(0)
         self.origin = None
         self._evicted_changes.clear()
+        if self._class_columns is not None:
+            self._class_columns.fill(0)
 
     def forget_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Drop the evidence of the window's voxels in the global box [lo, hi) (and the changes
@@ -254,6 +317,114 @@ if HAVE_NUMBA:
                         mask[x, y, z] &= keep
                         row += 1
         return starts[-1]
+
+
+def classes_held(alpha: np.ndarray, prior: float) -> np.ndarray:
+    """(X, Y) uint64: per column of ``alpha`` (C, X, Y, Z), bit c set where class c holds
+    anything but ``prior`` in the column."""
+    prior = np.float32(prior)
+    if HAVE_NUMBA:
+        with parallel_region():
+            return _classes_held_numba(alpha, prior)
+    held = np.zeros(alpha.shape[1:3], np.uint64)
+    for c in range(alpha.shape[0]):
+        held |= (alpha[c] != prior).any(axis=2).astype(np.uint64) << np.uint64(c)
+    return held
+
+
+def _note_scan_classes(linear: np.ndarray, features: np.ndarray, origin: np.ndarray, dims: np.ndarray, half: int,
+                       held: np.ndarray, scratch: np.ndarray) -> None:
+    """Set in ``held`` (X, Y, physical columns) the bits of the classes with evidence in each
+    occupied voxel (``linear`` window-linear indices from ``origin``, ``features`` (M, C)) over
+    the window's columns within ``half`` of it (the update writes nothing outside the window);
+    ``scratch`` (2, X, Y) uint64 zeros, left zero."""
+    if HAVE_NUMBA:
+        with parallel_region():
+            # Separate kernels: each step reads what the previous one wrote in other rows.
+            voxel_bits = _voxel_class_bits(np.ascontiguousarray(features))
+            _scan_columns(linear, voxel_bits, int(dims[1]), int(dims[2]), scratch[0])
+            _spread_along_y(scratch[0], half, scratch[1])
+            _spread_along_x(scratch[1], half, int(origin[0] % dims[0]), int(origin[1] % dims[1]), held)
+            scratch[1].fill(0)
+        return
+    bits = np.uint64(1) << np.arange(features.shape[1], dtype=np.uint64)
+    voxel_bits = np.bitwise_or.reduce(np.where(features != 0, bits, np.uint64(0)), axis=1)
+    local = unravel_linear(linear, dims)
+    scan = np.zeros((int(dims[0]) + 2 * half, int(dims[1]) + 2 * half), np.uint64)  # local, with a margin
+    np.bitwise_or.at(scan, (local[:, 0] + half, local[:, 1] + half), voxel_bits)
+    spread = np.zeros_like(scan)
+    for shift in range(-half, half + 1):
+        spread |= np.roll(scan, shift, axis=1)
+    grown = np.zeros_like(scan)
+    for shift in range(-half, half + 1):
+        grown |= np.roll(spread, shift, axis=0)
+    inside = grown[half:half + int(dims[0]), half:half + int(dims[1])]
+    held[np.ix_(np.arange(origin[0], origin[0] + dims[0]) % dims[0],
+                np.arange(origin[1], origin[1] + dims[1]) % dims[1])] |= inside
+
+
+if HAVE_NUMBA:
+
+    @njit(parallel=True, nogil=True)
+    def _classes_held_numba(alpha, prior):  # pragma: no cover - compiled
+        classes, size_x, size_y, size_z = alpha.shape
+        held = np.zeros((size_x, size_y), np.uint64)
+        for x in prange(size_x):
+            for c in range(classes):
+                bit = np.uint64(1) << np.uint64(c)
+                for y in range(size_y):
+                    for z in range(size_z):
+                        if alpha[c, x, y, z] != prior:
+                            held[x, y] |= bit
+                            break
+        return held
+
+    @njit(parallel=True, nogil=True)
+    def _voxel_class_bits(features):  # pragma: no cover - compiled
+        rows, classes = features.shape
+        voxel_bits = np.zeros(rows, np.uint64)
+        for row in prange(rows):
+            bits = np.uint64(0)
+            for c in range(classes):
+                if features[row, c] != 0:
+                    bits |= np.uint64(1) << np.uint64(c)
+            voxel_bits[row] = bits
+        return voxel_bits
+
+    @njit(nogil=True)
+    def _scan_columns(linear, voxel_bits, size_y, size_z, scan):  # pragma: no cover - compiled
+        """The scan's columns in window-local order (local x, y from the origin)."""
+        for row in range(linear.shape[0]):
+            rest = linear[row] // size_z
+            scan[rest // size_y, rest % size_y] |= voxel_bits[row]
+
+    @njit(parallel=True, nogil=True)
+    def _spread_along_y(scan, half, spread):  # pragma: no cover - compiled
+        """``spread`` |= ``scan`` grown by ``half`` along y; ``scan`` left zero."""
+        size_x, size_y = scan.shape
+        for x in prange(size_x):
+            for y in range(size_y):
+                bits = scan[x, y]
+                if bits == 0:
+                    continue
+                scan[x, y] = 0
+                for near in range(max(0, y - half), min(size_y, y + half + 1)):
+                    spread[x, near] |= bits
+
+    @njit(parallel=True, nogil=True)
+    def _spread_along_x(spread, half, start_x, start_y, held):  # pragma: no cover - compiled
+        """``held`` (physical columns, local column 0 at ``start_x``, ``start_y``) |= ``spread``
+        grown by ``half`` along x."""
+        size_x, size_y = spread.shape
+        for x in prange(size_x):
+            physical_x = start_x + x - size_x if start_x + x >= size_x else start_x + x
+            for y in range(size_y):
+                bits = np.uint64(0)
+                for near in range(max(0, x - half), min(size_x, x + half + 1)):
+                    bits |= spread[near, y]
+                if bits != 0:
+                    physical_y = start_y + y - size_y if start_y + y >= size_y else start_y + y
+                    held[physical_x, physical_y] |= bits
 
 
 def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray,

@@ -29,6 +29,8 @@ from convbki_core.paths import kernel_path
 from convbki_core.records import change_records, packed_palette, view_records
 from convbki_core.shown_map import ShownMap
 from convbki_core.warm_up import warm_up
+from convbki_core.costmap import grid_of_window, load_profile
+from convbki_core.paths import traversability_profile
 from convbki_ros.cloud_encoding import encode_cloud
 from convbki_ros.cloud_decoding import decode_cloud
 
@@ -46,6 +48,7 @@ config = MapperConfig.paper(local_bounds=((-20, -20, -2.6), (20, 20, 2.6)), devi
                             ignore_classes=labels.ignore_classes, track_changes=True, free_space=True,
                             max_concentration=300.0)
 mapper = ConvBKIMapper(config, kernel_path("semantic_kitti_compound"))
+costmap_profile = load_profile(traversability_profile("car"), labels.class_names)
 report = warm_up(mapper)
 before = signatures()
 rng = np.random.default_rng(1)
@@ -68,6 +71,7 @@ for scan in range(6):
     records = change_records(changes.removed, changes.indices, changes.alpha, mapper.resolution, palette, 0.0)
     shown.apply(np.concatenate([changes.removed, changes.indices]), records)
     view_records(mapper.window_records(palette), pose[:3, 3], 30.0, 600000)
+    grid_of_window(mapper.window, mapper.resolution, costmap_profile, mapper.prior)  # the node's costmap
 mapper.labels_at(points)
 mapper.forget_box((-1, -1, -1), (1, 1, 1))
 with tempfile.TemporaryDirectory() as folder:
