@@ -404,20 +404,10 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
         _grounded_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
                           values, top, hidden, ground_z)
     if hidden.any():
-        has_ground = top > _NO_GROUND
-        if has_ground.any():
-            margin = NEIGHBOUR_PASSES
-            grid = np.full((size_x + 2 * margin, size_y + 2 * margin), np.nan)
-            grid[margin:-margin, margin:-margin] = np.where(has_ground, top.astype(np.float64), np.nan)
-            wanted = np.zeros(grid.shape, np.bool_)
-            wanted[margin:-margin, margin:-margin] = hidden
-            estimate = _spread_ground_near(grid, wanted, NEIGHBOUR_PASSES)[margin:-margin, margin:-margin]
-            found = hidden & ~np.isnan(estimate)
-            ground_z[found] = np.round(estimate[found]).astype(np.int64)
         cells = np.argwhere(hidden)
         with parallel_region():
             _hidden_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
-                            cells, ground_z[hidden], values)
+                            cells, top, ground_z, values)
     return CostGrid(origin[:2].copy(), values, float(resolution))
 
 
@@ -431,44 +421,49 @@ _RESOLUTION, _MIN_HEIGHT, _ROBOT_HEIGHT, _MIN_EVIDENCE, _RISK_SIGMA, _PRIOR_TOTA
 if HAVE_NUMBA:
 
     @njit(nogil=True, inline="always")
-    def _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base, rules, runs, read_all, sums, risk,
-                       kind):  # pragma: no cover - compiled
-        """One column's voxels (physical x, y): per step up the window (global z = origin z +
-        step) its risk and kind bits (``_voxel_risks``' rules) into ``risk``, ``kind``; returns
-        (its ground voxel's global z by ``column_costs``' rule, its lowest voxel's, whether it
-        holds an occupied voxel that is not ground). ``runs``:
-        the column's bits of the classes to read (all when ``read_all``, each run checked)."""
-        size_z = mask.shape[2]
-        classes = alpha.shape[0]
+    def _column_evident(mask, x, y, kind):  # pragma: no cover - compiled
+        """Whether the column holds a voxel with evidence; clears ``kind``."""
         evident = False
-        for step in range(size_z):
-            kind[step] = 0
-            evident |= (mask[x, y, step] & EVIDENCE) != 0
-        if not evident:
-            return _NO_GROUND, _NO_VOXEL, False
-        # Class by class along z: a class's run of the column is contiguous in memory, where the
-        # classes of one voxel lie a whole class plane apart. A run at the prior adds nothing and
-        # is skipped: most classes of a column hold no evidence.
-        for k in range(5):
-            sums[k, :] = base[k]
+        for z in range(mask.shape[2]):
+            kind[z] = 0
+            evident |= (mask[x, y, z] & EVIDENCE) != 0
+        return evident
+
+    @njit(nogil=True, inline="always")
+    def _add_run(alpha, c, x, y, read_all, weights, prior, sums):  # pragma: no cover - compiled
+        """Class c's run of the column into its moment ``sums`` (5, Z), as ``_row_moments`` adds
+        it (nothing where it holds the prior)."""
+        size_z = alpha.shape[3]
+        if read_all:
+            held = False
+            for z in range(size_z):
+                held |= alpha[c, x, y, z] != prior
+            if not held:
+                return
         prior64 = np.float64(prior)
-        for c in range(classes):
-            if read_all:
-                held = False
-                for z in range(size_z):
-                    held |= alpha[c, x, y, z] != prior
-                if not held:
-                    continue
-            elif c > 0 and ((runs >> np.uint64(c)) & np.uint64(1)) == 0:
-                continue  # class 0 (empty space) is always read: free space adds it without a bit
-            w0, w1, w2, w3, w4 = weights[0, c], weights[1, c], weights[2, c], weights[3, c], weights[4, c]
-            for z in range(size_z):  # one contiguous run: vectorised
-                value = np.float64(alpha[c, x, y, z]) - prior64
-                sums[0, z] += value * w0
-                sums[1, z] += value * w1
-                sums[2, z] += value * w2
-                sums[3, z] += value * w3
-                sums[4, z] += value * w4
+        w0, w1, w2, w3, w4 = weights[0, c], weights[1, c], weights[2, c], weights[3, c], weights[4, c]
+        for z in range(size_z):  # one contiguous run: vectorised
+            value = np.float64(alpha[c, x, y, z]) - prior64
+            sums[0, z] += value * w0
+            sums[1, z] += value * w1
+            sums[2, z] += value * w2
+            sums[3, z] += value * w3
+            sums[4, z] += value * w4
+
+    @njit(nogil=True, inline="always")
+    def _reads_class(c, runs, read_all):  # pragma: no cover - compiled
+        """Whether class c's run of a column with the class bits ``runs`` is read: class 0
+        (empty space) always, as free space adds it without a bit."""
+        return read_all or c == 0 or ((runs >> np.uint64(c)) & np.uint64(1)) != 0
+
+    @njit(nogil=True, inline="always")
+    def _column_kinds(sums, mask, x, y, origin, dims, rules, risk, kind):  # pragma: no cover - compiled
+        """One column's voxels (physical x, y) from their moment ``sums`` (5, Z by physical z):
+        per step up the window (global z = origin z + step) its risk and kind bits
+        (``_voxel_risks``' rules) into ``risk``, ``kind``; returns (its ground voxel's global z
+        by ``column_costs``' rule, its lowest voxel's, whether it holds an occupied voxel that
+        is not ground)."""
+        size_z = mask.shape[2]
         ground_below = _NO_GROUND  # the highest ground voxel under the first obstacle
         ground_any = _NO_GROUND
         obstacle_seen = False
@@ -500,6 +495,22 @@ if HAVE_NUMBA:
                 kind[step] = _EVIDENT
                 obstacle_seen = True
         return (ground_below if ground_below != _NO_GROUND else ground_any), low, obstacle_seen
+
+    @njit(nogil=True, inline="always")
+    def _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base, rules, runs, read_all, sums, risk,
+                       kind):  # pragma: no cover - compiled
+        """``_column_kinds`` of one column read on its own (``runs``: its class bits)."""
+        if not _column_evident(mask, x, y, kind):
+            return _NO_GROUND, _NO_VOXEL, False
+        # Class by class along z: a class's run of the column is contiguous in memory, where the
+        # classes of one voxel lie a whole class plane apart. A run at the prior adds nothing and
+        # is skipped: most classes of a column hold no evidence.
+        for k in range(5):
+            sums[k, :] = base[k]
+        for c in range(alpha.shape[0]):
+            if _reads_class(c, runs, read_all):
+                _add_run(alpha, c, x, y, read_all, weights, prior, sums)
+        return _column_kinds(sums, mask, x, y, origin, dims, rules, risk, kind)
 
     @njit(nogil=True, inline="always")
     def _column_value(risk, kind, origin_z, ground, rules):  # pragma: no cover - compiled
@@ -552,67 +563,63 @@ if HAVE_NUMBA:
                 else:
                     values[column_y, column_x] = -1  # nothing seen, or only empty space
 
+    @njit(nogil=True, inline="always")
+    def _ground_near(top, cx, cy, patch, fresh):  # pragma: no cover - compiled
+        """``_spread_ground``'s estimate for the hidden column at global-order (cx, cy) of ``top``
+        (ground z or _NO_GROUND), NaN where none is near: the passes run over the patch of
+        NEIGHBOUR_PASSES cells around it only, pass p over the cells within NEIGHBOUR_PASSES - p
+        of it (those its value depends on after pass p). Cells beyond the window count as cells
+        without ground, as in the grid with a margin."""
+        reach = NEIGHBOUR_PASSES
+        size_x, size_y = top.shape
+        for i in range(2 * reach + 1):
+            for j in range(2 * reach + 1):
+                gx, gy = cx + i - reach, cy + j - reach
+                inside = 0 <= gx < size_x and 0 <= gy < size_y
+                patch[i, j] = np.float64(top[gx, gy]) if inside and top[gx, gy] != _NO_GROUND else np.nan
+        for step in range(1, reach + 1):
+            near = reach - step
+            for i in range(reach - near, reach + near + 1):
+                for j in range(reach - near, reach + near + 1):
+                    fresh[i, j] = patch[i, j]
+                    if not np.isnan(patch[i, j]):
+                        continue
+                    total = 0.0
+                    count = 0
+                    for dx in (-1, 0, 1):
+                        for dy in (-1, 0, 1):
+                            if (dx or dy) and not np.isnan(patch[i + dx, j + dy]):
+                                total += patch[i + dx, j + dy]
+                                count += 1
+                    if count:
+                        fresh[i, j] = total / count
+            for i in range(reach - near, reach + near + 1):
+                for j in range(reach - near, reach + near + 1):
+                    patch[i, j] = fresh[i, j]
+        return patch[reach, reach]
+
     @njit(parallel=True, nogil=True)
-    def _hidden_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, cells, ground_z,
-                        values):  # pragma: no cover - compiled
-        """The columns at global-order ``cells`` (n, 2), whose ground is hidden, with the ground
-        ``ground_z`` (n,) estimated for them: their cells into ``values``."""
+    def _hidden_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, cells, top,
+                        ground_z, values):  # pragma: no cover - compiled
+        """The columns at global-order ``cells`` (n, 2), whose ground is hidden: the ground from
+        their neighbours' (``top``, global order), or ``ground_z`` (under their lowest voxel)
+        where none is near; their cells into ``values``."""
         size_x, size_y, size_z = mask.shape
         count = cells.shape[0]
         chunk = 256
+        side = 2 * NEIGHBOUR_PASSES + 1
         for first in prange((count + chunk - 1) // chunk):
             sums = np.empty((5, size_z))
             risk = np.empty(size_z)
             kind = np.empty(size_z, np.uint8)
+            patch = np.empty((side, side))
+            fresh = np.empty((side, side))
             for i in range(first * chunk, min(count, (first + 1) * chunk)):
                 column_x, column_y = cells[i, 0], cells[i, 1]
+                estimate = _ground_near(top, column_x, column_y, patch, fresh)
+                ground = ground_z[column_x, column_y] if np.isnan(estimate) else np.int64(np.rint(estimate))
                 x = (origin[0] + column_x) % size_x
                 y = (origin[1] + column_y) % size_y
                 _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base, rules, classes[x, y], read_all,
                                sums, risk, kind)  # the same voxels as in the first pass
-                values[column_y, column_x] = _column_value(risk, kind, origin[2], ground_z[i], rules)
-
-    @njit(nogil=True)
-    def _spread_ground_near(grid, wanted, passes):  # pragma: no cover - compiled
-        """``_spread_ground`` where it matters: the same values at the ``wanted`` cells, computed
-        only over the cells within ``passes`` of one (pass p fills the cells that a wanted
-        cell's value depends on after p passes: those within passes - p of it)."""
-        size_x, size_y = grid.shape
-        reach = np.full((size_x, size_y), -1, np.int64)  # passes - the distance to a wanted cell
-        for x in range(size_x):
-            for y in range(size_y):
-                if wanted[x, y]:
-                    reach[x, y] = passes
-        for level in range(passes, 1, -1):
-            for x in range(size_x):
-                for y in range(size_y):
-                    if reach[x, y] != level:
-                        continue
-                    for dx in (-1, 0, 1):
-                        for dy in (-1, 0, 1):
-                            nx, ny = x + dx, y + dy
-                            if 0 <= nx < size_x and 0 <= ny < size_y and reach[nx, ny] < level - 1:
-                                reach[nx, ny] = level - 1
-        filled_x = np.empty(size_x * size_y, np.int64)
-        filled_y = np.empty(size_x * size_y, np.int64)
-        filled = np.empty(size_x * size_y)
-        for level in range(1, passes + 1):
-            count = 0
-            for x in range(size_x):
-                for y in range(size_y):
-                    if reach[x, y] < level or not np.isnan(grid[x, y]):
-                        continue
-                    total = 0.0
-                    found = 0
-                    for dx in (-1, 0, 1):
-                        for dy in (-1, 0, 1):
-                            nx, ny = x + dx, y + dy
-                            if (dx or dy) and 0 <= nx < size_x and 0 <= ny < size_y and not np.isnan(grid[nx, ny]):
-                                total += grid[nx, ny]
-                                found += 1
-                    if found:
-                        filled_x[count], filled_y[count], filled[count] = x, y, total / found
-                        count += 1
-            for i in range(count):  # after the pass, as ``_spread_ground`` reads the grid before it
-                grid[filled_x[i], filled_y[i]] = filled[i]
-        return grid
+                values[column_y, column_x] = _column_value(risk, kind, origin[2], ground, rules)
