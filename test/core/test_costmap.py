@@ -302,3 +302,27 @@ def test_the_compiled_class_bookkeeping_equals_its_numpy_twin(monkeypatch):
         for y in range(10, 13):
             expected[(origin[0] + x) % 15, (origin[1] + y) % 13] = np.uint64(1) << np.uint64(3)
     assert np.array_equal(held, expected)
+
+
+def test_a_hidden_columns_ground_from_its_patch_equals_the_spread_over_the_whole_grid():
+    """The window's second pass estimates a hidden column's ground from the patch of neighbours
+    the estimate depends on; the gathered path spreads the known heights over the whole grid
+    (with a margin beyond it) pass by pass. Both give the same height at every cell, the edges
+    and corners of the grid included, where heights spread into the margin and back."""
+    from convbki_core.costmap import NEIGHBOUR_PASSES, _NO_GROUND, _ground_near, _spread_ground
+
+    rng = np.random.default_rng(4)
+    margin = NEIGHBOUR_PASSES
+    side = 2 * margin + 1
+    compared = 0
+    for density in (0.05, 0.2, 0.5):
+        top = np.where(rng.random((23, 17)) < density, rng.integers(-5, 6, (23, 17)), _NO_GROUND).astype(np.int64)
+        grid = np.full((23 + 2 * margin, 17 + 2 * margin), np.nan)
+        grid[margin:-margin, margin:-margin] = np.where(top > _NO_GROUND, top.astype(np.float64), np.nan)
+        spread = _spread_ground(grid)[margin:-margin, margin:-margin]
+        patch, fresh = np.empty((side, side)), np.empty((side, side))
+        for x, y in np.argwhere(top == _NO_GROUND):
+            near = _ground_near(top, x, y, patch, fresh)
+            assert (np.isnan(near) and np.isnan(spread[x, y])) or near == spread[x, y], (density, x, y)
+            compared += int(not np.isnan(near))
+    assert compared > 300
