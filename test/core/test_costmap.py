@@ -309,7 +309,7 @@ def test_a_hidden_columns_ground_from_its_patch_equals_the_spread_over_the_whole
     the estimate depends on; the gathered path spreads the known heights over the whole grid
     (with a margin beyond it) pass by pass. Both give the same height at every cell, the edges
     and corners of the grid included, where heights spread into the margin and back."""
-    from convbki_core.costmap import NEIGHBOUR_PASSES, _NO_GROUND, _ground_near, _spread_ground
+    from convbki_core.costmap import _NO_GROUND, NEIGHBOUR_PASSES, _ground_near, _spread_ground
 
     rng = np.random.default_rng(4)
     margin = NEIGHBOUR_PASSES
