@@ -256,17 +256,23 @@ def _ground_from_neighbours(cells: np.ndarray, ground: np.ndarray, known: np.nda
         return estimate
     low = cells.min(axis=0) - NEIGHBOUR_PASSES
     shape = cells.max(axis=0) - low + 1 + NEIGHBOUR_PASSES
+    local = cells - low
+    if HAVE_NUMBA:  # each unknown column from the patch of neighbours its estimate depends on
+        top = np.full(tuple(shape), _NO_GROUND, np.int64)
+        top[tuple(local[known].T)] = ground[known].astype(np.int64)
+        with parallel_region():
+            estimate[~known] = _ground_near_cells(top, np.ascontiguousarray(local[~known]))
+        return estimate
     grid = np.full(tuple(shape), np.nan)
-    grid[tuple((cells - low).T)] = estimate
-    return _spread_ground(grid)[tuple((cells - low).T)]
+    grid[tuple(local.T)] = estimate
+    return _spread_ground(grid)[tuple(local.T)]
 
 
 def _spread_ground(grid: np.ndarray) -> np.ndarray:
     """``grid`` (NaN: no ground height) with each NaN cell given the mean of its known 8
     neighbours, NEIGHBOUR_PASSES times (a pass sees the cells the previous one filled). The
-    grid needs NEIGHBOUR_PASSES cells of margin beyond the columns it serves."""
-    if HAVE_NUMBA:
-        return _spread_ground_compiled(np.ascontiguousarray(grid, np.float64), NEIGHBOUR_PASSES)
+    grid needs NEIGHBOUR_PASSES cells of margin beyond the columns it serves. The numpy rule;
+    compiled, ``_ground_near`` gives the same value for one cell from its patch alone."""
     for _ in range(NEIGHBOUR_PASSES):
         missing = np.isnan(grid)
         if not missing.any():
@@ -279,30 +285,6 @@ def _spread_ground(grid: np.ndarray) -> np.ndarray:
         fill = missing & (counts > 0)
         grid[fill] = sums[fill] / counts[fill]
     return grid
-
-
-if HAVE_NUMBA:
-
-    @njit(nogil=True)
-    def _spread_ground_compiled(grid, passes):  # pragma: no cover - compiled
-        size_x, size_y = grid.shape
-        for _ in range(passes):
-            before = grid.copy()
-            for x in range(size_x):
-                for y in range(size_y):
-                    if not np.isnan(before[x, y]):
-                        continue
-                    total = 0.0
-                    count = 0
-                    for dx in (-1, 0, 1):
-                        for dy in (-1, 0, 1):
-                            nx, ny = x + dx, y + dy
-                            if (dx or dy) and 0 <= nx < size_x and 0 <= ny < size_y and not np.isnan(before[nx, ny]):
-                                total += before[nx, ny]
-                                count += 1
-                    if count:
-                        grid[x, y] = total / count
-        return grid
 
 
 @dataclass(frozen=True)
@@ -535,11 +517,11 @@ if HAVE_NUMBA:
 
     @njit(parallel=True, nogil=True)
     def _grounded_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, values, top,
-                          hidden, low_ground):  # pragma: no cover - compiled
+                          hidden, ground_z):  # pragma: no cover - compiled
         """Every column: its ground voxel into ``top``, its cell into ``values`` where it saw its
         own ground or holds no obstacle (then its ground does not matter), else whether it is a
         hidden-ground column with an obstacle into ``hidden`` and the height under its lowest
-        voxel into ``low_ground``; all in global order."""
+        voxel into ``ground_z`` (for when no neighbour has ground); all in global order."""
         size_x, size_y, size_z = mask.shape
         for x in prange(size_x):
             sums = np.empty((5, size_z))  # the column's moments per physical z
@@ -555,13 +537,9 @@ if HAVE_NUMBA:
                 hidden[column_x, column_y] = ground == _NO_GROUND and obstacle
                 if ground != _NO_GROUND:
                     values[column_y, column_x] = _column_value(risk, kind, origin[2], ground, rules)
-                elif obstacle:
-                    # Its ground is taken from its neighbours' in a second pass; failing that, the
-                    # height just under its lowest voxel.
+                else:  # nothing seen or only empty space, or hidden: its cell comes in the second pass
                     values[column_y, column_x] = -1
-                    low_ground[column_x, column_y] = lowest - 1
-                else:
-                    values[column_y, column_x] = -1  # nothing seen, or only empty space
+                    ground_z[column_x, column_y] = lowest - 1
 
     @njit(nogil=True, inline="always")
     def _ground_near(top, cx, cy, patch, fresh):  # pragma: no cover - compiled
@@ -597,6 +575,19 @@ if HAVE_NUMBA:
                 for j in range(reach - near, reach + near + 1):
                     patch[i, j] = fresh[i, j]
         return patch[reach, reach]
+
+    @njit(parallel=True, nogil=True)
+    def _ground_near_cells(top, cells):  # pragma: no cover - compiled
+        """``_ground_near`` of each of ``cells`` (n, 2) of ``top``."""
+        side = 2 * NEIGHBOUR_PASSES + 1
+        estimates = np.empty(cells.shape[0])
+        chunk = 256
+        for first in prange((cells.shape[0] + chunk - 1) // chunk):
+            patch = np.empty((side, side))
+            fresh = np.empty((side, side))
+            for i in range(first * chunk, min(cells.shape[0], (first + 1) * chunk)):
+                estimates[i] = _ground_near(top, cells[i, 0], cells[i, 1], patch, fresh)
+        return estimates
 
     @njit(parallel=True, nogil=True)
     def _hidden_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, cells, top,

@@ -92,8 +92,7 @@ class TorchWindow(RollingWindow):
         self.mask.fill_(0)
         self.origin = None
         self._evicted_changes.clear()
-        if self._class_columns is not None:
-            self._class_columns.fill(0)
+        self._columns_cleared()
 
     def _gather(self, select: int, clear: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """(global indices, alpha) of the voxels with a bit of ``select``; then clear ``clear``."""

@@ -101,8 +101,9 @@ def throwaway_mapper(config: MapperConfig, kernel) -> ConvBKIMapper:
 
 
 def _hidden_ground(classes: int, resolution: float, prior: float, profile: TraversabilityProfile) -> None:
-    """The costmap's passes for a column whose ground is hidden (a car on the road): a drive's
-    first grids may have none, and its later ones then compile them."""
+    """The costmap's passes for a column whose ground is hidden (a car on the road), on a window
+    and on the same voxels gathered: a drive's first grids may have none, and its later ones
+    then compile them."""
     alpha = np.full((classes, 4, 4, 4), np.float32(prior), np.float32)
     mask = np.zeros((4, 4, 4), np.uint8)
     alpha[1, 0, 0, 0] += 10.0  # ground (the warm-up profile's class 1) in one column
@@ -110,6 +111,8 @@ def _hidden_ground(classes: int, resolution: float, prior: float, profile: Trave
     mask[0, 0, 0] = mask[1, 0, 1] = EVIDENCE
     window_grid(alpha, mask, np.zeros(3, np.int64), np.array([4, 4, 4]), resolution, profile, prior,
                 classes_held(alpha, prior))
+    voxels = np.array([[0, 0, 0], [1, 0, 1]])
+    column_costs(voxels, alpha[:, voxels[:, 0], voxels[:, 1], voxels[:, 2]].T, resolution, profile, prior)
 
 
 def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, folder: Path | None) -> None:

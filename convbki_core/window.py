@@ -171,9 +171,12 @@ class RollingWindow:
         """Voxels came back from the store: their classes above the prior, per column."""
         if self._class_columns is None or not len(physical):
             return
-        bits = np.uint64(1) << np.arange(alpha.shape[1], dtype=np.uint64)
-        held = np.bitwise_or.reduce(np.where(alpha != self.prior, bits, np.uint64(0)), axis=1)
-        np.bitwise_or.at(self._class_columns, (physical[:, 0], physical[:, 1]), held)
+        np.bitwise_or.at(self._class_columns, (physical[:, 0], physical[:, 1]), row_class_bits(alpha != self.prior))
+
+    def _columns_cleared(self) -> None:
+        """The window was emptied: no column holds a class."""
+        if self._class_columns is not None:
+            self._class_columns.fill(0)
 
     def move_to(self, origin: np.ndarray) -> None:
         """Make the window cover global indices origin .. origin + dims - 1."""
@@ -219,8 +222,7 @@ class RollingWindow:
         self.mask.fill(0)
         self.origin = None
         self._evicted_changes.clear()
-        if self._class_columns is not None:
-            self._class_columns.fill(0)
+        self._columns_cleared()
 
     def forget_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Drop the evidence of the window's voxels in the global box [lo, hi) (and the changes
@@ -319,6 +321,12 @@ if HAVE_NUMBA:
         return starts[-1]
 
 
+def row_class_bits(held: np.ndarray) -> np.ndarray:
+    """(n,) uint64: per row of ``held`` (n, C) bool, bit c set where column c is true."""
+    bits = np.uint64(1) << np.arange(held.shape[1], dtype=np.uint64)
+    return np.bitwise_or.reduce(np.where(held, bits, np.uint64(0)), axis=1)
+
+
 def classes_held(alpha: np.ndarray, prior: float) -> np.ndarray:
     """(X, Y) uint64: per column of ``alpha`` (C, X, Y, Z), bit c set where class c holds
     anything but ``prior`` in the column."""
@@ -347,8 +355,7 @@ def _note_scan_classes(linear: np.ndarray, features: np.ndarray, origin: np.ndar
             _spread_along_x(scratch[1], half, int(origin[0] % dims[0]), int(origin[1] % dims[1]), held)
             scratch[1].fill(0)
         return
-    bits = np.uint64(1) << np.arange(features.shape[1], dtype=np.uint64)
-    voxel_bits = np.bitwise_or.reduce(np.where(features != 0, bits, np.uint64(0)), axis=1)
+    voxel_bits = row_class_bits(features != 0)
     local = unravel_linear(linear, dims)
     scan = np.zeros((int(dims[0]) + 2 * half, int(dims[1]) + 2 * half), np.uint64)  # local, with a margin
     np.bitwise_or.at(scan, (local[:, 0] + half, local[:, 1] + half), voxel_bits)
