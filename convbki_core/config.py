@@ -156,14 +156,19 @@ class MapperConfig:
         return load_label_map(self.classes.label_map).ignore_classes
 
     def movable_classes(self) -> tuple[int, ...]:
-        """The classes the movers' rules apply to: none without free space or without the rules."""
-        if not (self.free_space.enabled and self.free_space.forget_movers):
-            return ()
+        """The classes of things that move (car, person, ...): a moving point's object is
+        grown through them (``present_movers.whole_movers``)."""
         if self.classes.movable_classes is not None:
             return self.classes.movable_classes
         from convbki_core.datasets.labels import load_label_map
 
         return load_label_map(self.classes.label_map).movable_classes
+
+    def forgetting_classes(self) -> tuple[int, ...]:
+        """The classes the movers' rules apply to: none without free space or without the rules."""
+        if not (self.free_space.enabled and self.free_space.forget_movers):
+            return ()
+        return self.movable_classes()
 
     def kernel_path(self) -> Path:
         from convbki_core.paths import kernel_path

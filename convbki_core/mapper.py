@@ -42,7 +42,7 @@ from convbki_core.io.ply import write_voxels_ply
 from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
 from convbki_core.parts import KernelFilters, Scratch, Voxelizer, make_free_space, make_update
-from convbki_core.present_movers import PresentMovers, labels_now, present_movers
+from convbki_core.present_movers import PresentMovers, labels_now, present_movers, whole_movers
 from convbki_core.records import RECORD, records_from_alpha, window_records
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
@@ -165,9 +165,10 @@ class ConvBKIMapper:
         self._everything_changed = False  # a load replaced the map: every voxel is a change
         self.present_movers: PresentMovers | None = None  # the last scan's moving points, never in the map
         self.movable_classes = config.movable_classes()
-        self.forgetting = (MoverForgetting(self.movable_classes, kernel.num_classes, self.prior, self.geometry.dims,
+        forgetting_classes = config.forgetting_classes()
+        self.forgetting = (MoverForgetting(forgetting_classes, kernel.num_classes, self.prior, self.geometry.dims,
                                            kernel.filter_size // 2, self.resolution)
-                           if self.free_space and self.movable_classes else None)
+                           if self.free_space and forgetting_classes else None)
         # The parts, built once: the filters of the first scan are prepared now.
         self.filters = KernelFilters(self.layer, self.device, on_device=update_path == "torch")
         self.voxelize = Voxelizer(self.geometry, self.layer, self.ignore_classes, self.window)
@@ -213,7 +214,9 @@ class ConvBKIMapper:
         invalid pose raises ``ValueError`` and leaves the map untouched. ``moving`` (N,)
         bool, where the input marks moving objects: those points are evidence for this scan
         only (``present_movers``): they stay out of the map, and this scan's queries of their
-        voxels read them.
+        voxels read them. With labels, the points of movable classes connected to a moving
+        point stay out of the map too (``whole_movers``): a mover's parts the input did not
+        mark move with it.
         """
         started = time.perf_counter()
         pose = check_pose(pose)
@@ -226,7 +229,8 @@ class ConvBKIMapper:
             if moving.any():
                 movers = present_movers(transform_points(points[moving], pose), values[moving], self.num_classes,
                                         self.resolution, self.ignore_classes)
-                points, values = points[~moving], values[~moving]
+                moving_objects = whole_movers(points, values, moving, self.movable_classes)
+                points, values = points[~moving_objects], values[~moving_objects]
         origin = self.geometry.origin_for(pose[:3, 3])
         volume = self.voxelize(points, values, pose, origin)
         voxelized = time.perf_counter()

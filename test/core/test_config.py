@@ -20,13 +20,17 @@ def test_the_defaults_are_the_products_and_paper_is_plain_convbki():
     label_map = load_label_map("semantic_kitti")
     assert DEFAULTS.window.local_bounds == PAPER_BOUNDS and DEFAULTS.window.prior == 1e-3
     assert DEFAULTS.free_space.enabled and DEFAULTS.free_space.forget_movers
-    assert DEFAULTS.movable_classes() == label_map.movable_classes
+    assert DEFAULTS.movable_classes() == DEFAULTS.forgetting_classes() == label_map.movable_classes
     assert DEFAULTS.ignore_classes() == label_map.ignore_classes
     paper = MapperConfig.paper()
     assert not paper.free_space.enabled and paper.movable_classes() == () and paper.ignore_classes() == (0,)
-    # Without free space there are no movers' rules, whatever the classes say.
-    assert MapperConfig.paper(movable_classes=(1, 2)).movable_classes() == ()
-    assert MapperConfig.paper(free_space=True, movable_classes=(1, 2)).movable_classes() == (1, 2)
+    assert paper.forgetting_classes() == ()
+    # Without free space there are no movers' rules, whatever the classes say; the classes stay movable.
+    assert MapperConfig.paper(movable_classes=(1, 2)).forgetting_classes() == ()
+    assert MapperConfig.paper(movable_classes=(1, 2)).movable_classes() == (1, 2)
+    assert DEFAULTS.replace(forget_movers=False).forgetting_classes() == ()
+    assert DEFAULTS.replace(forget_movers=False).movable_classes() == label_map.movable_classes
+    assert MapperConfig.paper(free_space=True, movable_classes=(1, 2)).forgetting_classes() == (1, 2)
 
 
 def test_replace_changes_settings_by_their_flat_names_and_refuses_unknown_ones():
