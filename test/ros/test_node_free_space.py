@@ -8,7 +8,7 @@ from test_node_updates import records_of, shown
 
 from convbki_core.records import apply_records
 
-CAR = 1  # learning id
+CAR, TRUCK = 1, 4  # learning ids
 
 
 def street(with_car: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -88,15 +88,19 @@ def test_the_rays_empty_a_car_that_has_gone_and_the_updates_say_so(tmp_path):
 
 def test_points_labelled_moving_stay_out_of_the_map_unless_moving_labels_is_off(tmp_path):
     """A multi-scan network's moving-car label (raw 252) on the car's points: with the default
-    moving_labels the node's map never holds the car (no trail, whatever rays follow); with
-    moving_labels:=false the same points are mapped as car."""
+    moving_labels the node's map never holds the car (no trail, whatever rays follow), nor its
+    half the network called "truck" without marking it as moving; with moving_labels:=false the
+    same points are mapped as car and truck."""
     from mapper_rig import odometry
 
     from convbki_core.io.map_file import read_map
     from convbki_ros.cloud_encoding import encode_cloud
 
     points, labels = street(with_car=True)
-    labels = np.where(labels == 10, 252, labels).astype(np.uint32)
+    car = labels == 10
+    # The car's left half is "truck" (raw 18), a static id: part of the moving car all the same.
+    left = car & (points[:, 1] > 0.0)
+    labels = np.where(left, 18, np.where(car, 252, labels)).astype(np.uint32)
     counts = {}
     for moving_labels in (True, False):
         rig = Rig(tmp_path / str(moving_labels), "-p", f"moving_labels:={str(moving_labels).lower()}")
@@ -110,7 +114,8 @@ def test_points_labelled_moving_stay_out_of_the_map_unless_moving_labels_is_off(
             _, _, alpha = read_map(rig.map_file)
             alpha[:, 0] = 0.0  # the class of the surface, as the map's queries read it
             label = alpha.argmax(axis=1)
-            counts[moving_labels] = (int(np.count_nonzero(label == CAR)), int(np.count_nonzero(label == 13)))
+            counts[moving_labels] = (int(np.count_nonzero(np.isin(label, [CAR, TRUCK]))),
+                                     int(np.count_nonzero(label == 13)))
         finally:
             output = rig.close()
         assert "Traceback" not in output, output
