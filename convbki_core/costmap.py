@@ -5,8 +5,11 @@ grid (a column of voxels), how costly it is to drive there, as Nav2 reads an occ
 grid: 0 free .. 100 lethal, -1 unknown. Per column:
 
 1. **Empty or occupied.** Class 0 is space that rays found empty. A voxel whose class 0
-   holds more than half of its concentration is empty space and costs nothing (a mover that
-   left, emptied by free space, no longer blocks); the others are occupied.
+   holds more than three quarters of its concentration is empty space and costs nothing (a
+   mover that left, emptied by free space, no longer blocks); the others are occupied. Not
+   half: rays that graze an object's edge, or a sparse surface seen from afar, leave
+   empty-space evidence in voxels that are still there, and a planner should find an
+   obstacle empty only when the rays say so clearly.
 2. **Ground.** An occupied voxel is ground when the ground classes (a profile's
    ``ground_classes``: road, parking, sidewalk, ...) hold more than half of its occupied
    evidence. The column's ground is its highest ground voxel under its lowest obstacle
@@ -48,7 +51,7 @@ if HAVE_NUMBA:
 UNKNOWN = -1
 LETHAL = 100
 GROUND_SHARE = 0.5  # an occupied voxel is ground when the ground classes hold more than this share
-EMPTY_SHARE = 0.5  # a voxel is empty space when class 0 (seen empty by rays) holds more than this share
+EMPTY_SHARE = 0.75  # a voxel is empty space when class 0 (seen empty by rays) holds more than this share
 NEIGHBOUR_PASSES = 3  # how many cells away a hidden column looks for its ground height
 
 
@@ -178,7 +181,7 @@ if HAVE_NUMBA:
 
 def _voxel_risks(moments: np.ndarray, risk_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per voxel: its risk (the expected cost given that it is occupied, plus ``risk_sigma``
-    standard deviations, clipped to 0..100; 0 where empty space is the likelier), whether it is
+    standard deviations, clipped to 0..100; 0 where it is empty space), whether it is
     ground (the ground classes hold most of its occupied evidence) and whether it is empty."""
     total = moments[:, 0]
     occupied = np.maximum(total - moments[:, 4], np.finfo(np.float64).tiny)

@@ -84,17 +84,20 @@ def test_unobserved_and_only_empty_columns_are_unknown_and_a_departed_car_leaves
 
 def test_empty_space_evidence_in_an_occupied_voxel_does_not_dilute_its_cost():
     # Rays grazing a fence leave class-0 evidence in its voxels: fence 7, empty 3. Given that the
-    # voxel is occupied (7/10 > 1/2) it is fence for sure: E = 100, Var = 0: lethal, where the
-    # plain expectation (0.7 * 100 = 70, +1 sigma 14.5) would have called it 84.
+    # voxel is occupied (3/10 is not over 3/4 empty) it is fence for sure: E = 100, Var = 0:
+    # lethal, where the plain expectation (0.7 * 100 = 70, +1 sigma 14.5) would have called it 84.
     fence = {(0, 0, 0): voxel(road=10), (0, 0, 3): voxel(fence=7, unlabeled=3)}
     assert costs_of(fence) == {(0, 0): 100}
-    # The grass of the test above with as much empty-space evidence as class evidence (not more:
-    # still occupied) costs what it did: 42 without the margin, 56 with it.
-    grass = {(0, 0, 0): voxel(terrain=3, road=2, unlabeled=5)}
+    # Rays that grazed it more often (fence 3, empty 7: more likely empty than not, not clearly)
+    # leave it an obstacle as well.
+    assert costs_of({(0, 0, 0): voxel(road=10), (0, 0, 3): voxel(fence=3, unlabeled=7)}) == {(0, 0): 100}
+    # The grass of the test above with three times as much empty-space evidence as class
+    # evidence (not more: still occupied) costs what it did: 42 without the margin, 56 with it.
+    grass = {(0, 0, 0): voxel(terrain=3, road=2, unlabeled=15)}
     assert costs_of(grass, with_sigma(CAR, 0.0)) == {(0, 0): 42}
     assert costs_of(grass) == {(0, 0): 56}
-    # One unit more of empty space and it is empty space: a column with nothing else is unknown.
-    assert costs_of({(0, 0, 0): voxel(terrain=3, road=2, unlabeled=5.01)}) == {(0, 0): -1}
+    # A little more empty space and it is empty space: a column with nothing else is unknown.
+    assert costs_of({(0, 0, 0): voxel(terrain=3, road=2, unlabeled=15.01)}) == {(0, 0): -1}
 
 
 def test_leaves_read_as_terrain_on_top_of_a_tree_do_not_lift_the_ground_into_the_canopy():
