@@ -73,7 +73,6 @@ class ClassesConfig:
     label_map: str = "semantic_kitti"
     ignore_classes: tuple[int, ...] | None = None
     movable_classes: tuple[int, ...] | None = None
-    ground_classes: tuple[int, ...] | None = None
 
 
 # Each flat name (the node's parameter names where it has one) and the group that holds it.
@@ -85,7 +84,7 @@ _FLAT = {
     "device": ("compute", "device"), "update_path": ("compute", "update_path"),
     "track_changes": ("store", "track_changes"),
     "label_map": ("classes", "label_map"), "ignore_classes": ("classes", "ignore_classes"),
-    "movable_classes": ("classes", "movable_classes"), "ground_classes": ("classes", "ground_classes"),
+    "movable_classes": ("classes", "movable_classes"),
     "kernel_file": (None, "kernel_file"), "frame_id": (None, "frame_id"),
 }
 
@@ -112,7 +111,7 @@ class MapperConfig:
             group, attribute = _FLAT[name]
             if name == "local_bounds":
                 value = tuple(tuple(float(v) for v in corner) for corner in value)
-            elif name in ("ignore_classes", "movable_classes", "ground_classes") and value is not None:
+            elif name in ("ignore_classes", "movable_classes") and value is not None:
                 value = tuple(int(c) for c in value)
             if group is None:
                 top[attribute] = value
@@ -164,15 +163,6 @@ class MapperConfig:
         from convbki_core.datasets.labels import load_label_map
 
         return load_label_map(self.classes.label_map).movable_classes
-
-    def ground_classes(self) -> tuple[int, ...]:
-        """The classes of the ground (road, sidewalk, terrain, ...): rays that end on them stop
-        short of the surface (``free_space.stop_above_ground``)."""
-        if self.classes.ground_classes is not None:
-            return self.classes.ground_classes
-        from convbki_core.datasets.labels import load_label_map
-
-        return load_label_map(self.classes.label_map).ground_classes
 
     def forgetting_classes(self) -> tuple[int, ...]:
         """The classes the movers' rules apply to: none without free space or without the rules."""

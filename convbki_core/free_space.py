@@ -25,11 +25,6 @@ Why the two conditions:
 Where the rays first find a voxel empty, its concentrations are clamped to a bounded sum
 (``clamping``), so that a mover that stood long can be emptied by a bounded number of rays.
 
-Rays down to the ground (a voxel whose scan evidence is most likely of a ground class) stop
-above its layer: for their last metres they run at a shallow angle through the layer of the
-surface they end on, across ground voxels that other scans saw and this scan's sparse rings
-of returns far away do not protect (``stop_above_ground``).
-
 Rays: returns that fall into the same voxel share one ray, from the sensor to that voxel's
 centre, weighted by their number (the evidence sum of the voxel: one per labelled point);
 octomap's discretised insertion does the same. Each ray is walked voxel by voxel (the
@@ -55,10 +50,6 @@ from convbki_core.volume import SparseVolume, unravel_linear
 from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
 
 FREE_CLASS = 0
-# Rays that end on the ground cross its surface at a grazing angle for their last metres: they
-# count nothing in this many layers at and above their end voxel's (one: the surface's own;
-# two kept the lowest voxels of movers that left as well).
-GROUND_LAYERS = 1
 _KEEP_UNTOUCHED = 0xFF & ~TOUCHED  # the mask bits left after a scan
 # A mask bit that lives only inside one free-space pass: the voxel is to be checked for clamping.
 _CHECK = 8
@@ -86,13 +77,11 @@ def free_taps(free_filter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(offsets), np.ascontiguousarray(free_filter[free_filter > 0], np.float32)
 
 
-def scan_rays(points: np.ndarray, pose: np.ndarray, volume: SparseVolume, resolution: float,
-              ground_classes: tuple[int, ...] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def scan_rays(points: np.ndarray, pose: np.ndarray, volume: SparseVolume,
+              resolution: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A scan's rays as (end voxels (M, 3), weights (M,), through (M,) bool): one per voxel
     holding returns (weighted by their evidence), and one per window voxel where the rays to
-    returns beyond the window leave it (``through``: that voxel is crossed too). A ray down
-    to a voxel whose evidence is most likely of ``ground_classes`` stops above the
-    ``GROUND_LAYERS`` layers at and above that voxel (``stop_above_ground``)."""
+    returns beyond the window leave it (``through``: that voxel is crossed too)."""
     weights = ray_weights(volume.features)
     dropped = points[volume.point_linear < 0]
     with np.errstate(invalid="ignore", over="ignore"):  # non-finite points are skipped by the exits
@@ -104,37 +93,7 @@ def scan_rays(points: np.ndarray, pose: np.ndarray, volume: SparseVolume, resolu
     through = np.zeros(len(linear), np.bool_)
     through[len(volume.linear):] = True
     ends = _unravel_numba(linear, origin, dims) if HAVE_NUMBA else unravel_linear(linear, dims) + origin
-    weights = np.concatenate([weights, rays])
-    if ground_classes and GROUND_LAYERS > 0 and len(volume.linear):
-        on_ground = np.zeros(len(ends), bool)
-        on_ground[:len(volume.linear)] = np.isin(volume.features.argmax(axis=1), np.asarray(ground_classes))
-        ends, through, keep = stop_above_ground(pose[:3, 3] / resolution, ends, through, on_ground, GROUND_LAYERS)
-        ends, weights, through = ends[keep], weights[keep], through[keep]
-    return ends, weights, through
-
-
-def stop_above_ground(sensor: np.ndarray, ends: np.ndarray, through: np.ndarray, on_ground: np.ndarray,
-                      layers: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rays from ``sensor`` (3,) (voxel units) down to the ground voxels ``ends[on_ground]``
-    cut where they reach the ``layers`` voxel layers at and above their end: (end voxels
-    (M, 3), ``through`` (M,), which rays to keep). A cut ray ends in the last voxel of the
-    layer above the protected ones that the ray crosses, and counts it (``through``): its
-    walk, aimed at that voxel's centre, stays above the protected layers. A ray from a
-    sensor inside the protected layers of its end counts nothing and is dropped."""
-    ends = np.array(ends, np.int64, copy=True)
-    through = np.array(through, np.bool_, copy=True)
-    keep = np.ones(len(ends), bool)
-    floor = ends[:, 2] + layers  # the first layer above the protected ones
-    down = on_ground & (sensor[2] >= floor)
-    keep[on_ground & ~down & (sensor[2] >= ends[:, 2])] = False  # level with the ground: nothing before it
-    centre = ends[down] + 0.5
-    t = (floor[down] - sensor[2]) / (centre[:, 2] - sensor[2])  # where the ray reaches that layer's bottom
-    reach = sensor + t[:, None] * (centre - sensor)
-    cut = np.floor(reach).astype(np.int64)
-    cut[:, 2] = floor[down]
-    ends[down] = cut
-    through[down] = True
-    return ends, through, keep
+    return ends, np.concatenate([weights, rays]), through
 
 
 def ray_weights(features: np.ndarray) -> np.ndarray:

@@ -173,9 +173,8 @@ class ConvBKIMapper:
         self.filters = KernelFilters(self.layer, self.device, on_device=update_path == "torch")
         self.voxelize = Voxelizer(self.geometry, self.layer, self.ignore_classes, self.window)
         self.update = make_update(update_path, self.filters, self.layer, self.window)
-        self.ground_classes = tuple(c for c in config.ground_classes() if 0 < c < kernel.num_classes)
-        self.free = (make_free_space(self.filters, self.geometry, self.window, self.max_concentration, self.prior,
-                                     self.ground_classes) if self.free_space else None)
+        self.free = (make_free_space(self.filters, self.geometry, self.window, self.max_concentration, self.prior)
+                     if self.free_space else None)
 
     # -- properties ------------------------------------------------------------------------
     @property

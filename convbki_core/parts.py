@@ -193,16 +193,14 @@ class _FreeSpace:
     """What both free-space backends hold: the filters, the window, clamping and the ray counts."""
 
     def __init__(self, filters: KernelFilters, geometry: WindowGeometry, window: RollingWindow | TorchWindow,
-                 max_concentration: float, prior: float, ground_classes: tuple[int, ...] = ()):
+                 max_concentration: float, prior: float):
         self.filters, self.geometry, self.window = filters, geometry, window
         self.max_concentration, self.prior = max_concentration, prior
-        self.ground_classes = tuple(ground_classes)
         self.counts = scratch_counts(geometry.dims)
 
     def warm_up(self, scratch: Scratch) -> None:
         """The rays of the scratch scan, with this backend's clamping."""
-        small = type(self)(self.filters, scratch.geometry, scratch.window, self.max_concentration, self.prior,
-                           self.ground_classes)
+        small = type(self)(self.filters, scratch.geometry, scratch.window, self.max_concentration, self.prior)
         small(scratch.points, scratch.pose, scratch.volume, scratch.origin)
 
 
@@ -211,7 +209,7 @@ class HostFreeSpace(_FreeSpace):
 
     def __call__(self, points: np.ndarray, pose: np.ndarray, volume: SparseVolume, origin: np.ndarray) -> int:
         offsets, tap_weights = self.filters.refresh().free_taps
-        ends, weights, through = scan_rays(points, pose, volume, self.geometry.resolution, self.ground_classes)
+        ends, weights, through = scan_rays(points, pose, volume, self.geometry.resolution)
         sensor = pose[:3, 3] / self.geometry.resolution
         return free_space_update(sensor, ends, weights, offsets, tap_weights, origin, self.geometry.dims,
                                  self.window.alpha, self.window.mask, self.counts, through, self.max_concentration,
@@ -222,7 +220,7 @@ class DeviceFreeSpace(_FreeSpace):
     """The rays counted on the host (the traversal is sequential), applied in the device window."""
 
     def __call__(self, points: np.ndarray, pose: np.ndarray, volume: SparseVolume, origin: np.ndarray) -> int:
-        ends, weights, through = scan_rays(points, pose, volume, self.geometry.resolution, self.ground_classes)
+        ends, weights, through = scan_rays(points, pose, volume, self.geometry.resolution)
         sensor = pose[:3, 3] / self.geometry.resolution
         counts = count_rays(sensor, ends, weights, through, self.geometry.dims, self.counts)
         before = self.window.alpha[FREE_CLASS].clone() if self.max_concentration else None
@@ -243,7 +241,7 @@ def make_update(path: str, filters: KernelFilters, layer: ConvBKILayer, window):
 
 
 def make_free_space(filters: KernelFilters, geometry: WindowGeometry, window, max_concentration: float,
-                    prior: float, ground_classes: tuple[int, ...] = ()):
+                    prior: float):
     """The free-space backend of a window: on the device for a ``TorchWindow``, else on the host."""
     backend = DeviceFreeSpace if isinstance(window, TorchWindow) else HostFreeSpace
-    return backend(filters, geometry, window, max_concentration, prior, ground_classes)
+    return backend(filters, geometry, window, max_concentration, prior)

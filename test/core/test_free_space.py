@@ -18,13 +18,11 @@ from reference import sparse_kernel_np
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
 from convbki_core.free_space import (
-    GROUND_LAYERS,
     _free_space_numpy,
     count_rays,
     free_space_update,
     free_taps,
     scratch_counts,
-    stop_above_ground,
 )
 from convbki_core.window import CHANGED, TOUCHED
 
@@ -286,9 +284,9 @@ def test_free_evidence_equals_a_ray_by_ray_reference(tmp_path, free_ell):
     rng = np.random.default_rng(7 if free_ell is None else 8)
     kernel = ConvBKIKernel("compound", 20, 3, 0.5, ell_h=0.7, ell_z=0.6, free_ell=free_ell)
     bounds = ((-4.0, -4.0, -2.0), (4.0, 4.0, 2.0))
-    # the unclamped model, every ray whole: clamping and the ground's rays have their own tests
+    # the unclamped model: clamping has its own tests
     with_free = ConvBKIMapper(MapperConfig.paper(local_bounds=bounds, free_space=True, device="cpu",
-                                                 max_concentration=0.0, ground_classes=()), kernel)
+                                                 max_concentration=0.0), kernel)
     position = np.zeros(3)
     freed = 0
     for scan in range(6):
@@ -442,59 +440,3 @@ def test_window_exits_compiled_equals_numpy_and_lie_on_the_boundary():
     assert on_boundary.all()
     for point in points[outside][:200]:  # each ray leaves through the voxel the bisection finds
         assert exit_voxel(sensor, point, origin, dims) in {tuple(e) for e in exits}
-
-
-def test_rays_down_to_the_ground_stop_above_its_top_layers():
-    sensor = np.array([0.5, 0.5, 10.5])  # voxel units, 10 layers above the ground's
-    ends = np.array([[30, 0, 0], [30, 0, 0], [12, 5, 14], [-20, 3, 1]])
-    through = np.array([False, False, False, False])
-    on_ground = np.array([True, False, True, True])
-    cut, cut_through, keep = stop_above_ground(sensor, ends, through, on_ground, layers=2)
-    assert keep.all()
-    # Down to (30, 0, 0) the ray reaches layer 2 (the first above the two protected) at
-    # z = 2.0, t = (2 - 10.5) / (0.5 - 10.5) = 0.85 of the way: x = 0.5 + 0.85 * 30 = 26.0.
-    np.testing.assert_array_equal(cut[0], [26, 0, 2])
-    np.testing.assert_array_equal(cut[1], ends[1])  # not ground: whole
-    np.testing.assert_array_equal(cut[2], ends[2])  # ground above the sensor: whole
-    # Down to (-20, 3, 1): layer 3 at z = 3.0, t = 7.5 / 9 of the way.
-    t = (3.0 - 10.5) / (1.5 - 10.5)
-    np.testing.assert_array_equal(cut[3], [math.floor(0.5 + t * -20.0), math.floor(0.5 + t * 3.0), 3])
-    np.testing.assert_array_equal(cut_through, [True, False, False, True])  # a cut ray counts its last voxel
-    # The cut ray's walk counts voxels above the protected layers only, out to where it was cut.
-    walked = crossed_voxels(sensor, cut[0], through=True)
-    assert min(v[2] for v in walked) == 2 and max(v[0] for v in walked) == 26
-    # A sensor within the protected layers of its ground end: that ray counts nothing.
-    _, _, keep = stop_above_ground(np.array([0.5, 0.5, 1.5]), ends[:1], through[:1], on_ground[:1], layers=2)
-    assert not keep[0]
-
-
-def test_a_road_seen_at_a_grazing_angle_stays_and_a_car_that_left_is_still_emptied():
-    """A straight road seen out to 38 m from 1.7 m up as the sensor drives along it (0.4 m
-    voxels, for speed): the rays to the road far ahead cross the road's own voxels for metres
-    before their ends, between the rings where this scan's returns protect it. Stopped above
-    the ground's layer, they leave the road other scans saw; the rays still empty a car that
-    has gone."""
-    bounds = ((-40.0, -40.0, -3.0), (40.0, 40.0, 3.0))
-
-    def drive(free_space, ground_classes):
-        mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=bounds, resolution=0.4, free_space=free_space,
-                                                  device="cpu", ground_classes=ground_classes),
-                               "config/kernels/semantic_kitti_compound.yaml")
-        for scan in range(20):
-            sensor = np.array([0.5 * scan, 0.05, 1.73])
-            boxes = [(np.array([5.0, 2.0, 0.0]), np.array([8.0, 3.8, 1.5]), CAR)] if scan < 5 else []
-            points, labels = cast(sensor, boxes, max_range=38.0)
-            pose = np.eye(4)
-            pose[:3, 3] = sensor
-            mapper.integrate(points - sensor, labels, pose)
-        voxels = mapper.voxels()
-        return np.count_nonzero(voxels.label == ROAD), np.count_nonzero(voxels.label == CAR)
-
-    kept_road, kept_cars = drive(False, ())
-    whole_road, whole_cars = drive(True, ())
-    stopped_road, stopped_cars = drive(True, (ROAD,))
-    assert GROUND_LAYERS >= 1
-    assert whole_road < 0.6 * kept_road  # whole rays empty much of the road
-    assert stopped_road > 1.5 * whole_road, (stopped_road, whole_road, kept_road)
-    assert kept_cars > 20 and whole_cars <= 0.2 * kept_cars and stopped_cars <= 0.2 * kept_cars, (
-        kept_cars, whole_cars, stopped_cars)
