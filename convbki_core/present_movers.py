@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.volume import voxel_indices, voxel_keys
+from convbki_core.volume import TOUCHING_OFFSETS, voxel_indices, voxel_keys
 
 # How far (m) a mover's marking spreads through the touching points of movable classes: a
 # car's length, so that a mover's mislabelled parts join it and a row of parked cars that
@@ -48,8 +48,7 @@ MOVER_REACH = 5.0
 # a LiDAR's points on a surface seen at a grazing angle (the side of a car passing the sensor),
 # narrower than the space between a lane's traffic and the cars parked beside it.
 JOIN_CELL = 0.4
-_TOUCHING_KEYS = (voxel_keys(np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]))
-                  - voxel_keys(np.zeros((1, 3), np.int64)))
+_TOUCHING_KEYS = voxel_keys(TOUCHING_OFFSETS) - voxel_keys(np.zeros((1, 3), np.int64))
 
 
 @dataclass(frozen=True)
@@ -106,9 +105,7 @@ def whole_movers(points: np.ndarray, labels: np.ndarray, moving: np.ndarray,
     labels = np.asarray(labels)
     if not moving.any() or not movable_classes or labels.ndim != 1:
         return moving
-    table = np.zeros(max(movable_classes) + 2, bool)  # the last entry: labels out of its range
-    table[list(movable_classes)] = True
-    candidate = np.flatnonzero(table[np.clip(labels, -1, len(table) - 1)] & ~moving)
+    candidate = np.flatnonzero(np.isin(labels, movable_classes) & ~moving)
     candidate_points = np.asarray(points[candidate], np.float64)
     finite = np.isfinite(candidate_points).all(axis=1)
     candidate, candidate_points = candidate[finite], candidate_points[finite]

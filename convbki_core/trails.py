@@ -18,16 +18,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from convbki_core.volume import voxel_indices, voxel_keys
-
-_NEIGHBOURS = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
+from convbki_core.volume import TOUCHING_OFFSETS, voxel_indices, voxel_keys
 
 
 def _grown(indices: np.ndarray) -> np.ndarray:
     """Keys of the voxels and their 26 neighbours, unique."""
     if len(indices) == 0:
         return np.zeros(0, np.int64)
-    return np.unique(voxel_keys((indices[:, None, :] + _NEIGHBOURS[None]).reshape(-1, 3)))
+    return np.unique(voxel_keys((indices[:, None, :] + TOUCHING_OFFSETS[None]).reshape(-1, 3)))
 
 
 class SweptSpace:

@@ -107,6 +107,8 @@ def voxel_indices(points: np.ndarray, resolution: float) -> np.ndarray:
 
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
+# A voxel and its 26 neighbours (faces, edges, corners), as index offsets (27, 3).
+TOUCHING_OFFSETS = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
 
 
 def voxel_keys(indices: np.ndarray) -> np.ndarray:
