@@ -365,8 +365,9 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     clear hold the prior and are not read; None: every run is read.
 
     One compiled pass over the columns computes each column's voxel costs and ground, and the
-    cell of every column whose ground it saw; the columns whose ground is hidden take their
-    neighbours' ground and are computed again in a second pass (a few of them)."""
+    cell of every column whose ground it saw, and keeps the voxel costs of the columns whose
+    ground is hidden (a few of them); a second pass gives those their neighbours' ground and
+    their cells, without reading the window again."""
     origin = np.asarray(origin, np.int64)
     if not HAVE_NUMBA:  # the same rules, through the voxels gathered
         return _gathered_grid(*gather_window(alpha, mask.copy(), origin, dims), origin, dims, resolution, profile,
@@ -383,16 +384,19 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     # In global order: row y of the grid is the column at origin + y (the torus unrolled).
     values = np.empty((size_y, size_x), np.int8)
     top = np.empty((size_x, size_y), np.int64)
-    hidden = np.empty((size_x, size_y), np.bool_)
+    hidden = np.empty((size_x, size_y), np.int64)  # where the voxel costs of a hidden column are kept, or -1
     ground_z = np.empty((size_x, size_y), np.int64)  # filled where ``hidden``
+    # Room for every column of a row, but a row fills only as many slots as it has hidden
+    # columns, and only the pages written are ever mapped.
+    kept_risk = np.empty((size_x * size_y, mask.shape[2]))
+    kept_kind = np.empty((size_x * size_y, mask.shape[2]), np.uint8)
     with parallel_region():
         _grounded_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
-                          values, top, hidden, ground_z)
-    if hidden.any():
-        cells = np.argwhere(hidden)
+                          values, top, hidden, ground_z, kept_risk, kept_kind)
+    cells = np.argwhere(hidden >= 0)
+    if len(cells):
         with parallel_region():
-            _hidden_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
-                            cells, top, ground_z, values)
+            _hidden_columns(origin, rules, cells, top, ground_z, hidden, kept_risk, kept_kind, values)
     return CostGrid(origin[:2].copy(), values, float(resolution))
 
 
@@ -520,16 +524,20 @@ if HAVE_NUMBA:
 
     @njit(parallel=True, nogil=True)
     def _grounded_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, values, top,
-                          hidden, ground_z):  # pragma: no cover - compiled
+                          hidden, ground_z, kept_risk, kept_kind):  # pragma: no cover - compiled
         """Every column: its ground voxel into ``top``, its cell into ``values`` where it saw its
-        own ground or holds no obstacle (then its ground does not matter), else whether it is a
-        hidden-ground column with an obstacle into ``hidden`` and the height under its lowest
-        voxel into ``ground_z`` (for when no neighbour has ground); all in global order."""
+        own ground or holds no obstacle (then its ground does not matter); a hidden-ground
+        column with an obstacle keeps its voxel costs (``_column_kinds``' ``risk`` and ``kind``)
+        in a row of ``kept_risk``, ``kept_kind`` (the first free one of its physical x's
+        ``size_y`` rows), whose number goes into ``hidden`` (-1 for the others), and the height
+        under its lowest voxel into ``ground_z`` (for when no neighbour has ground); all in
+        global order."""
         size_x, size_y, size_z = mask.shape
         for x in prange(size_x):
             sums = np.empty((5, size_z))  # the column's moments per physical z
             risk = np.empty(size_z)
             kind = np.empty(size_z, np.uint8)
+            kept = x * size_y  # the next free row of this x's share of the kept costs
             column_x = (x - origin[0]) % size_x
             column_y = (0 - origin[1]) % size_y - 1
             for y in range(size_y):
@@ -537,12 +545,17 @@ if HAVE_NUMBA:
                 ground, lowest, obstacle = _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base,
                                                           rules, classes[x, y], read_all, sums, risk, kind)
                 top[column_x, column_y] = ground
-                hidden[column_x, column_y] = ground == _NO_GROUND and obstacle
+                hidden[column_x, column_y] = -1
                 if ground != _NO_GROUND:
                     values[column_y, column_x] = _column_value(risk, kind, origin[2], ground, rules)
                 else:  # nothing seen or only empty space, or hidden: its cell comes in the second pass
                     values[column_y, column_x] = -1
                     ground_z[column_x, column_y] = lowest - 1
+                    if obstacle:
+                        kept_risk[kept, :] = risk
+                        kept_kind[kept, :] = kind
+                        hidden[column_x, column_y] = kept
+                        kept += 1
 
     @njit(nogil=True, inline="always")
     def _ground_near(top, cx, cy, patch, fresh):  # pragma: no cover - compiled
@@ -593,27 +606,21 @@ if HAVE_NUMBA:
         return estimates
 
     @njit(parallel=True, nogil=True)
-    def _hidden_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, cells, top,
-                        ground_z, values):  # pragma: no cover - compiled
+    def _hidden_columns(origin, rules, cells, top, ground_z, hidden, kept_risk, kept_kind,
+                        values):  # pragma: no cover - compiled
         """The columns at global-order ``cells`` (n, 2), whose ground is hidden: the ground from
         their neighbours' (``top``, global order), or ``ground_z`` (under their lowest voxel)
-        where none is near; their cells into ``values``."""
-        size_x, size_y, size_z = mask.shape
+        where none is near; their cells, from the voxel costs the first pass kept (row
+        ``hidden`` of ``kept_risk``, ``kept_kind``), into ``values``."""
         count = cells.shape[0]
         chunk = 256
         side = 2 * NEIGHBOUR_PASSES + 1
         for first in prange((count + chunk - 1) // chunk):
-            sums = np.empty((5, size_z))
-            risk = np.empty(size_z)
-            kind = np.empty(size_z, np.uint8)
             patch = np.empty((side, side))
             fresh = np.empty((side, side))
             for i in range(first * chunk, min(count, (first + 1) * chunk)):
                 column_x, column_y = cells[i, 0], cells[i, 1]
                 estimate = _ground_near(top, column_x, column_y, patch, fresh)
                 ground = ground_z[column_x, column_y] if np.isnan(estimate) else np.int64(np.rint(estimate))
-                x = (origin[0] + column_x) % size_x
-                y = (origin[1] + column_y) % size_y
-                _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base, rules, classes[x, y], read_all,
-                               sums, risk, kind)  # the same voxels as in the first pass
-                values[column_y, column_x] = _column_value(risk, kind, origin[2], ground, rules)
+                kept = hidden[column_x, column_y]
+                values[column_y, column_x] = _column_value(kept_risk[kept], kept_kind[kept], origin[2], ground, rules)

@@ -125,11 +125,12 @@ class MoverForgetting:
         if HAVE_NUMBA and not isinstance(window.alpha, torch.Tensor):
             # One compiled pass: the voxels' places in the torus, the classes the scan saw there,
             # the reset, and the flags around movable evidence.
+            held_by_column, movable_bits = self._class_bits(window)
             with parallel_region():
                 count = int(_contradicted_and_flag_numba(
                     window.alpha, volume.linear, np.asarray(volume.dims, np.int64),
                     np.asarray(volume.origin, np.int64), self.dims, volume.features, self.movable,
-                    np.float32(self.prior), self.columns, self.reach))
+                    np.float32(self.prior), self.columns, self.reach, held_by_column, movable_bits))
             self.reset_voxels += count
             return count
         physical = np.mod(unravel_linear(volume.linear, volume.dims) + volume.origin, self.dims)
@@ -144,6 +145,18 @@ class MoverForgetting:
         self._flag_around(physical[self.movable[seen]], _FLAGGED | _NEAR_MOVERS)
         self.reset_voxels += count
         return count
+
+    def _class_bits(self, window) -> tuple[np.ndarray, np.uint64]:
+        """The window's ``classes_by_column`` (asked for here, so the window keeps it from now
+        on) and the bits of the movable classes; with no such bits, every bit set (every class
+        run is read)."""
+        held_by_column = window.classes_by_column()
+        if held_by_column is None:
+            return np.full((1, 1), np.iinfo(np.uint64).max, np.uint64), np.uint64(0)
+        movable_bits = np.uint64(0)
+        for c in np.flatnonzero(self.movable):
+            movable_bits |= np.uint64(1) << np.uint64(c)
+        return held_by_column, movable_bits
 
     def _flag_around(self, physical: np.ndarray, bits: int) -> None:
         if not len(physical):
@@ -194,9 +207,10 @@ class MoverForgetting:
                 # gather in a few rows of the window).
                 flagged = np.flatnonzero(self.columns).astype(np.int64)
                 threads = min(get_num_threads(), max(1, len(flagged)))
+                held_by_column, movable_bits = self._class_bits(window)
                 count = int(_unsupported_numba(window.alpha, window.mask, np.asarray(window.origin, np.int64),
                                                self.movable, self.columns, flagged, np.float32(self.prior),
-                                               self.min_empty, threads))
+                                               self.min_empty, threads, held_by_column, movable_bits != 0))
         else:
             count = _unsupported_numpy(window.alpha, window.mask, np.asarray(window.origin, np.int64),
                                        self.movable, self.columns, np.float32(self.prior), self.min_empty)
@@ -311,39 +325,44 @@ def _unsupported_torch(alpha, mask, origin, movable, prior, near, min_empty) -> 
 
 
 if HAVE_NUMBA:
+    _EVERY_RUN = np.uint64(0xFFFFFFFFFFFFFFFF)  # class bits that read every class
 
     @njit(nogil=True, inline="always")
-    def _holds_movable(alpha, movable, x, y, z, prior):  # pragma: no cover - compiled
-        """A movable class of the voxel holds more than the prior."""
+    def _holds_movable(alpha, movable, x, y, z, prior, runs):  # pragma: no cover - compiled
+        """A movable class of the voxel holds more than the prior (``runs``: the column's class
+        bits; a class whose bit is clear holds the prior and is not read)."""
         found = False
         for c in range(1, alpha.shape[0]):
-            found |= movable[c] and alpha[c, x, y, z] > prior
+            if movable[c] and (runs >> np.uint64(c)) & np.uint64(1) != 0:
+                found |= alpha[c, x, y, z] > prior
         return found
 
     @njit(nogil=True, inline="always")
-    def _occupied_classes(alpha, x, y, z):  # pragma: no cover - compiled
+    def _occupied_classes(alpha, x, y, z, runs, prior):  # pragma: no cover - compiled
         """(sum, largest, most likely class) of the classes 1 .. C-1 of voxel (x, y, z), summed
-        in class order in float32 (the order every path of the rules adds them in)."""
+        in class order in float32 (the order every path of the rules adds them in); a class
+        whose bit in ``runs`` is clear holds the ``prior``, which is added without reading it."""
         held = 1
-        best = alpha[1, x, y, z]
+        best = alpha[1, x, y, z] if (runs >> np.uint64(1)) & np.uint64(1) != 0 else prior
         total = np.float32(0.0)
         for c in range(1, alpha.shape[0]):
-            value = alpha[c, x, y, z]
+            value = alpha[c, x, y, z] if (runs >> np.uint64(c)) & np.uint64(1) != 0 else prior
             total += value
             if value > best:
                 best, held = value, c
         return total, best, held
 
     @njit(nogil=True, inline="always")
-    def _reset_if_contradicted(alpha, movable, x, y, z, seen, prior):  # pragma: no cover - compiled
+    def _reset_if_contradicted(alpha, movable, x, y, z, seen, prior, runs):  # pragma: no cover - compiled
         """Reset the classes of voxel (x, y, z) when its most likely class is movable, it holds
-        class evidence and this scan saw ``seen`` there; returns whether it did."""
+        class evidence and this scan saw ``seen`` there; returns whether it did. ``runs``: its
+        column's class bits (as ``_occupied_classes``)."""
         # No class ever falls below the prior, so a voxel whose movable classes all hold just
         # the prior has a static most likely class, or no evidence: skip its other classes.
-        if not _holds_movable(alpha, movable, x, y, z, prior):
+        if not _holds_movable(alpha, movable, x, y, z, prior, runs):
             return False
         classes = alpha.shape[0]
-        total, _, held = _occupied_classes(alpha, x, y, z)
+        total, _, held = _occupied_classes(alpha, x, y, z, runs, prior)
         if not (movable[held] and total > prior * np.float32(classes - 1) * np.float32(1 + 1e-6) and seen != held):
             return False
         for c in range(1, classes):
@@ -355,15 +374,18 @@ if HAVE_NUMBA:
         count = 0
         for i in range(physical.shape[0]):
             count += _reset_if_contradicted(alpha, movable, physical[i, 0], physical[i, 1], physical[i, 2], seen[i],
-                                            prior)
+                                            prior, _EVERY_RUN)
         return count
 
     @njit(parallel=True, nogil=True)
     def _contradicted_and_flag_numba(alpha, linear, volume_dims, volume_origin, dims, features, movable, prior, columns,
-                                     reach):  # pragma: no cover - compiled
+                                     reach, held_by_column, movable_bits):  # pragma: no cover - compiled
         """``MoverForgetting.contradicted`` in one pass over the scan's voxels (as the numpy
         path: unravel, argmax, ``_contradicted_numpy``, ``_flag_around`` twice). The voxels are
-        distinct, so the threads never write the same one."""
+        distinct, so the threads never write the same one. ``held_by_column``: the window's
+        class bits per column, and ``movable_bits`` the movable classes' (0: no bits, read
+        every voxel): a voxel of a column whose movable runs all hold the prior has nothing
+        to reset, and its classes are not read."""
         count_voxels, classes = features.shape
         physical = np.empty((count_voxels, 2), np.int64)
         bits = np.zeros(count_voxels, np.uint8)
@@ -384,7 +406,9 @@ if HAVE_NUMBA:
                 bits[i] = _FLAGGED
             if movable[seen]:
                 bits[i] = _FLAGGED | _NEAR_MOVERS
-            reset[i] = _reset_if_contradicted(alpha, movable, x, y, z, seen, prior)
+            runs = _EVERY_RUN if movable_bits == 0 else held_by_column[x, y]
+            if (runs & movable_bits) != 0 or movable_bits == 0:
+                reset[i] = _reset_if_contradicted(alpha, movable, x, y, z, seen, prior, runs)
         size_x, size_y = columns.shape
         for i in range(count_voxels):
             if bits[i] == 0:
@@ -396,23 +420,25 @@ if HAVE_NUMBA:
         return reset.sum()
 
     @njit(nogil=True, inline="always")
-    def _reoccupied(alpha, mask, movable, x, y, prior):  # pragma: no cover - compiled
+    def _reoccupied(alpha, mask, movable, x, y, prior, runs):  # pragma: no cover - compiled
         """A voxel of column (x, y) that this scan's evidence reached is an occupied mover:
         only such a voxel can have changed a column that held emptied movers alone."""
         for z in range(mask.shape[2]):
             if mask[x, y, z] & TOUCHED == 0:
                 continue
-            rest, best, held = _occupied_classes(alpha, x, y, z)
+            rest, best, held = _occupied_classes(alpha, x, y, z, runs, prior)
             free = alpha[0, x, y, z]
             if not free > EMPTY_SHARE * (free + rest) and movable[held] and best > prior:
                 return True
         return False
 
     @njit(parallel=True, nogil=True)
-    def _unsupported_numba(alpha, mask, origin, movable, columns, flagged, prior, min_empty,
-                           threads):  # pragma: no cover - compiled
+    def _unsupported_numba(alpha, mask, origin, movable, columns, flagged, prior, min_empty, threads,
+                           held_by_column, use_bits):  # pragma: no cover - compiled
         """The rule of 2 over the flagged columns; each class's run of a column is read in one
-        pass (contiguous in z), as the costmap reads the window."""
+        pass (contiguous in z), as the costmap reads the window. With ``use_bits``, the runs
+        whose bit in ``held_by_column`` is clear hold the prior and are not read: the prior is
+        added in their place, so the sums are the same."""
         size_y, size_z = mask.shape[1], mask.shape[2]
         classes = alpha.shape[0]
         counts = np.zeros(threads, np.int64)
@@ -422,23 +448,29 @@ if HAVE_NUMBA:
             held = np.empty(size_z, np.int64)
             for k in range(part, flagged.shape[0], threads):  # interleaved: neighbouring columns on both threads
                 x, y = flagged[k] // size_y, flagged[k] % size_y
-                if columns[x, y] & _FLAGGED == 0 and not _reoccupied(alpha, mask, movable, x, y, prior):
+                runs = held_by_column[x, y] if use_bits else _EVERY_RUN
+                if columns[x, y] & _FLAGGED == 0 and not _reoccupied(alpha, mask, movable, x, y, prior, runs):
                     continue  # emptied movers only, and this scan's evidence made none of them occupied
                 # A column none of whose voxels holds a movable class above the prior has no
                 # voxel for the rule (no class falls below it): its movable runs alone decide.
                 found = False
                 for c in range(1, classes):
-                    if movable[c]:
+                    if movable[c] and (runs >> np.uint64(c)) & np.uint64(1) != 0:
                         for z in range(size_z):
                             found |= alpha[c, x, y, z] > prior
                 if not found:
                     columns[x, y] = 0
                     continue
+                first_held = (runs >> np.uint64(1)) & np.uint64(1) != 0
                 for z in range(size_z):
                     rest[z] = 0.0
-                    best[z] = alpha[1, x, y, z]
+                    best[z] = alpha[1, x, y, z] if first_held else prior
                     held[z] = 1
                 for c in range(1, classes):
+                    if (runs >> np.uint64(c)) & np.uint64(1) == 0:
+                        for z in range(size_z):
+                            rest[z] += prior  # the run holds the prior (no class is below it)
+                        continue
                     for z in range(size_z):
                         value = alpha[c, x, y, z]
                         rest[z] += value

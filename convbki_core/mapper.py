@@ -169,6 +169,10 @@ class ConvBKIMapper:
         self.forgetting = (MoverForgetting(forgetting_classes, kernel.num_classes, self.prior, self.geometry.dims,
                                            kernel.filter_size // 2, self.resolution)
                            if self.free_space and forgetting_classes else None)
+        if self.forgetting is not None:
+            # The rules read only the class runs the window's per-column bits say are held:
+            # start keeping them now, while the window is empty, not in the first scan.
+            self.window.classes_by_column()
         # The parts, built once: the filters of the first scan are prepared now.
         self.filters = KernelFilters(self.layer, self.device, on_device=update_path == "torch")
         self.voxelize = Voxelizer(self.geometry, self.layer, self.ignore_classes, self.window)

@@ -14,8 +14,8 @@ concentrations changed since the map's changes were last taken). With ``track_ch
 a changed voxel that leaves the window before its change is taken is remembered, so
 ``take_changes`` misses nothing; outputs that send only what changed are built on it.
 
-Readers that go through every column of the window (the planner's costmap) need not read a
-class's run of a column when all of it holds the prior, and most runs do: a column holds
+Readers that go through every column of the window (the planner's costmap, the movers'
+rules) need not read a class's run of a column when all of it holds the prior, and most runs do: a column holds
 evidence of a few classes. Once asked for (``classes_by_column``), the window keeps per
 column a bit per class that may be above the prior there, a superset kept current from what
 can raise a class: a scan's class evidence reaches the columns within the kernel's half-width

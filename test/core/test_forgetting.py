@@ -19,7 +19,7 @@ from convbki_core.forgetting import (
     _unsupported_numpy,
     _unsupported_torch,
 )
-from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
+from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, classes_held
 
 TRUCK, BICYCLIST = 4, 7
 MOVABLE = (1, 4, 5, 6, 7, 8)  # SemanticKITTI's: car, truck, other-vehicle, person, bicyclist, motorcyclist
@@ -139,7 +139,8 @@ def random_window(seed: int):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("min_empty", [1, 2])
-def test_the_compiled_rules_equal_the_numpy_rules(seed, min_empty):
+@pytest.mark.parametrize("use_bits", [False, True])
+def test_the_compiled_rules_equal_the_numpy_rules(seed, min_empty, use_bits):
     movable = np.zeros(9, np.bool_)
     movable[[1, 4, 5]] = True
     origin = np.array([3, -2, 7], np.int64)
@@ -150,8 +151,12 @@ def test_the_compiled_rules_equal_the_numpy_rules(seed, min_empty):
     prior = np.float32(1e-3)
     emptied = _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty)
     flagged = np.flatnonzero(compiled_columns).astype(np.int64)
+    # With the window's class bits the compiled rule skips the runs at the prior: the same result.
+    held = classes_held(alpha, prior) if use_bits else np.zeros((1, 1), np.uint64)
+    if use_bits:
+        assert (held != np.iinfo(np.uint64).max >> np.uint64(64 - alpha.shape[0])).any()  # some runs skipped
     assert emptied == _unsupported_numba(compiled_alpha, compiled_mask, origin, movable, compiled_columns, flagged,
-                                         prior, min_empty, 2)
+                                         prior, min_empty, 2, held, use_bits)
     assert emptied > (5 if min_empty == 1 else 0)  # the random columns hold trails
     np.testing.assert_allclose(compiled_alpha, alpha, rtol=1e-6)
     np.testing.assert_array_equal(compiled_mask, mask)
@@ -168,10 +173,11 @@ def test_the_compiled_rules_equal_the_numpy_rules(seed, min_empty):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_the_compiled_contradiction_pass_equals_the_numpy_one(seed, monkeypatch):
+@pytest.mark.parametrize("use_bits", [False, True])
+def test_the_compiled_contradiction_pass_equals_the_numpy_one(seed, use_bits, monkeypatch):
     """The compiled pass (unravel, argmax, reset, flags in one loop) leaves the window and the
     column flags as the numpy path does, on a scan whose voxels mix classes and wrap around
-    the torus."""
+    the torus; with the window's class bits (runs at the prior not read) as without."""
     from types import SimpleNamespace
 
     import convbki_core.forgetting as forgetting
@@ -189,7 +195,8 @@ def test_the_compiled_contradiction_pass_equals_the_numpy_one(seed, monkeypatch)
         monkeypatch.setattr(forgetting, "HAVE_NUMBA", compiled)
         rules = forgetting.MoverForgetting((1, 4, 5), alpha.shape[0], 1e-3, dims, 1, 0.2)
         rules.columns[:] = 1
-        window = SimpleNamespace(alpha=alpha.copy())
+        window = SimpleNamespace(alpha=alpha.copy(),
+                                 classes_by_column=lambda: classes_held(alpha, 1e-3) if use_bits else None)
         results.append((rules.contradicted(volume, window), window.alpha, rules.columns.copy()))
     (count, compiled_alpha, compiled_columns), (expected, numpy_alpha, numpy_columns) = results
     assert count == expected and count > 0
@@ -228,7 +235,7 @@ def test_a_mover_the_rays_emptied_and_static_spread_made_occupied_again_is_still
         for name, (a, m, c) in rules.items():
             if name == "compiled":
                 emptied[name] = _unsupported_numba(a, m, origin, movable, c, np.flatnonzero(c).astype(np.int64),
-                                                   prior, 2, 2)
+                                                   prior, 2, 2, classes_held(a, prior), True)
             elif name == "numpy":
                 emptied[name] = _unsupported_numpy(a, m, origin, movable, c, prior, 2)
             else:
