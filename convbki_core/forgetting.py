@@ -81,6 +81,10 @@ class MoverForgetting:
         self.movable = np.zeros(num_classes, np.bool_)
         self.movable[list(movable_classes)] = True
         self.movable[FREE_CLASS] = False
+        # The movable classes as class bits, as the window's ``classes_by_column`` keeps them.
+        self.movable_bits = np.uint64(0)
+        for c in np.flatnonzero(self.movable):
+            self.movable_bits |= np.uint64(1) << np.uint64(c)
         self.prior = float(prior)
         self.dims = np.asarray(dims, np.int64)
         self.reach = int(reach)
@@ -103,10 +107,9 @@ class MoverForgetting:
     def warm_up(self, scratch) -> None:
         """Both rules on a copy of these rules over the scratch window (``parts.Scratch``), with
         the scan's evidence in it and window moves along every axis in between."""
-        small = MoverForgetting(np.flatnonzero(self.movable), len(self.movable), self.prior, scratch.geometry.dims,
+        # Every class movable (class 0 never is), so that the rules find voxels to act on.
+        small = MoverForgetting(np.arange(len(self.movable)), len(self.movable), self.prior, scratch.geometry.dims,
                                 self.reach, scratch.geometry.resolution)
-        small.movable[:] = True  # every class movable, so that the rules find voxels to act on
-        small.movable[FREE_CLASS] = False
         window = scratch.window
         for origin in (scratch.origin, *scratch.origins()):
             window.move_to(origin)
@@ -153,10 +156,7 @@ class MoverForgetting:
         held_by_column = window.classes_by_column()
         if held_by_column is None:
             return np.full((1, 1), np.iinfo(np.uint64).max, np.uint64), np.uint64(0)
-        movable_bits = np.uint64(0)
-        for c in np.flatnonzero(self.movable):
-            movable_bits |= np.uint64(1) << np.uint64(c)
-        return held_by_column, movable_bits
+        return held_by_column, self.movable_bits
 
     def _flag_around(self, physical: np.ndarray, bits: int) -> None:
         if not len(physical):

@@ -15,8 +15,8 @@ a changed voxel that leaves the window before its change is taken is remembered,
 ``take_changes`` misses nothing; outputs that send only what changed are built on it.
 
 Readers that go through every column of the window (the planner's costmap, the movers'
-rules) need not read a class's run of a column when all of it holds the prior, and most runs do: a column holds
-evidence of a few classes. Once asked for (``classes_by_column``), the window keeps per
+rules) need not read a class's run of a column when all of it holds the prior, and most runs
+do: a column holds evidence of a few classes. Once asked for (``classes_by_column``), the window keeps per
 column a bit per class that may be above the prior there, a superset kept current from what
 can raise a class: a scan's class evidence reaches the columns within the kernel's half-width
 of its occupied voxels (``note_scan``), and voxels come back from the store. Everything else
