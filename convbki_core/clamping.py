@@ -60,12 +60,12 @@ def first_contradiction(before: np.ndarray) -> np.ndarray:
 
 
 def clamp_numpy(alpha: np.ndarray, voxels: tuple[np.ndarray, np.ndarray, np.ndarray], before: np.ndarray,
-                limit: float, prior: float) -> None:
+                limit: float, prior: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Clamp, in place, the voxels ``voxels`` (x, y, z index arrays into ``alpha`` (C, X, Y, Z))
     that have just taken free evidence; ``before`` their free concentrations before it;
-    ``prior`` the map's prior concentration, which clamping keeps."""
+    ``prior`` the map's prior concentration, which clamping keeps. Returns the voxels scaled."""
     if limit <= 0 or len(voxels[0]) == 0:
-        return
+        return tuple(np.zeros(0, np.int64) for _ in range(3))
     check = first_contradiction(before)
     x, y, z = (axis[check] for axis in voxels)
     column = alpha[:, x, y, z]
@@ -77,6 +77,7 @@ def clamp_numpy(alpha: np.ndarray, voxels: tuple[np.ndarray, np.ndarray, np.ndar
     base = np.float32(alpha.shape[0]) * floor
     scale = (np.float32(limit) - base) / (total[over] - base)
     alpha[:, x[over], y[over], z[over]] = floor + (column[:, over] - floor) * scale
+    return x[over], y[over], z[over]
 
 
 if HAVE_NUMBA:
@@ -92,9 +93,9 @@ if HAVE_NUMBA:
     @njit(nogil=True, inline="always")
     def clamp_voxel(alpha, x, y, z, before, limit, prior):  # pragma: no cover - compiled; tested against numpy
         """The clamping of one voxel that has just taken free evidence (``before``: its free
-        concentration before it); ``limit`` <= 0: off."""
+        concentration before it); ``limit`` <= 0: off. Returns whether it was scaled."""
         if limit <= 0 or before >= FIRST_CONTRADICTION:
-            return
+            return False
         total = np.float32(0.0)
         for c in range(alpha.shape[0]):
             total += alpha[c, x, y, z]
@@ -102,6 +103,8 @@ if HAVE_NUMBA:
             floor, scale = evidence_scale(total, limit, prior, alpha.shape[0])
             for c in range(alpha.shape[0]):
                 alpha[c, x, y, z] = floor + (alpha[c, x, y, z] - floor) * scale
+            return True
+        return False
 
 
 def clamp_torch(alpha: torch.Tensor, before: torch.Tensor, limit: float, prior: float) -> None:

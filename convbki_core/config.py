@@ -67,12 +67,13 @@ class StoreConfig:
 
 @dataclass(frozen=True)
 class ClassesConfig:
-    """The classes the map ignores (never mapped) and those that move, from ``label_map``
-    unless given as lists."""
+    """The classes the map ignores (never mapped), those that move and those of the ground
+    (which free space leaves), from ``label_map`` unless given as lists."""
 
     label_map: str = "semantic_kitti"
     ignore_classes: tuple[int, ...] | None = None
     movable_classes: tuple[int, ...] | None = None
+    ground_classes: tuple[int, ...] | None = None
 
 
 # Each flat name (the node's parameter names where it has one) and the group that holds it.
@@ -84,7 +85,7 @@ _FLAT = {
     "device": ("compute", "device"), "update_path": ("compute", "update_path"),
     "track_changes": ("store", "track_changes"),
     "label_map": ("classes", "label_map"), "ignore_classes": ("classes", "ignore_classes"),
-    "movable_classes": ("classes", "movable_classes"),
+    "movable_classes": ("classes", "movable_classes"), "ground_classes": ("classes", "ground_classes"),
     "kernel_file": (None, "kernel_file"), "frame_id": (None, "frame_id"),
 }
 
@@ -111,7 +112,7 @@ class MapperConfig:
             group, attribute = _FLAT[name]
             if name == "local_bounds":
                 value = tuple(tuple(float(v) for v in corner) for corner in value)
-            elif name in ("ignore_classes", "movable_classes") and value is not None:
+            elif name in ("ignore_classes", "movable_classes", "ground_classes") and value is not None:
                 value = tuple(int(c) for c in value)
             if group is None:
                 top[attribute] = value
@@ -122,9 +123,9 @@ class MapperConfig:
 
     @classmethod
     def paper(cls, **flat) -> MapperConfig:
-        """The paper's ConvBKI: no free space, class 0 alone ignored, no movable classes;
-        ``flat`` changes settings as ``replace`` does."""
-        plain = cls().replace(free_space=False, ignore_classes=(0,), movable_classes=())
+        """The paper's ConvBKI: no free space, class 0 alone ignored, no movable or ground
+        classes; ``flat`` changes settings as ``replace`` does."""
+        plain = cls().replace(free_space=False, ignore_classes=(0,), movable_classes=(), ground_classes=())
         return plain.replace(**flat)
 
     @classmethod
@@ -163,6 +164,15 @@ class MapperConfig:
         from convbki_core.datasets.labels import load_label_map
 
         return load_label_map(self.classes.label_map).movable_classes
+
+    def ground_classes(self) -> tuple[int, ...]:
+        """The classes of the ground (road, sidewalk, ...): with free space, rays leave the
+        voxels whose most likely occupied class is one of them (``free_space``)."""
+        if self.classes.ground_classes is not None:
+            return self.classes.ground_classes
+        from convbki_core.datasets.labels import load_label_map
+
+        return load_label_map(self.classes.label_map).ground_classes
 
     def forgetting_classes(self) -> tuple[int, ...]:
         """The classes the movers' rules apply to: none without free space or without the rules."""

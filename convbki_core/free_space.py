@@ -22,8 +22,25 @@ Why the two conditions:
   being gone, and that same scan sees the surface there. A mover's voxels, once it has left,
   receive no class evidence, so the rays that now pass through them empty them.
 
+* A voxel that holds the ground's surface takes none either: its most likely occupied class
+  (the arg-max over classes 1..C-1) is a ground class of the label map (road, parking,
+  sidewalk, ...: ``ground_classes``), and its ground evidence (those classes' concentrations
+  above the prior) is not below that of the voxel under it nor of the one over it. A ray that
+  reaches the ground some way off runs just above it for its last metres, through the voxels
+  that hold the surface between the rings of returns: those crossings say that the top of
+  the voxel is empty, not that the ground has gone, and the map would otherwise lose the far
+  ground it has seen. Only the surface: the kernel spreads the ground's evidence a voxel or
+  two up into the air, and rays still empty those voxels (under a car that has gone they are
+  the empty space the movers' support rule looks for). A mover's voxels are not ground.
+
 Where the rays first find a voxel empty, its concentrations are clamped to a bounded sum
 (``clamping``), so that a mover that stood long can be emptied by a bounded number of rays.
+
+Which voxels hold the surface is kept as a bit of the window's mask (``GROUND``), derived
+again, a column at a time, where a voxel's classes changed (``RECLASSED``: this scan's class
+evidence reached it, it came back from the store, it was clamped, or the window moved along z
+past its neighbour); a pass reads only the runs the window's per-column class bits say are
+held (``classes_by_column``).
 
 Rays: returns that fall into the same voxel share one ray, from the sensor to that voxel's
 centre, weighted by their number (the evidence sum of the voxel: one per labelled point);
@@ -47,10 +64,12 @@ import numpy as np
 from convbki_core.clamping import FIRST_CONTRADICTION, clamp_numpy
 from convbki_core.compiled import HAVE_NUMBA, parallel_region
 from convbki_core.volume import SparseVolume, unravel_linear
-from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
+from convbki_core.window import CHANGED, EVIDENCE, GROUND, RECLASSED, TOUCHED
 
 FREE_CLASS = 0
 _KEEP_UNTOUCHED = 0xFF & ~TOUCHED  # the mask bits left after a scan
+# A voxel takes free evidence when, of these bits, it has EVIDENCE alone.
+_TAKES_TEST = EVIDENCE | TOUCHED | GROUND
 # A mask bit that lives only inside one free-space pass: the voxel is to be checked for clamping.
 _CHECK = 8
 
@@ -64,6 +83,8 @@ if HAVE_NUMBA:
     _CHANGED_BYTE = np.uint8(CHANGED)
     _CHECK_BYTES = np.uint8(CHANGED | _CHECK)
     _NO_BYTE = np.uint8(0)
+    _GROUND_BYTE = np.uint8(GROUND)
+    _RECLASSED_BYTE = np.uint8(RECLASSED)
 
 
 def free_taps(free_filter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,7 +125,8 @@ def ray_weights(features: np.ndarray) -> np.ndarray:
 def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndarray, offsets: np.ndarray,
                       tap_weights: np.ndarray, origin: np.ndarray, dims: np.ndarray, alpha: np.ndarray,
                       mask: np.ndarray, counts: np.ndarray, through: np.ndarray | None = None,
-                      max_concentration: float = 0.0, prior: float = 0.0) -> int:
+                      max_concentration: float = 0.0, prior: float = 0.0, ground_classes=(),
+                      classes: np.ndarray | None = None) -> int:
     """Add one scan's free-space evidence into the torus window, in place; returns the number
     of voxels whose free concentration grew.
 
@@ -117,19 +139,67 @@ def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndar
     lies beyond the window; they end in the window's boundary voxel ``occupied[m]``, which
     they cross too (``window_exits``). ``max_concentration``: the clamping limit of the
     voxels that take free evidence (``clamping``; 0: none), which keeps the ``prior``.
+    ``ground_classes``: the classes whose voxels take none (the module's docstring; the
+    ``GROUND`` bits of ``mask`` are derived here where ``RECLASSED`` is set, which is cleared);
+    ``classes``: the window's ``classes_by_column``, so that only held class runs are read
+    (None: every run).
     """
     occupied = np.ascontiguousarray(occupied, np.int64)
+    ground_bits = class_bits(ground_classes)
     through = np.zeros(len(occupied), np.bool_) if through is None else np.ascontiguousarray(through, np.bool_)
     origin = np.ascontiguousarray(origin, np.int64)
     dims = np.ascontiguousarray(dims, np.int64)
     sensor = np.ascontiguousarray(sensor, np.float64)
     if HAVE_NUMBA:
         with parallel_region():
+            if ground_bits:
+                read_all = classes is None
+                _derive_ground(alpha, mask, np.zeros((1, 1), np.uint64) if read_all else classes, read_all,
+                               ground_bits, np.float32(prior), int(origin[2]))
             return int(_free_space_numba(sensor, occupied, np.ascontiguousarray(weights, np.float32), through,
                                          offsets, tap_weights, origin, dims, alpha, mask, counts,
-                                         float(max_concentration), float(prior)))
+                                         float(max_concentration), float(prior), ground_bits))
     return _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
-                             float(max_concentration), float(prior))
+                             float(max_concentration), float(prior), ground_bits)
+
+
+def class_bits(classes) -> np.uint64:
+    """Classes (at most 64) as the bits of one uint64."""
+    bits = np.uint64(0)
+    for c in classes:
+        bits |= np.uint64(1) << np.uint64(int(c))
+    return bits
+
+
+def ground_marks(alpha, ground_bits: np.uint64, origin_z: int, prior: float):
+    """Per voxel of the torus window ``alpha`` (C, X, Y, Z), numpy or torch, whose z origin is
+    ``origin_z``: whether it holds the ground's surface (the module's docstring): its first
+    arg-max over classes 1..C-1 is one of ``ground_bits``, and its ground evidence g (the
+    ground classes' concentrations above ``prior``, summed in class order in float64) is not
+    below that of the voxel under it nor of the one over it (0 beyond the window)."""
+    classes = [c for c in range(alpha.shape[0]) if (int(ground_bits) >> c) & 1]
+    best = alpha[1:].argmax(0) + 1
+    bottom = int(origin_z) % alpha.shape[3]
+    if isinstance(best, np.ndarray):
+        is_ground = ((np.uint64(ground_bits) >> best.astype(np.uint64)) & np.uint64(1)).astype(bool)
+        evidence = np.zeros(alpha.shape[1:])
+        for c in classes:
+            evidence += alpha[c].astype(np.float64) - np.float64(np.float32(prior))
+        local = np.roll(evidence, -bottom, axis=2)  # global order along z
+        below, above = np.zeros_like(local), np.zeros_like(local)
+        below[:, :, 1:], above[:, :, :-1] = local[:, :, :-1], local[:, :, 1:]
+        return is_ground & np.roll((local >= below) & (local >= above), bottom, axis=2)
+    import torch
+
+    table = torch.tensor([(int(ground_bits) >> c) & 1 for c in range(alpha.shape[0])], dtype=torch.bool,
+                         device=alpha.device)
+    evidence = torch.zeros(alpha.shape[1:], dtype=torch.float64, device=alpha.device)
+    for c in classes:
+        evidence += alpha[c].double() - float(np.float32(prior))
+    local = torch.roll(evidence, -bottom, dims=2)
+    below, above = torch.zeros_like(local), torch.zeros_like(local)
+    below[:, :, 1:], above[:, :, :-1] = local[:, :, :-1], local[:, :, 1:]
+    return table[best] & torch.roll((local >= below) & (local >= above), bottom, dims=2)
 
 
 def window_exits(sensor: np.ndarray, points: np.ndarray, origin: np.ndarray,
@@ -217,8 +287,12 @@ def _walk_ray(start, end_voxel, visit, through=False) -> None:
 
 
 def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
-                      max_concentration=0.0, prior=0.0) -> int:
-    """The same pass in Python loops and numpy (the fallback without numba, and a reference)."""
+                      max_concentration=0.0, prior=0.0, ground_bits=0) -> int:
+    """The same pass in Python loops and numpy (the fallback without numba, and a reference):
+    the ground bits derived for every voxel (the compiled pass keeps them, with the same values)."""
+    if ground_bits:
+        _set_ground(mask, (mask & EVIDENCE != 0) & ground_marks(alpha, ground_bits, origin[2], prior))
+        mask &= np.uint8(0xFF & ~RECLASSED)
     counts = np.zeros(tuple(int(d) for d in dims), np.float64)
 
     def count(voxel, weight):
@@ -227,7 +301,7 @@ def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, 
     for m in range(occupied.shape[0]):
         _walk_ray(sensor, occupied[m], lambda voxel, w=float(weights[m]): count(np.array(voxel), w), bool(through[m]))
     counts = counts.astype(np.float32)
-    takes = (mask & EVIDENCE != 0) & (mask & TOUCHED == 0)
+    takes = mask & _TAKES_TEST == EVIDENCE
     physical = np.argwhere(takes)
     global_index = origin + (physical - origin) % dims
     evidence = np.zeros(len(physical), np.float32)
@@ -240,10 +314,16 @@ def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, 
     x, y, z = physical[grew].T
     before = alpha[FREE_CLASS, x, y, z].copy()
     alpha[FREE_CLASS, x, y, z] += evidence[grew]
-    clamp_numpy(alpha, (x, y, z), before, max_concentration, prior)
+    scaled = clamp_numpy(alpha, (x, y, z), before, max_concentration, prior)
     mask[x, y, z] |= np.uint8(CHANGED)
     mask &= np.uint8(_KEEP_UNTOUCHED)
+    if ground_bits:  # scaling changed their ground evidence: derived again in the next pass
+        mask[scaled] |= np.uint8(RECLASSED)
     return int(grew.sum())
+
+
+def _set_ground(mask: np.ndarray, ground: np.ndarray) -> None:
+    mask[...] = np.where(ground, mask | np.uint8(GROUND), mask & np.uint8(0xFF & ~GROUND))
 
 
 if HAVE_NUMBA:
@@ -394,7 +474,7 @@ if HAVE_NUMBA:
         for j in range(size):
             m = marks[j]
             evidence = counted[j] * weight
-            grows = (m & (EVIDENCE | TOUCHED)) == EVIDENCE and evidence > 0
+            grows = (m & _TAKES_TEST) == EVIDENCE and evidence > 0
             check = grows and clamping and free[j] < FIRST_CONTRADICTION
             if grows:
                 free[j] += evidence
@@ -406,7 +486,7 @@ if HAVE_NUMBA:
         return found, last, first
 
     @njit(nogil=True)
-    def _clamp_run(alpha, start, marks, limit, prior):  # pragma: no cover - compiled
+    def _clamp_run(alpha, start, marks, limit, prior, ground_bits):  # pragma: no cover - compiled
         """Clamp the voxels of a run that ``_apply_run`` marked ``_CHECK`` (``alpha`` (C, V)
         flat planes, the run starting at flat index ``start``) and clear their bit."""
         for j in range(marks.shape[0]):
@@ -422,10 +502,12 @@ if HAVE_NUMBA:
                 floor, scale = evidence_scale(total, limit, prior, alpha.shape[0])
                 for c in range(alpha.shape[0]):
                     alpha[c, voxel] = floor + (alpha[c, voxel] - floor) * scale
+                if ground_bits:  # its ground evidence changed: derived again in the next pass
+                    marks[j] |= _RECLASSED_BYTE
 
     @njit(parallel=True, nogil=True)
     def _apply_centre(sensor_x, weight, origin, alpha, mask, counts, shared_plane, parts,
-                      limit, prior):  # pragma: no cover
+                      limit, prior, ground_bits):  # pragma: no cover
         """Add the counted rays as free evidence through a centre-only free kernel, each thread
         over its own x planes; clear the counts and the ``TOUCHED`` bits. ``counts`` as
         ``_count_rays`` left them with ``corner`` (origin x, origin y, 0), ``sensor_x`` the
@@ -452,14 +534,15 @@ if HAVE_NUMBA:
                     grown, last, first = _apply_run(free[begin:end], marks[begin:end],
                                                     counted[source:source + end - begin], weight, clamping)
                     if last:
-                        _clamp_run(planes, begin + first, marks[begin + first:begin + last], limit, prior)
+                        _clamp_run(planes, begin + first, marks[begin + first:begin + last], limit, prior,
+                                   ground_bits)
                     found += grown
             grew[part] = found
         return grew.sum()
 
     @njit(parallel=True, nogil=True)
     def _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, counts,
-                      shared_plane, parts, limit, prior):  # pragma: no cover - compiled
+                      shared_plane, parts, limit, prior, ground_bits):  # pragma: no cover - compiled
         """Add the counted rays as free evidence through a free kernel of any taps, each thread
         over its own x planes; clear the counts and the ``TOUCHED`` bits. ``counts`` and
         ``sensor_x`` as in ``_apply_centre``."""
@@ -477,7 +560,7 @@ if HAVE_NUMBA:
                     global_y = origin[1] + (y - origin[1]) % dims[1]
                     for z in range(dims[2]):
                         marks = mask[x, y, z]
-                        if marks & EVIDENCE != 0 and marks & TOUCHED == 0:
+                        if marks & _TAKES_TEST == EVIDENCE:
                             global_z = origin[2] + (z - origin[2]) % dims[2]
                             evidence = np.float32(0.0)
                             for t in range(taps):
@@ -490,8 +573,10 @@ if HAVE_NUMBA:
                             if evidence > 0:
                                 before = alpha[FREE_CLASS, x, y, z]
                                 alpha[FREE_CLASS, x, y, z] += evidence
-                                clamp_voxel(alpha, x, y, z, before, limit, prior)
-                                mask[x, y, z] = marks | CHANGED
+                                marks |= CHANGED
+                                if clamp_voxel(alpha, x, y, z, before, limit, prior) and ground_bits:
+                                    marks |= _RECLASSED_BYTE  # derived again in the next pass
+                                mask[x, y, z] = marks
                                 found += 1
                         elif marks & TOUCHED != 0:
                             mask[x, y, z] = marks & _KEEP_UNTOUCHED
@@ -543,7 +628,7 @@ if HAVE_NUMBA:
         return out
 
     def _free_space_numba(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
-                          counts, limit, prior):
+                          counts, limit, prior, ground_bits):
         volume, shared_plane = counts
         # Counted in window order along x and y, where a window around the sensor holds every
         # ray whole, and on the torus along z, where the window's planes keep their runs long.
@@ -553,6 +638,54 @@ if HAVE_NUMBA:
         parts = max(1, min(numba.get_num_threads(), int(dims[0])))
         if len(offsets) == 1 and not offsets[0].any():
             return _apply_centre(sensor_x, tap_weights[0], origin, alpha, mask, volume, shared_plane, parts, limit,
-                                 prior)
+                                 prior, ground_bits)
         return _apply_counts(sensor_x, offsets, tap_weights, origin, dims, alpha, mask, volume, shared_plane, parts,
-                             limit, prior)
+                             limit, prior, ground_bits)
+
+    @njit(parallel=True, nogil=True)
+    def _derive_ground(alpha, mask, classes, read_all, ground_bits, prior, origin_z):  # pragma: no cover
+        """``ground_marks`` as the ``GROUND`` bits of every column holding a voxel with
+        ``RECLASSED`` (a voxel's classes, and so its own bit and its neighbours', changed since
+        they were derived); clears ``RECLASSED``. Reads, per column, only the class runs its
+        bits in ``classes`` (X, Y) say are held (all with ``read_all``): a run not held is at
+        the prior, as every concentration is at least the prior, so the arg-max is the same and
+        the run adds exactly 0 to the ground evidence."""
+        size_x, size_y, size_z = mask.shape
+        bottom = origin_z % size_z
+        top = (bottom + size_z - 1) % size_z
+        prior64 = np.float64(prior)
+        for x in prange(size_x):
+            best = np.empty(size_z, np.float32)
+            arg = np.empty(size_z, np.int64)
+            evidence = np.empty(size_z)
+            for y in range(size_y):
+                stale = np.uint8(0)
+                for z in range(size_z):
+                    stale |= mask[x, y, z] & _RECLASSED_BYTE
+                if stale == 0:
+                    continue
+                held = classes[x, y] if not read_all else np.uint64(0)
+                best[:] = prior
+                arg[:] = 1
+                evidence[:] = 0.0
+                for c in range(1, alpha.shape[0]):
+                    if not read_all and ((held >> np.uint64(c)) & np.uint64(1)) == 0:
+                        continue
+                    counts = ((ground_bits >> np.uint64(c)) & np.uint64(1)) != 0
+                    for z in range(size_z):
+                        value = alpha[c, x, y, z]
+                        if value > best[z]:
+                            best[z] = value
+                            arg[z] = c
+                        if counts:
+                            evidence[z] += np.float64(value) - prior64
+                for z in range(size_z):
+                    below = 0.0 if z == bottom else evidence[z - 1 if z > 0 else size_z - 1]
+                    above = 0.0 if z == top else evidence[z + 1 if z + 1 < size_z else 0]
+                    m = mask[x, y, z] & ~_RECLASSED_BYTE
+                    if ((m & EVIDENCE) and ((ground_bits >> np.uint64(arg[z])) & np.uint64(1))
+                            and evidence[z] >= below and evidence[z] >= above):
+                        m |= _GROUND_BYTE
+                    else:
+                        m &= ~_GROUND_BYTE
+                    mask[x, y, z] = m

@@ -56,7 +56,7 @@ from convbki_core.volume import (
     voxel_centres,
     voxel_indices,
 )
-from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
+from convbki_core.window import CHANGED, EVIDENCE, MAX_CLASS_BITS, RECLASSED, TOUCHED, RollingWindow
 
 
 @dataclass
@@ -145,6 +145,10 @@ class ConvBKIMapper:
             raise ValueError(f"free space is kept in class {FREE_CLASS}, which must be an ignored class "
                              f"(ignored: {list(self.ignore_classes)})")
         self.free_space = bool(free.enabled)
+        ground_classes = config.ground_classes() if self.free_space else ()
+        if any(not 0 < c < min(kernel.num_classes, MAX_CLASS_BITS) for c in ground_classes):
+            raise ValueError(f"ground classes must be classes 1..{min(kernel.num_classes, MAX_CLASS_BITS) - 1}, "
+                             f"got {list(ground_classes)}")
         self.max_concentration = check_limit(free.max_concentration)
         update_path = config.compute.update_path
         if update_path not in UPDATE_PATHS:
@@ -177,7 +181,8 @@ class ConvBKIMapper:
         self.filters = KernelFilters(self.layer, self.device, on_device=update_path == "torch")
         self.voxelize = Voxelizer(self.geometry, self.layer, self.ignore_classes, self.window)
         self.update = make_update(update_path, self.filters, self.layer, self.window)
-        self.free = (make_free_space(self.filters, self.geometry, self.window, self.max_concentration, self.prior)
+        self.free = (make_free_space(self.filters, self.geometry, self.window, self.max_concentration, self.prior,
+                                     ground_classes)
                      if self.free_space else None)
 
     # -- properties ------------------------------------------------------------------------
@@ -241,7 +246,7 @@ class ConvBKIMapper:
         self.window.move_to(origin)
         moved = time.perf_counter()
         result = IntegrationResult(volume.stats, origin, occupied_voxels=volume.num_voxels)
-        marks = EVIDENCE | CHANGED | (TOUCHED if self.free_space else 0)
+        marks = EVIDENCE | CHANGED | (TOUCHED | RECLASSED if self.free_space else 0)
         forgetting_s = 0.0  # the movers' rules count with free space (both make space empty)
         if self.forgetting is not None:
             self.forgetting.window_moved(origin, self.window.mask)

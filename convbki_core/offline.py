@@ -20,11 +20,12 @@ from convbki_core.volume import transform_points
 def paper_mapper(kernel: str | Path | KernelConfig | None = None, **options) -> ConvBKIMapper:
     """A mapper with the paper's set-up (``MapperConfig.paper``) on the CPU unless ``device``
     says otherwise, and its kernel unless ``kernel`` names another; ``options`` change settings
-    by their flat names. With ``free_space=True`` and the paper's kernel, the movers' rules of
-    the label map apply, as in the product."""
+    by their flat names. With ``free_space=True`` and the paper's kernel, the movers' rules and
+    the ground classes of the label map apply, as in the product."""
     options = {"device": "cpu", **options}
-    if kernel is None and options.get("free_space") and "movable_classes" not in options:
-        options["movable_classes"] = None  # the label map's
+    if kernel is None and options.get("free_space"):
+        for classes in ("movable_classes", "ground_classes"):
+            options.setdefault(classes, None)  # the label map's
     return ConvBKIMapper(MapperConfig.paper(**options), kernel)
 
 

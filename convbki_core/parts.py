@@ -31,10 +31,10 @@ from convbki_core.store import VoxelStore
 from convbki_core.torch_window import TorchFilters, TorchWindow, torch_free_space, torch_update
 from convbki_core.update import FilterPlan, dense_volume, scatter_volume
 from convbki_core.volume import SparseVolume, WindowGeometry, transform_points, unravel_linear, voxelize, voxelize_scan
-from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
+from convbki_core.window import CHANGED, EVIDENCE, RECLASSED, TOUCHED, RollingWindow
 
-# Every mark an update sets (with free space, TOUCHED too): the warm-ups update with all of them.
-ALL_MARKS = EVIDENCE | CHANGED | TOUCHED
+# Every mark an update sets (with free space, TOUCHED and RECLASSED too): the warm-ups update with all of them.
+ALL_MARKS = EVIDENCE | CHANGED | TOUCHED | RECLASSED
 
 
 class Scratch:
@@ -193,14 +193,20 @@ class _FreeSpace:
     """What both free-space backends hold: the filters, the window, clamping and the ray counts."""
 
     def __init__(self, filters: KernelFilters, geometry: WindowGeometry, window: RollingWindow | TorchWindow,
-                 max_concentration: float, prior: float):
+                 max_concentration: float, prior: float, ground_classes: tuple[int, ...] = ()):
         self.filters, self.geometry, self.window = filters, geometry, window
         self.max_concentration, self.prior = max_concentration, prior
+        self.ground_classes = tuple(ground_classes)  # their voxels take no free evidence
         self.counts = scratch_counts(geometry.dims)
+        if self.ground_classes:
+            # Which voxels are ground is derived from the held class runs only: the window
+            # keeps its per-column class bits from now on, while it is empty.
+            window.classes_by_column()
 
     def warm_up(self, scratch: Scratch) -> None:
-        """The rays of the scratch scan, with this backend's clamping."""
-        small = type(self)(self.filters, scratch.geometry, scratch.window, self.max_concentration, self.prior)
+        """The rays of the scratch scan, with this backend's clamping and ground classes."""
+        small = type(self)(self.filters, scratch.geometry, scratch.window, self.max_concentration, self.prior,
+                           self.ground_classes)
         small(scratch.points, scratch.pose, scratch.volume, scratch.origin)
 
 
@@ -213,7 +219,7 @@ class HostFreeSpace(_FreeSpace):
         sensor = pose[:3, 3] / self.geometry.resolution
         return free_space_update(sensor, ends, weights, offsets, tap_weights, origin, self.geometry.dims,
                                  self.window.alpha, self.window.mask, self.counts, through, self.max_concentration,
-                                 self.prior)
+                                 self.prior, self.ground_classes, self.window.classes_by_column())
 
 
 class DeviceFreeSpace(_FreeSpace):
@@ -224,7 +230,7 @@ class DeviceFreeSpace(_FreeSpace):
         sensor = pose[:3, 3] / self.geometry.resolution
         counts = count_rays(sensor, ends, weights, through, self.geometry.dims, self.counts)
         before = self.window.alpha[FREE_CLASS].clone() if self.max_concentration else None
-        freed = torch_free_space(counts, self.filters.refresh().free_filter, self.window)
+        freed = torch_free_space(counts, self.filters.refresh().free_filter, self.window, self.ground_classes)
         counts.fill(0.0)
         if before is not None:
             clamp_torch(self.window.alpha, before, self.max_concentration, self.prior)
@@ -241,7 +247,7 @@ def make_update(path: str, filters: KernelFilters, layer: ConvBKILayer, window):
 
 
 def make_free_space(filters: KernelFilters, geometry: WindowGeometry, window, max_concentration: float,
-                    prior: float):
+                    prior: float, ground_classes: tuple[int, ...] = ()):
     """The free-space backend of a window: on the device for a ``TorchWindow``, else on the host."""
     backend = DeviceFreeSpace if isinstance(window, TorchWindow) else HostFreeSpace
-    return backend(filters, geometry, window, max_concentration, prior)
+    return backend(filters, geometry, window, max_concentration, prior, ground_classes)

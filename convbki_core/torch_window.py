@@ -19,11 +19,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from convbki_core.free_space import FREE_CLASS
+from convbki_core.free_space import FREE_CLASS, class_bits, ground_marks
 from convbki_core.store import VoxelStore
 from convbki_core.update import FilterPlan
 from convbki_core.volume import SparseVolume, unravel_linear
-from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, RollingWindow
+from convbki_core.window import CHANGED, EVIDENCE, RECLASSED, TOUCHED, RollingWindow
 
 
 class TorchWindow(RollingWindow):
@@ -180,11 +180,13 @@ def torch_update(volume: SparseVolume, filters: TorchFilters, window: TorchWindo
     return new
 
 
-def torch_free_space(counts: np.ndarray, free_filter: np.ndarray, window: TorchWindow) -> int:
+def torch_free_space(counts: np.ndarray, free_filter: np.ndarray, window: TorchWindow,
+                     ground_classes: tuple[int, ...] = ()) -> int:
     """Add a scan's ray counts (host (X, Y, Z), torus order, as the free-space pass counts them)
     as free evidence in the device window: through the free filter, at the voxels with
-    evidence that this scan's class evidence did not reach; clears ``TOUCHED``. Returns the
-    number of voxels whose free concentration grew."""
+    evidence that this scan's class evidence did not reach and whose most likely occupied
+    class is not one of ``ground_classes`` (derived for the whole window: cheap on a GPU);
+    clears ``TOUCHED``. Returns the number of voxels whose free concentration grew."""
     device = window.device
     evidence = torch.as_tensor(counts, device=device)
     size = free_filter.shape[0]
@@ -196,7 +198,9 @@ def torch_free_space(counts: np.ndarray, free_filter: np.ndarray, window: TorchW
         local = torch.nn.functional.conv3d(local[None, None], kernel, padding=size // 2)[0, 0]
         evidence = torch.roll(local, tuple(-s for s in shift), dims=(0, 1, 2))
     takes = ((window.mask & EVIDENCE) != 0) & ((window.mask & TOUCHED) == 0) & (evidence > 0)
+    if ground_classes:
+        takes &= ~ground_marks(window.alpha, class_bits(ground_classes), int(window.origin[2]), window.prior)
     window.alpha[FREE_CLASS] += torch.where(takes, evidence, torch.zeros((), device=device))
     window.mask |= takes.to(torch.uint8) * CHANGED
-    window.mask &= 0xFF ^ TOUCHED
+    window.mask &= 0xFF ^ (TOUCHED | RECLASSED)  # the ground is derived for the whole window above
     return int(torch.count_nonzero(takes))

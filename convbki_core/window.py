@@ -9,7 +9,7 @@ Voxels without evidence hold the prior, so an update is a plain in-place additio
 
 Every voxel with evidence is in exactly one place: in the window (mask set) or in the store.
 
-The mask has two bits: ``EVIDENCE`` (the voxel holds evidence) and ``CHANGED`` (its
+The mask's main bits: ``EVIDENCE`` (the voxel holds evidence) and ``CHANGED`` (its
 concentrations changed since the map's changes were last taken). With ``track_changes``,
 a changed voxel that leaves the window before its change is taken is remembered, so
 ``take_changes`` misses nothing; outputs that send only what changed are built on it.
@@ -41,6 +41,11 @@ if HAVE_NUMBA:
 EVIDENCE = 1
 CHANGED = 2
 TOUCHED = 4
+# Kept for free space (``free_space``): the voxel holds the ground's surface, so rays leave
+# it; its classes, or those of a voxel next to it along z, changed (a scan's update, it came
+# from the store, the window moved along z, clamping) since that bit was derived.
+GROUND = 16
+RECLASSED = 32
 # The most classes whose runs ``classes_by_column`` keeps a bit for (one uint64 per column).
 MAX_CLASS_BITS = 64
 
@@ -131,7 +136,7 @@ class RollingWindow:
             return
         physical = (unravel_linear(linear, hi - lo) + lo) % self.dims
         self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]] = alpha.T
-        self.mask[physical[:, 0], physical[:, 1], physical[:, 2]] = 1
+        self.mask[physical[:, 0], physical[:, 1], physical[:, 2]] = EVIDENCE | RECLASSED
         self._columns_loaded(physical, alpha)
 
     # -- which classes each column holds -----------------------------------------------------
@@ -192,7 +197,17 @@ class RollingWindow:
                 self._evict(lo, hi)
             for lo, hi in box_difference(new_lo, new_hi, old_lo, old_hi):
                 self._load(lo, hi)
+            if origin[2] != self.origin[2]:
+                self._mark_z_ends(origin)
         self.origin = origin.copy()
+
+    def _mark_z_ends(self, origin: np.ndarray) -> None:
+        """The window moved along z: its new bottom and top layers have new neighbours along z
+        (or none), which a voxel's ground bit depends on: their voxels are ``RECLASSED``."""
+        size_z = int(self.dims[2])
+        for layer in (int(origin[2]) % size_z, (int(origin[2]) + size_z - 1) % size_z):
+            plane = self.mask[:, :, layer]
+            plane |= (plane & EVIDENCE) * RECLASSED
 
     def warm_up(self, scratch) -> None:
         """Moves of the scratch window (``parts.Scratch``, a window of this kind) along every

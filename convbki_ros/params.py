@@ -94,7 +94,8 @@ PARAMETERS: tuple[Spec, ...] = (
          1, 100_000_000, run_time=True),
     Spec("free_space", DEFAULTS.free_space.enabled,
          "the rays between the sensor and its returns add evidence that the voxels they "
-         "cross are empty, so moving objects leave no trail; false: the paper's ConvBKI; bool"),
+         "cross are empty, so moving objects leave no trail (the ground's surface stays); "
+         "false: the paper's ConvBKI; bool"),
     Spec("max_concentration", DEFAULTS.free_space.max_concentration,
          "with free_space: a voxel that rays first find empty while its concentrations "
          "sum to more than this is scaled down to it, so a bounded number of rays can empty what a mover left "
@@ -326,7 +327,8 @@ def config_from_node(node, label_map) -> MapperConfig:
         local_bounds=check_local_bounds(node.param("local_bounds")), prior=node.param("prior"),
         resolution=node.param("resolution"), filter_size=node.param("filter_size"),
         device=node.param("device"), update_path=node.param("update_path"), frame_id=node.param("map_frame") or "map",
-        ignore_classes=label_map.ignore_classes, movable_classes=label_map.movable_classes, track_changes=True,
+        ignore_classes=label_map.ignore_classes, movable_classes=label_map.movable_classes,
+        ground_classes=label_map.ground_classes, track_changes=True,
         free_space=node.param("free_space"), max_concentration=node.param("max_concentration"),
         forget_movers=node.param("forget_movers"))
 

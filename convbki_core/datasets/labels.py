@@ -90,9 +90,11 @@ def load_label_map_file(path: str | Path) -> LabelMap:
     if data.get("moving_raw_ids"):
         moving = np.zeros(0x10000, bool)
         moving[[int(raw_id) for raw_id in data["moving_raw_ids"]]] = True
+    ground = tuple(int(c) for c in data.get("ground_classes", []))
+    if any(not 0 < c < num_classes for c in ground):
+        raise ValueError(f"{path}: ground_classes must be learning classes 1..{num_classes - 1}, got {list(ground)}")
     return LabelMap(str(data.get("name", path.stem)), forward, inverse, tuple(names), colors,
-                    tuple(int(c) for c in data.get("ignore_classes", [0])), known, moving,
-                    tuple(int(c) for c in data.get("ground_classes", [])))
+                    tuple(int(c) for c in data.get("ignore_classes", [0])), known, moving, ground)
 
 
 @cache

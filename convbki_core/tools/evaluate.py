@@ -104,7 +104,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
     if config.num_classes != label_map.num_classes:
         raise UserError(f"{kernel_file}: kernel has {config.num_classes} classes, the dataset {label_map.num_classes}")
     mapper_config = mapper_config.replace(ignore_classes=label_map.ignore_classes,
-                                          movable_classes=label_map.movable_classes)
+                                          movable_classes=label_map.movable_classes,
+                                          ground_classes=label_map.ground_classes)
     mapper = ConvBKIMapper(mapper_config, config)
     warm_up(mapper)  # every kernel compiled (or loaded) before the first timed frame
     run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,

@@ -31,6 +31,11 @@ def test_the_defaults_are_the_products_and_paper_is_plain_convbki():
     assert DEFAULTS.replace(forget_movers=False).forgetting_classes() == ()
     assert DEFAULTS.replace(forget_movers=False).movable_classes() == label_map.movable_classes
     assert MapperConfig.paper(free_space=True, movable_classes=(1, 2)).forgetting_classes() == (1, 2)
+    # The ground, which free space leaves: the label map's in the product, none in the paper's set-up.
+    assert DEFAULTS.ground_classes() == label_map.ground_classes == (9, 10, 11, 12, 17)
+    assert paper.ground_classes() == () and MapperConfig.paper(ground_classes=[9]).ground_classes() == (9,)
+    with pytest.raises(ValueError, match=r"ground classes must be classes 1\.\.19"):
+        ConvBKIMapper(DEFAULTS.replace(device="cpu", local_bounds=SMALL, ground_classes=(0, 9)))
 
 
 def test_replace_changes_settings_by_their_flat_names_and_refuses_unknown_ones():

@@ -47,8 +47,9 @@ def maps(tmp_path_factory):
     assert synth(["--out", str(root / "data"), "--sequence", "08", "--frames", str(FRAMES), "--seed", "3",
                   "--beams", "16", "--azimuth-steps", "360", "--noise-strength", "0.35", "--quiet"]) == 0
     dataset = SemanticKittiSequence(root / "data", "08")
-    product = {"free_space": True, "max_concentration": DEFAULT_LIMIT,
-               "ignore_classes": dataset.label_map.ignore_classes}  # the node's and evaluate's defaults
+    labels = dataset.label_map
+    product = {"free_space": True, "max_concentration": DEFAULT_LIMIT, "ignore_classes": labels.ignore_classes,
+               "ground_classes": labels.ground_classes}  # the node's and evaluate's defaults
     return {"first": map_frames(dataset, 0, HALF, root / "first.npz"),
             "second": map_frames(dataset, HALF, FRAMES, root / "second.npz"),
             "whole": map_frames(dataset, 0, FRAMES, root / "whole.npz"),

@@ -37,7 +37,8 @@ def modules_gained(before, after):
 labels = load_label_map("semantic_kitti")
 config = MapperConfig.paper(local_bounds=((-12, -12, -2.6), (12, 12, 2.6)), device="cpu",
                             ignore_classes=labels.ignore_classes, movable_classes=labels.movable_classes,
-                            track_changes=True, free_space=True, max_concentration=300.0)
+                            ground_classes=labels.ground_classes, track_changes=True, free_space=True,
+                            max_concentration=300.0)
 mapper = ConvBKIMapper(config, kernel_path("semantic_kitti_compound"))
 report = {"parts": {}}
 for name in ("window", "voxelize", "update", "free", "forgetting"):

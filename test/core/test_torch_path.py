@@ -74,14 +74,17 @@ def test_the_torch_path_equals_the_fast_path(kind, filter_size, probabilities):
     assert np.array_equal(dirichlet_statistics(torch_alpha).label, dirichlet_statistics(fast_alpha).label)
 
 
-@pytest.mark.parametrize("free_ell, limit", [(None, 300.0), (0.4, 300.0), (None, 3.0), (0.4, 3.0)])
-def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell, limit):
-    """Free space and its clamping (a low limit clamps many voxels) give the same map on both paths."""
+@pytest.mark.parametrize("free_ell, limit, ground", [(None, 300.0, ()), (0.4, 300.0, (2, 3)), (None, 3.0, (2, 3)),
+                                                     (0.4, 3.0, ())])
+def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell, limit, ground):
+    """Free space and its clamping (a low limit clamps many voxels) give the same map on both
+    paths, with and without ground classes (whose voxels take no free evidence)."""
     maps, changes = {}, {}
     for path in ("fast", "torch"):
         chosen = ConvBKIKernel("compound", 6, 5, 0.25, ell_h=0.6, ell_z=0.5, free_ell=free_ell)
         config = MapperConfig.paper(local_bounds=BOUNDS, device="cpu", update_path=path, free_space=True,
-                                    ignore_classes=(0,), track_changes=True, max_concentration=limit)
+                                    ignore_classes=(0,), track_changes=True, max_concentration=limit,
+                                    ground_classes=ground)
         mapper = ConvBKIMapper(config, chosen)
         drive(mapper, 3, False)
         maps[path] = sorted_items(mapper)
@@ -91,6 +94,14 @@ def test_the_torch_path_with_free_space_equals_the_fast_path(free_ell, limit):
     np.testing.assert_allclose(maps["torch"][1], maps["fast"][1], rtol=1e-5)
     assert (maps["fast"][1][:, 0] > 1e-3).sum() > 20  # free space did something
     assert changes["fast"] == changes["torch"]
+    if ground:  # surface voxels there are, and the rays left some of them
+        chosen = ConvBKIKernel("compound", 6, 5, 0.25, ell_h=0.6, ell_z=0.5, free_ell=free_ell)
+        unguarded = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", free_space=True,
+                                                     ignore_classes=(0,), max_concentration=limit), chosen)
+        drive(unguarded, 3, False)
+        indices, alpha = sorted_items(unguarded)
+        assert np.array_equal(indices, maps["fast"][0])
+        assert (alpha[:, 0] > maps["fast"][1][:, 0]).sum() > 0
     if limit < 10:  # clamping did something: against the unclamped map, voxels were scaled down
         chosen = ConvBKIKernel("compound", 6, 5, 0.25, ell_h=0.6, ell_z=0.5, free_ell=free_ell)
         unclamped = ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu", free_space=True,
