@@ -54,7 +54,7 @@ import torch
 
 from convbki_core.compiled import HAVE_NUMBA, parallel_region
 from convbki_core.volume import SparseVolume, unravel_linear
-from convbki_core.window import CHANGED, EVIDENCE, TOUCHED
+from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, class_bits
 
 if HAVE_NUMBA:
     from convbki_core.compiled import get_num_threads, njit, prange
@@ -81,10 +81,7 @@ class MoverForgetting:
         self.movable = np.zeros(num_classes, np.bool_)
         self.movable[list(movable_classes)] = True
         self.movable[FREE_CLASS] = False
-        # The movable classes as class bits, as the window's ``classes_by_column`` keeps them.
-        self.movable_bits = np.uint64(0)
-        for c in np.flatnonzero(self.movable):
-            self.movable_bits |= np.uint64(1) << np.uint64(c)
+        self.movable_bits = class_bits(np.flatnonzero(self.movable))
         self.prior = float(prior)
         self.dims = np.asarray(dims, np.int64)
         self.reach = int(reach)

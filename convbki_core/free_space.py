@@ -64,7 +64,7 @@ import numpy as np
 from convbki_core.clamping import FIRST_CONTRADICTION, clamp_numpy
 from convbki_core.compiled import HAVE_NUMBA, parallel_region
 from convbki_core.volume import SparseVolume, unravel_linear
-from convbki_core.window import CHANGED, EVIDENCE, GROUND, RECLASSED, TOUCHED
+from convbki_core.window import CHANGED, EVIDENCE, GROUND, RECLASSED, TOUCHED, class_bits
 
 FREE_CLASS = 0
 _KEEP_UNTOUCHED = 0xFF & ~TOUCHED  # the mask bits left after a scan
@@ -161,14 +161,6 @@ def free_space_update(sensor: np.ndarray, occupied: np.ndarray, weights: np.ndar
                                          float(max_concentration), float(prior), ground_bits))
     return _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
                              float(max_concentration), float(prior), ground_bits)
-
-
-def class_bits(classes) -> np.uint64:
-    """Classes (at most 64) as the bits of one uint64."""
-    bits = np.uint64(0)
-    for c in classes:
-        bits |= np.uint64(1) << np.uint64(int(c))
-    return bits
 
 
 def ground_marks(alpha, ground_bits: np.uint64, origin_z: int, prior: float):

@@ -19,11 +19,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from convbki_core.free_space import FREE_CLASS, class_bits, ground_marks
+from convbki_core.free_space import FREE_CLASS, ground_marks
 from convbki_core.store import VoxelStore
 from convbki_core.update import FilterPlan
 from convbki_core.volume import SparseVolume, unravel_linear
-from convbki_core.window import CHANGED, EVIDENCE, RECLASSED, TOUCHED, RollingWindow
+from convbki_core.window import CHANGED, EVIDENCE, RECLASSED, TOUCHED, RollingWindow, class_bits
 
 
 class TorchWindow(RollingWindow):

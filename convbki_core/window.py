@@ -336,6 +336,14 @@ if HAVE_NUMBA:
         return starts[-1]
 
 
+def class_bits(classes) -> np.uint64:
+    """Classes (each below ``MAX_CLASS_BITS``) as the bits of one uint64, as ``classes_by_column`` keeps them."""
+    bits = np.uint64(0)
+    for c in classes:
+        bits |= np.uint64(1) << np.uint64(int(c))
+    return bits
+
+
 def row_class_bits(held: np.ndarray) -> np.ndarray:
     """(n,) uint64: per row of ``held`` (n, C) bool, bit c set where column c is true."""
     bits = np.uint64(1) << np.arange(held.shape[1], dtype=np.uint64)

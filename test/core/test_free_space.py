@@ -19,14 +19,13 @@ from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
 from convbki_core.free_space import (
     _free_space_numpy,
-    class_bits,
     count_rays,
     free_space_update,
     free_taps,
     ground_marks,
     scratch_counts,
 )
-from convbki_core.window import CHANGED, EVIDENCE, GROUND, RECLASSED, TOUCHED, classes_held
+from convbki_core.window import CHANGED, EVIDENCE, GROUND, RECLASSED, TOUCHED, class_bits, classes_held
 
 BOUNDS = ((-12.0, -12.0, -3.0), (12.0, 12.0, 3.0))
 
@@ -190,6 +189,29 @@ def test_the_compiled_pass_is_exactly_the_numpy_pass_on_awkward_rays(sensor_kind
         assert not counts[0].any() and not counts[1].any()
 
 
+def clamping_case(rng: np.random.Generator, trial: int, wide: bool, classes: int, prior: float | None = None):
+    """A window and a scan for clamping: (dims, origin, rays (sensor, ends, weights, through),
+    free taps (offsets, weights), alpha, mask): heavy voxels (a mover stood there) and light
+    ones, free concentrations small and large, a fifth of the voxels with evidence touched by
+    the scan; with ``prior``, half the columns of each class hold only the prior, as most
+    columns hold a few classes."""
+    dims = np.array([[12, 14, 6], [16, 10, 8]][trial % 2])
+    origin = rng.integers(-40, 40, 3)
+    rays = awkward_scan(rng, origin, dims, "random")
+    free = np.zeros((3, 3, 3), np.float32)
+    free[1, 1, 1] = 1
+    if wide:
+        free[2, 1, 1], free[1, 0, 1] = 0.25, 0.5
+    alpha = (rng.uniform(1e-3, 2, (classes, *dims)) * rng.choice([1.0, 30.0], (classes, *dims))).astype(np.float32)
+    if prior is not None:
+        for c in range(1, classes):
+            alpha[c][rng.random(tuple(dims[:2])) < 0.5] = prior
+    alpha[0] = rng.uniform(1e-3, 6, tuple(dims)).astype(np.float32)
+    mask = (rng.random(tuple(dims)) < 0.6).astype(np.uint8)
+    mask[(rng.random(tuple(dims)) < 0.2) & (mask == EVIDENCE)] |= TOUCHED
+    return dims, origin, rays, free_taps(free), alpha, mask
+
+
 @pytest.mark.parametrize("wide", [False, True])
 def test_the_compiled_pass_clamps_exactly_as_the_numpy_pass(wide):
     """With a clamping limit, the compiled pass (the centre kernel's vectorised runs and the
@@ -198,19 +220,8 @@ def test_the_compiled_pass_clamps_exactly_as_the_numpy_pass(wide):
     limit = 40.0
     clamped_somewhere = False
     for trial in range(4):
-        dims = np.array([[12, 14, 6], [16, 10, 8]][trial % 2])
-        origin = rng.integers(-40, 40, 3)
-        sensor, ends, weights, through = awkward_scan(rng, origin, dims, "random")
-        free = np.zeros((3, 3, 3), np.float32)
-        free[1, 1, 1] = 1
-        if wide:
-            free[2, 1, 1], free[1, 0, 1] = 0.25, 0.5
-        offsets, tap_weights = free_taps(free)
-        # heavy voxels (a mover stood there), light ones, free concentrations small and large
-        alpha = (rng.uniform(1e-3, 2, (4, *dims)) * rng.choice([1.0, 30.0], (4, *dims))).astype(np.float32)
-        alpha[0] = rng.uniform(1e-3, 6, tuple(dims)).astype(np.float32)
-        mask = (rng.random(tuple(dims)) < 0.6).astype(np.uint8)
-        mask[(rng.random(tuple(dims)) < 0.2) & (mask == 1)] |= TOUCHED
+        dims, origin, (sensor, ends, weights, through), (offsets, tap_weights), alpha, mask = clamping_case(
+            rng, trial, wide, 4)
         compiled_alpha, compiled_mask = alpha.copy(), mask.copy()
         unclamped, unclamped_mask = alpha.copy(), mask.copy()
         counts = scratch_counts(dims)
@@ -294,21 +305,9 @@ def test_the_compiled_pass_keeps_the_ground_bits_as_the_numpy_pass_derives_them(
     ground = (2, 4)
     bits = class_bits(ground)
     for trial in range(4):
-        dims = np.array([[12, 14, 6], [16, 10, 8]][trial % 2])
-        origin = rng.integers(-40, 40, 3)
-        sensor, ends, weights, through = awkward_scan(rng, origin, dims, "random")
-        free = np.zeros((3, 3, 3), np.float32)
-        free[1, 1, 1] = 1
-        if wide:
-            free[2, 1, 1], free[1, 0, 1] = 0.25, 0.5
-        offsets, tap_weights = free_taps(free)
-        alpha = (rng.uniform(1e-3, 2, (5, *dims)) * rng.choice([1.0, 30.0], (5, *dims))).astype(np.float32)
-        for c in range(1, 5):  # whole runs at the prior, as most columns hold a few classes
-            alpha[c][rng.random(tuple(dims[:2])) < 0.5] = prior
-        alpha[0] = rng.uniform(1e-3, 6, tuple(dims)).astype(np.float32)
-        mask = (rng.random(tuple(dims)) < 0.6).astype(np.uint8)
-        evident = mask == EVIDENCE
-        mask[(rng.random(tuple(dims)) < 0.2) & evident] |= TOUCHED
+        dims, origin, (sensor, ends, weights, through), (offsets, tap_weights), alpha, mask = clamping_case(
+            rng, trial, wide, 5, prior)
+        evident = (mask & EVIDENCE) != 0
         reclassed = (rng.random(tuple(dims[:2])) < 0.4)[:, :, None] & (rng.random(tuple(dims)) < 0.2) & evident
         mask[reclassed] |= RECLASSED
         stale_columns = np.broadcast_to(reclassed.any(axis=2)[:, :, None], reclassed.shape)
