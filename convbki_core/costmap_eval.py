@@ -10,6 +10,10 @@
   profiles' 50-70 surfaces, a car's sidewalk).
   Per group, precision and recall over the cells observed in the ground truth; the share of
   those cells the map leaves unknown.
+* **The input's grid**: the input segmentation's labels of the same static points, counted and
+  costed as the ground truth's are. It is what the segmentation alone says of the scene, with
+  nothing moving and no mapping: the map's scores against it tell the errors the map adds or
+  removes from those it inherits (a sidewalk the network calls parking is free in both).
 * **The baseline** users have today: octomap_server's projected occupancy, any non-empty
   evidence in the robot's height band lethal, observed ground free, no classes; computed by
   the same column rules with a profile whose every non-ground class is lethal.
@@ -43,7 +47,8 @@ def group_of(values: np.ndarray) -> np.ndarray:
 
 
 class GroundTruthVoxels:
-    """Ground-truth labels of every frame's static points, counted per voxel."""
+    """Labels of every frame's static points, counted per voxel: the ground truth's, or the
+    input segmentation's for the input's grid."""
 
     def __init__(self, num_classes: int, resolution: float):
         self.num_classes = num_classes
@@ -206,12 +211,17 @@ def planning_check(grid: np.ndarray, truth: np.ndarray, road: np.ndarray, pairs:
 
 
 def grids_for(map_indices: np.ndarray, map_alpha: np.ndarray, truth: GroundTruthVoxels, resolution: float,
-              prior: float, profile: TraversabilityProfile) -> dict[str, CostGrid]:
-    """The map's, the baseline's and the ground truth's grids on the ground truth's extent."""
+              prior: float, profile: TraversabilityProfile,
+              input_labels: GroundTruthVoxels | None = None) -> dict[str, CostGrid]:
+    """The map's, the baseline's and the ground truth's grids on the ground truth's extent, and
+    the input's (``input_labels``: the input segmentation's labels of the same points) when given."""
     truth_columns = column_costs(*truth.items(), resolution, truth_profile(profile))
     truth_grid = rasterise(truth_columns, resolution)
     size = truth_grid.values.shape[::-1]
     grids = {"truth": truth_grid}
+    if input_labels is not None:
+        grids["input"] = rasterise(column_costs(*input_labels.items(), resolution, truth_profile(profile)), resolution,
+                                   truth_grid.origin, size)
     for name, used in (("map", profile), ("baseline", baseline_profile(profile))):
         grids[name] = rasterise(column_costs(map_indices, map_alpha, resolution, used, prior), resolution,
                                 truth_grid.origin, size)

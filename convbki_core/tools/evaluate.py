@@ -84,7 +84,7 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
                     mapper_config: MapperConfig, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
                     show_progress: bool = True, input_calibration: CalibrationStats | None = None,
                     tempered_calibration: CalibrationStats | None = None, truth_voxels=None,
-                    moving_labels: bool = True) -> KernelRun:
+                    moving_labels: bool = True, input_voxels=None) -> KernelRun:
     """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
 
     ``input_scores`` (when given) also receives the input segmentation's confusion counts, and
@@ -95,7 +95,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
     Where the ground truth marks moving objects, the run also counts the map's trail voxels.
     ``mapper_config``: how to map (the dataset's label map decides the ignored and movable classes).
     ``truth_voxels`` (a ``costmap_eval.GroundTruthVoxels``, when given) receives every frame's
-    ground-truth points, for the costmap's report. ``moving_labels``: where the input marks
+    ground-truth points, for the costmap's report, and ``input_voxels`` (the same, when given) the
+    input's labels of those points. ``moving_labels``: where the input marks
     moving points (raw ids such as 252-259), they are evidence for their scan only
     (``present_movers``); False maps them as their static classes.
     """
@@ -153,6 +154,9 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
         if truth_voxels is not None:
             truth_voxels.add(points_map, frame.ground_truth, frame.moving, frame.pose[:3, 3],
                              mapper_config.window.local_bounds)
+        if input_voxels is not None:  # the input's labels of the points the truth counts (its unlabelled ones too)
+            input_voxels.add(points_map, np.where(frame.ground_truth > 0, input_labels, 0), frame.moving,
+                             frame.pose[:3, 3], mapper_config.window.local_bounds)
     voxels = mapper.voxels()
     if swept.moving_points:
         run_result.trail_voxels = swept.trail_voxels(voxels.indices, voxels.label, label_map.movable_classes)
@@ -297,8 +301,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "default they are evidence for their own scan only and stay out of the map")
     p.add_argument("--costmap-report", default=None, metavar="JSON",
                    help="also score the final map's traversability costmap (the node's semantic_map/costmap) "
-                   "against the ground truth's, with the projected-occupancy baseline and a planning check; "
-                   "writes JSON and a picture beside it")
+                   "against the ground truth's, with the projected-occupancy baseline, the input segmentation's "
+                   "own grid and a planning check; writes JSON and a picture beside it")
     p.add_argument("--costmap-profile", default="car", metavar="PROFILE",
                    help="traversability profile for --costmap-report: car, small_robot or a YAML file (default: car)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -362,7 +366,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
             raise UserError(f"{args.write_labels}: not a folder (--write-labels names a dataset root to write)")
         labels_folder = outputs.staging(Path(args.write_labels) / "sequences" / dataset.sequence / "predictions")
     label_map = dataset.label_map
-    costmap_profile = truth_voxels = None
+    costmap_profile = truth_voxels = input_voxels = None
     if args.costmap_report:
         from convbki_core.costmap import ProfileError, load_profile
         from convbki_core.costmap_eval import GroundTruthVoxels
@@ -374,6 +378,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
         except ProfileError as error:
             raise UserError(str(error)) from None
         truth_voxels = GroundTruthVoxels(label_map.num_classes, load_kernel_file(kernels[0]).resolution)
+        input_voxels = GroundTruthVoxels(label_map.num_classes, truth_voxels.resolution)
     input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
     # The input has a class distribution only when it is given as probabilities.
     input_calibration = (CalibrationStats(label_map.num_classes, label_map.ignore_classes, thresholds=None)
@@ -393,6 +398,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                                     input_calibration=input_calibration if number == 0 else None,
                                     tempered_calibration=tempered[1] if number == 0 and tempered else None,
                                     truth_voxels=truth_voxels if number == 0 else None,
+                                    input_voxels=input_voxels if number == 0 else None,
                                     moving_labels=args.moving_labels))
     movable = label_map.movable_classes if any(run.trail_voxels is not None for run in runs) else ()
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,
@@ -427,7 +433,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     costmap_lines = []
     if args.costmap_report:
         costmap_lines = write_costmap_report(runs[0].mapper, truth_voxels, costmap_profile, label_map,
-                                             Path(args.costmap_report), outputs)
+                                             Path(args.costmap_report), outputs, input_voxels)
     if args.save_map:
         runs[0].mapper.save(outputs.file(args.save_map))  # atomic; removed again if the report fails
     # The report and the labels last: they are what scripts look for to tell that a run finished.
@@ -474,20 +480,21 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     return 0
 
 
-def write_costmap_report(mapper, truth_voxels, profile, label_map, path: Path, outputs: NewOutputs) -> list[str]:
-    """Score the map's costmap, and the projected-occupancy baseline, against the ground truth's
-    (``costmap_eval``); write the JSON and a picture (map, baseline, truth; one planned path);
-    return the lines to print."""
+def write_costmap_report(mapper, truth_voxels, profile, label_map, path: Path, outputs: NewOutputs,
+                         input_voxels=None) -> list[str]:
+    """Score the map's costmap, the projected-occupancy baseline and (``input_voxels`` given) the
+    input segmentation's grid against the ground truth's (``costmap_eval``); write the JSON and a
+    picture (map, baseline, truth; one planned path); return the lines to print."""
     from convbki_core.costmap_eval import grids_for, planning_check, road_cells, score_grid
     from convbki_core.tools.plots import save_costmap_pictures
 
     indices, alpha = mapper.items()
-    grids = grids_for(indices, alpha, truth_voxels, mapper.resolution, mapper.prior, profile)
+    grids = grids_for(indices, alpha, truth_voxels, mapper.resolution, mapper.prior, profile, input_voxels)
     road = road_cells(truth_voxels, grids["truth"], label_map.class_names.index("road"))
     report = {"profile": profile.name, "resolution": mapper.resolution, "cells": int(grids["truth"].values.size)}
     lines = [f"costmap ({profile.name}) against the ground truth's, on "
              f"{int((grids['truth'].values >= 0).sum())} observed cells:"]
-    for name in ("map", "baseline"):
+    for name in [name for name in ("map", "baseline", "input") if name in grids]:
         scores = score_grid(grids[name].values, grids["truth"].values)
         check = planning_check(grids[name].values, grids["truth"].values, road)
         report[name] = {"precision": scores.precision, "recall": scores.recall,

@@ -359,19 +359,30 @@ def test_evaluate_scores_the_costmap_against_the_ground_truth(tmp_path, capsys):
                           "--costmap-report", str(report), "--save-map", str(saved), "--quiet", *SMALL_WINDOW]) == 0
     assert "costmap (car) against the ground truth's" in capsys.readouterr().out
     written = json.loads(report.read_text())
-    assert written["profile"] == "car" and set(written) >= {"map", "baseline"}
+    assert written["profile"] == "car" and set(written) >= {"map", "baseline", "input"}
     assert set(written["map"]["planning"]) >= {"pairs", "crossing_truth_lethal", "length_ratio_median"}
     assert report.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
 
     dataset = SemanticKittiSequence(tmp_path / "data", "08")
     truth = GroundTruthVoxels(dataset.label_map.num_classes, 0.2)
+    segmentation = GroundTruthVoxels(dataset.label_map.num_classes, 0.2)
     for frame in dataset:
-        truth.add(transform(frame.points, frame.pose), frame.ground_truth, frame.moving, frame.pose[:3, 3], BOUNDS)
+        points = transform(frame.points, frame.pose)
+        truth.add(points, frame.ground_truth, frame.moving, frame.pose[:3, 3], BOUNDS)
+        segmentation.add(points, np.where(frame.ground_truth > 0, frame.input_labels, 0), frame.moving,
+                         frame.pose[:3, 3], BOUNDS)
     metadata, indices, alpha = read_map(saved)
-    grids = grids_for(indices, alpha, truth, 0.2, metadata["prior"],
-                      load_profile(traversability_profile("car"), dataset.label_map.class_names))
+    profile = load_profile(traversability_profile("car"), dataset.label_map.class_names)
+    grids = grids_for(indices, alpha, truth, 0.2, metadata["prior"], profile, segmentation)
     scores = score_grid(grids["map"].values, grids["truth"].values)
     assert written["map"]["precision"] == scores.precision and written["map"]["recall"] == scores.recall
+    scores = score_grid(grids["input"].values, grids["truth"].values)
+    assert written["input"]["precision"] == scores.precision and written["input"]["recall"] == scores.recall
+    # The input's grid is the truth's rules applied to the input's labels: where the input is right
+    # about every point, it is the truth's grid cell for cell.
+    assert not np.array_equal(grids["input"].values, grids["truth"].values)  # the drive's input has errors
+    assert np.array_equal(grids_for(indices, alpha, truth, 0.2, metadata["prior"], profile, truth)["input"].values,
+                          grids["truth"].values)
 
 
 def transform(points, pose):
