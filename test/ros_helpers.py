@@ -31,6 +31,36 @@ def domain_id() -> int:
     return 1 + (os.getpid() * 13 + next(_domains)) % 100
 
 
+def stale_install(root: Path = REPO) -> str | None:
+    """The first package file whose copy in ``root``/install (what `source install/setup.bash`
+    runs: colcon copies the sources) differs from the tree's, or None when the install is current.
+    Python sources are compared with the installed site-packages, config/ and launch/ with share/."""
+    prefix = root / "install" / "convbki_ros"
+    sites = sorted(prefix.glob("lib/python*/site-packages"))
+    if not sites:
+        return "install/convbki_ros (not built)"
+    pairs = [(package, sites[0] / package, "*.py") for package in ("convbki_core", "convbki_ros")]
+    pairs += [(folder, prefix / "share" / "convbki_ros" / folder, "*") for folder in ("config", "launch")]
+    for folder, installed_folder, pattern in pairs:
+        for source in sorted((root / folder).rglob(pattern)):
+            if not source.is_file() or "__pycache__" in source.parts:
+                continue
+            installed = installed_folder / source.relative_to(root / folder)
+            if not installed.is_file() or installed.read_bytes() != source.read_bytes():
+                return str(source.relative_to(root))
+    return None
+
+
+def require_current_install() -> None:
+    """Fail (one line) when install/ is older than the sources: a test that runs the installed
+    node would otherwise compare an old node with the new code."""
+    import pytest
+
+    stale = stale_install()
+    if stale is not None:
+        pytest.fail(f"install/ is older than the sources ({stale} differs): run `make setup`", pytrace=False)
+
+
 def ros_env(domain: int) -> dict:
     return dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                 PYTHONUNBUFFERED="1")

@@ -18,7 +18,7 @@ import pytest
 import yaml
 from kitti_fixture import pose_about_z, write_sequence
 from mapper_rig import node_default_mapper
-from ros_helpers import REPO, Probe, domain_id, ros_env
+from ros_helpers import REPO, Probe, domain_id, require_current_install, ros_env
 from test_node_frames import assert_same_voxels, shown_voxels
 
 from convbki_core.datasets.labels import load_label_map
@@ -46,6 +46,7 @@ def test_a_kitti_bag_through_ros2_launch_and_play_bag_maps_from_tf(tmp_path):
     missing = _ros2_launch_available()
     if missing:
         pytest.skip(missing)
+    require_current_install()
     rng = np.random.default_rng(23)
     frames, poses = [], []
     for number in range(4):
