@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from convbki_ros.dds import use_large_data_profile
 from convbki_ros.transforms import pose_from_translation_quaternion
@@ -54,8 +55,6 @@ def stale_install(root: Path = REPO) -> str | None:
 def require_current_install() -> None:
     """Fail (one line) when install/ is older than the sources: a test that runs the installed
     node would otherwise compare an old node with the new code."""
-    import pytest
-
     stale = stale_install()
     if stale is not None:
         pytest.fail(f"install/ is older than the sources ({stale} differs): run `make setup`", pytrace=False)

@@ -154,7 +154,7 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
         if truth_voxels is not None:
             truth_voxels.add(points_map, frame.ground_truth, frame.moving, frame.pose[:3, 3],
                              mapper_config.window.local_bounds)
-        if input_voxels is not None:  # the input's labels of the points the truth counts (its unlabelled ones too)
+        if input_voxels is not None:  # the input's labels of the points the truth counts (not its unlabelled ones)
             input_voxels.add(points_map, np.where(frame.ground_truth > 0, input_labels, 0), frame.moving,
                              frame.pose[:3, 3], mapper_config.window.local_bounds)
     voxels = mapper.voxels()

@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 from mapper_rig import Rig
-from ros_helpers import REPO, require_current_install, ros_env
+from ros_helpers import REPO, ros_env
 
 WAIT = 60.0
 
@@ -27,13 +27,9 @@ def _why_no_ros2cli() -> str | None:
     return None
 
 
-pytestmark = pytest.mark.skipif(_why_no_ros2cli() is not None, reason=_why_no_ros2cli() or "")
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _current_install():
-    """These tests run the installed package (install/), so it must be the tree's."""
-    require_current_install()
+# The node runs from install/, which must hold the tree's files (the ``current_install`` fixture).
+pytestmark = [pytest.mark.skipif(_why_no_ros2cli() is not None, reason=_why_no_ros2cli() or ""),
+              pytest.mark.usefixtures("current_install")]
 
 
 def ros2(domain: int, command: str, timeout: float = WAIT) -> subprocess.CompletedProcess:

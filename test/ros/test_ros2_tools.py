@@ -16,7 +16,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from ros_helpers import REPO, NodeLog, Probe, domain_id, require_current_install
+from ros_helpers import REPO, NodeLog, Probe, domain_id
 
 SETUP_BASH = REPO / "install" / "setup.bash"
 TOOLS = ("ros2cli", "ros2interface", "ros2pkg", "launch", "launch_ros", "ros2launch")
@@ -35,13 +35,8 @@ pytestmark = [
                                              "with the PyPI wheels `make setup` installs them from their sources' "
                                              "tarball, CONVBKI_ROS2_TOOLS)"),
     pytest.mark.skipif(not SETUP_BASH.exists(), reason="install/setup.bash missing: run `make setup`"),
+    pytest.mark.usefixtures("current_install"),  # the tools run install/, which must hold the tree's files
 ]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _current_install():
-    """These tests run the installed package (install/), so it must be the tree's."""
-    require_current_install()
 
 # Top-level lines (comments dropped) of `ros2 interface show`: Jazzy's definitions.
 INTERFACES = {
