@@ -15,28 +15,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import MapFileError, read_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.paths import kernel_path
 from convbki_core.warm_up import WarmUpReport, warm_up
 from convbki_ros.cloud_decoding import CloudError, decode_cloud
-from convbki_ros.costmap_output import profile_of, rolling_grid
-from convbki_ros.params import (
-    KERNEL_DECIDES,
-    REPLACED,
-    SPECS,
-    StartupError,
-    check_choice,
-    check_mount,
-    config_from_node,
-    declare,
-    explicitly_set,
-    kernel_defaults,
-    optional,
-    unknown_parameters,
-)
+from convbki_ros.costmap_output import rolling_grid
+from convbki_ros.params import StartupError
 from convbki_ros.pose_buffer import PoseStatus, pose_problem
+from convbki_ros.settings import StartSettings
 from convbki_ros.status import problem_key
 from convbki_ros.sync import CloudQueue, Decision, PendingCloud, SensorFrames, Verdict
 from convbki_ros.tf_buffer import make_tf_lookup
@@ -55,26 +41,26 @@ TF_CACHE_S = 60.0  # seconds of TF kept: clouds may wait in the queue that long 
 class MappingCore:
     """Inputs, the cloud queue, the update thread and the map, for ``MapperNode``."""
 
-    def __init__(self, node, status, warnings, label_map):
+    def __init__(self, node, settings: StartSettings, status, warnings, label_map):
         self.node, self.status, self.warnings, self.label_map = node, status, warnings, label_map
-        self.warm_up_report: WarmUpReport | None = None  # set with the mapper
-        self.mapper = self._make_mapper()
-        self.pose_source = check_choice("pose_source", node.param("pose_source"))
-        map_frame = node.param("map_frame")
-        if self.pose_source == "tf" and not map_frame:
-            raise StartupError("pose_source tf needs map_frame: the frame TF gives each cloud's pose in (e.g. map)")
+        self.pose_source = settings.pose_source
         # TF is read (tf2_ros where a ROS 2 install has it, else the package's own buffer) unless
         # nothing can need it: the odometry's own frame and a fixed mount.
         self.tf, self.tf_missing = make_tf_lookup(node, TF_CACHE_S)
-        self.frames = SensorFrames(check_mount(optional(node, "base_to_sensor")), self.tf, map_frame)
+        self.frames = SensorFrames(settings.mount, self.tf, settings.map_frame)
         if self.tf is None and self.pose_source == "tf":
             raise StartupError(f"pose_source tf needs TF, which cannot be read here: {self.tf_missing}")
         if self.tf is None:
             node.get_logger().warning(f"TF is not read: {self.tf_missing}")
+        # Every kernel is compiled (or loaded) while the map's window is allocated and filled.
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            warming = pool.submit(warm_up, settings.mapper, settings.kernel)
+            self.mapper = ConvBKIMapper(settings.mapper, settings.kernel)
+            self.warm_up_report: WarmUpReport = warming.result()
         self.queue = CloudQueue(max_pose_jump=node.param("max_pose_jump"), placer=self._place,
                                 locate=self._locate_by_tf if self.pose_source == "tf" else None)
         self.queue.transform_timeout = node.param("transform_timeout")
-        self.costmap_profile = profile_of(node, label_map.class_names)
+        self.costmap_profile = settings.costmap_profile
         self.map_lock = threading.Lock()
         self.map_version = 0  # bumped by every change of the map
         # Bumped whenever the map loses evidence (a reset, a forgotten box) or is replaced by a load:
@@ -92,40 +78,6 @@ class MappingCore:
         return self.queue.stopping
 
     # -- set-up ----------------------------------------------------------------------------
-    def _make_mapper(self) -> ConvBKIMapper:
-        node = self.node
-        declare(node, SPECS["kernel_file"])
-        kernel_file = node.param("kernel_file") or str(kernel_path("semantic_kitti_compound"))
-        config = load_kernel_file(kernel_file)
-        from_kernel = kernel_defaults(config)
-        node.declare_all(from_kernel)
-        unknown = unknown_parameters(node)
-        for name in [name for name in unknown if name in REPLACED]:
-            node.get_logger().warning(f"parameter {name} is no longer read: set {REPLACED[name]}")
-            unknown.remove(name)
-        if unknown:
-            node.get_logger().warning(f"unknown parameters ignored (misspelt?): {', '.join(unknown)}; the node "
-                                      f"declares: {', '.join(sorted(SPECS))}")
-        if node.param("num_classes") != config.num_classes:
-            raise StartupError(f"{kernel_file}: kernel has {config.num_classes} classes, num_classes is "
-                               f"{node.param('num_classes')}")
-        explicit = explicitly_set(node)
-        overridden = [f"{name} {node.param(name)} (kernel: {from_kernel[name]})" for name in KERNEL_DECIDES
-                      if name in explicit and node.param(name) != from_kernel[name]]
-        if overridden:
-            node.get_logger().warning(f"set explicitly, overriding the kernel file {kernel_file}: "
-                                      f"{', '.join(overridden)}; the kernel's lengths were trained for its grid")
-        check_choice("label_space", node.param("label_space"))
-        check_choice("update_path", node.param("update_path"))
-        check_choice("on_pose_jump", node.param("on_pose_jump"))
-        mapper_config = config_from_node(node, self.label_map)
-        # Every kernel is compiled (or loaded) while the map's window is allocated and filled.
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            warming = pool.submit(warm_up, mapper_config, config)
-            mapper = ConvBKIMapper(mapper_config, config)
-            self.warm_up_report = warming.result()
-        return mapper
-
     def mount_text(self) -> str:
         """The pose source, in words, for the start-up line."""
         if self.pose_source == "tf":

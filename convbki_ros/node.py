@@ -44,7 +44,6 @@ from convbki_core.records import packed_palette
 from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.cloud_encoding import encode_cloud
 from convbki_ros.map_files import MapFiles
-from convbki_ros.mapping import MappingCore
 from convbki_ros.outputs import MapOutputs
 from convbki_ros.params import (
     NODE_NAME,
@@ -57,6 +56,7 @@ from convbki_ros.params import (
     integers_as_doubles,
     optional,
 )
+from convbki_ros.settings import read_start_settings
 from convbki_ros.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
 
 LEVELS = {OK: DiagnosticStatus.OK, WARN: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
@@ -79,7 +79,12 @@ class MapperNode(Node):
         self.warnings = WarningThrottle(self.get_logger())
         self.label_map = load_label_map("semantic_kitti")
         self.palette = packed_palette(self.label_map.colors)
-        self.core = MappingCore(self, self.status, self.warnings, self.label_map)
+        settings = read_start_settings(self, self.label_map)
+        # The mapper (torch, compiled kernels) is loaded only once every parameter has passed: a
+        # bad one is said at once, not after seconds of loading.
+        from convbki_ros.mapping import MappingCore
+
+        self.core = MappingCore(self, settings, self.status, self.warnings, self.label_map)
         self.files = MapFiles(self)
         self.files.check_at_start()
         self.files.load_at_start()
