@@ -393,7 +393,8 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     with parallel_region():
         _grounded_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
                           values, top, hidden, ground_z, kept_risk, kept_kind)
-    cells = np.argwhere(hidden >= 0)
+    # C order whatever the count (argwhere's is F for two cells or more): one compiled signature.
+    cells = np.ascontiguousarray(np.argwhere(hidden >= 0))
     if len(cells):
         with parallel_region():
             _hidden_columns(origin, rules, cells, top, ground_z, hidden, kept_risk, kept_kind, values)

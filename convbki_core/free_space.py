@@ -453,6 +453,16 @@ if HAVE_NUMBA:
                                    -1 if group == 0 else shared_x, shared_plane)
 
     @njit(nogil=True, inline="always")
+    def _join_shared_plane(counts, sensor_x, shared_plane):  # pragma: no cover - compiled
+        """The sensor plane's second counts join the rest first, and are cleared. In loops, not
+        ``counts[sensor_x] += shared_plane``: numba's array expression brings a shape check
+        whose error message alone takes seconds to compile."""
+        for y in range(shared_plane.shape[0]):
+            for z in range(shared_plane.shape[1]):
+                counts[sensor_x, y, z] += shared_plane[y, z]
+                shared_plane[y, z] = 0.0
+
+    @njit(nogil=True, inline="always")
     def _apply_run(free, marks, counted, weight, clamping):  # pragma: no cover - compiled
         """``_apply_centre`` over a run of the window (``free``, ``marks``: flat runs of the
         free concentrations and the mask) and its counts; branch-free over indices from 0,
@@ -506,8 +516,7 @@ if HAVE_NUMBA:
         sensor's plane there: a plane of the window is its counts' plane in two runs, split
         where the torus wraps in y."""
         size_x, size_y, size_z = mask.shape
-        counts[sensor_x] += shared_plane  # the sensor plane's second counts join the rest first
-        shared_plane[:] = 0.0
+        _join_shared_plane(counts, sensor_x, shared_plane)
         plane = size_y * size_z
         seam = (origin[1] % size_y) * size_z  # the window's flat offset of the counts' first row
         free = alpha[FREE_CLASS].reshape(plane * size_x)
@@ -539,8 +548,7 @@ if HAVE_NUMBA:
         over its own x planes; clear the counts and the ``TOUCHED`` bits. ``counts`` and
         ``sensor_x`` as in ``_apply_centre``."""
         taps = offsets.shape[0]
-        counts[sensor_x] += shared_plane  # the sensor plane's second counts join the rest first
-        shared_plane[:] = 0.0
+        _join_shared_plane(counts, sensor_x, shared_plane)
         grew = np.zeros(parts, np.int64)
         for part in prange(parts):
             x_begin = dims[0] * part // parts
