@@ -73,6 +73,38 @@ def next_segment_path(path: str, taken: set[str] = frozenset()) -> str:
         number += 1
 
 
+def check_map_file_at_start(node) -> None:
+    """``map_file``'s folder exists (made when missing) and can be written, else ``StartupError``.
+    A node that never saves by itself (no autosave, no save on shutdown) only warns. Called
+    before the mapper is built, so that a folder that cannot be written is said at once."""
+    path = node.param("map_file")
+    if not path:
+        return
+    existed = Path(path).parent.is_dir()
+    problem = check_map_folder(path)
+    saves_by_itself = node.param("save_on_shutdown") or node.param("autosave_period") > 0
+    if problem and saves_by_itself:
+        raise StartupError(f"{problem}: this session's map could not be saved (choose another map_file, or set "
+                           "save_on_shutdown false and autosave_period 0 to only read it)")
+    if problem:
+        node.get_logger().warning(f"{problem}: ~/save_map will fail")
+    elif not existed:
+        node.get_logger().info(f"made the folder {Path(path).parent} for map_file")
+    _warn_if_no_room(node, path)
+
+
+def _warn_if_no_room(node, path: str) -> None:
+    """Say so when the disk holds less free space than the map already saved there needs."""
+    try:
+        size = Path(path).stat().st_size
+        free = shutil.disk_usage(Path(path).parent).free
+    except OSError:
+        return
+    if free < size:
+        node.get_logger().warning(f"map_file {path}: {free / 1e6:.1f} MB free on its disk, less than the "
+                                  f"{size / 1e6:.1f} MB of the map there: a save is likely to fail")
+
+
 class MapFiles:
     """Load, save and export for ``MapperNode`` (whose ``core`` holds the map and its lock)."""
 
@@ -117,35 +149,6 @@ class MapFiles:
         return self.node.param("map_file")
 
     # -- start -----------------------------------------------------------------------------------
-    def check_at_start(self) -> None:
-        """``map_file``'s folder exists (made when missing) and can be written, else ``StartupError``.
-        A node that never saves by itself (no autosave, no save on shutdown) only warns."""
-        path = self.path
-        if not path:
-            return
-        existed = Path(path).parent.is_dir()
-        problem = check_map_folder(path)
-        saves_by_itself = self.node.param("save_on_shutdown") or self.node.param("autosave_period") > 0
-        if problem and saves_by_itself:
-            raise StartupError(f"{problem}: this session's map could not be saved (choose another map_file, or set "
-                               "save_on_shutdown false and autosave_period 0 to only read it)")
-        if problem:
-            self.node.get_logger().warning(f"{problem}: ~/save_map will fail")
-        elif not existed:
-            self.node.get_logger().info(f"made the folder {Path(path).parent} for map_file")
-        self._warn_if_no_room(path)
-
-    def _warn_if_no_room(self, path: str) -> None:
-        """Say so when the disk holds less free space than the map already saved there needs."""
-        try:
-            size = Path(path).stat().st_size
-            free = shutil.disk_usage(Path(path).parent).free
-        except OSError:
-            return
-        if free < size:
-            self.node.get_logger().warning(f"map_file {path}: {free / 1e6:.1f} MB free on its disk, less than the "
-                                           f"{size / 1e6:.1f} MB of the map there: a save is likely to fail")
-
     def load_at_start(self) -> None:
         path = self.path
         if not path or not Path(path).exists():

@@ -170,9 +170,9 @@ def test_load_map_clear_box_and_a_run_time_map_file_show_in_the_published_map(tm
 # ----------------------------------------------------------------------------- map_file's folder
 
 
-def start_node(domain: int, map_file: Path, *parameters: str) -> subprocess.Popen:
+def start_node(domain: int, map_file: Path, *parameters: str, env: dict | None = None) -> subprocess.Popen:
     return start("convbki_ros.main", domain, "--ros-args", "-p", "device:=cpu", "-p", f"local_bounds:={BOUNDS}",
-                 "-p", f"map_file:={map_file}", *parameters, prefix=WITHOUT_PERMISSION_OVERRIDE)
+                 "-p", f"map_file:={map_file}", *parameters, prefix=WITHOUT_PERMISSION_OVERRIDE, env=env)
 
 
 def test_a_map_file_in_a_missing_folder_gets_its_folder_and_the_map(tmp_path):
@@ -197,8 +197,9 @@ def test_a_map_file_in_a_read_only_folder_is_refused_at_start_and_the_file_kept(
     before = (folder / "map.npz").read_bytes()
     folder.chmod(0o555)
     try:
-        node = start_node(domain_id(), folder / "map.npz")
-        output = node.communicate(timeout=120)[0]
+        # Python's import log (before the error line): the folder is checked before torch is loaded.
+        node = start_node(domain_id(), folder / "map.npz", env={"PYTHONPROFILEIMPORTTIME": "1"})
+        logged = node.communicate(timeout=120)[0]
         # Only reading it (no save by itself) is fine: a warning, and the node starts.
         reading = NodeLog(start_node(domain_id(), folder / "map.npz", "-p", "save_on_shutdown:=false"))
         assert reading.wait_for("mapper ready", timeout=60), reading.text()
@@ -206,7 +207,10 @@ def test_a_map_file_in_a_read_only_folder_is_refused_at_start_and_the_file_kept(
         assert reading.process.returncode == 0, seen
     finally:
         folder.chmod(0o755)
+    imported = [line.rsplit("|", 1)[-1].strip() for line in logged.splitlines() if line.startswith("import time:")]
+    output = "\n".join(line for line in logged.splitlines() if not line.startswith("import time:"))
     assert node.returncode == 2, output
+    assert "torch" not in imported, "the map folder was checked only after the mapper was loaded"
     lines = output.strip().splitlines()
     assert len(lines) == 1 and lines[0] == (
         f"mapper: error: map_file {folder / 'map.npz'}: its folder {folder} cannot be written (Permission denied): "
