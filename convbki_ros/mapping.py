@@ -1,12 +1,11 @@
 """The node's mapping side: inputs in, the map updated, on its own thread.
 
 ``MappingCore`` builds the ``ConvBKIMapper`` from the node's checked start-up settings
-(``settings``), takes clouds and odometry from the executor (cheap checks only: a cloud
-that can never be used is refused on arrival, before it waits or fills the queue), and runs
-the update thread, which places
-each cloud at its sensor pose (odometry interpolated at the cloud's stamp, times the
-sensor's mount) and integrates it. Bad input never touches the map: every rejection is
-counted and warned about once per problem (throttled).
+(``settings``), takes clouds and odometry from the executor (cheap checks only: a cloud that
+can never be used is refused on arrival, before it waits or fills the queue), and runs the
+update thread, which places each cloud at its sensor pose (odometry interpolated at the
+cloud's stamp, times the sensor's mount) and integrates it. Bad input never touches the map:
+every rejection is counted and warned about once per problem (throttled).
 """
 
 from __future__ import annotations
