@@ -26,12 +26,13 @@ import os
 import shutil
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 from rclpy.task import Future
 
 from convbki_core.io.atomic import previous_path
-from convbki_core.io.map_file import MapFileError
+from convbki_core.io.map_file import MapFileError, read_map
 from convbki_core.io.ply import write_voxels_ply
 from convbki_ros.params import StartupError
 from convbki_ros.status import ERROR, WARN
@@ -105,6 +106,32 @@ def _warn_if_no_room(node, path: str) -> None:
                                   f"{size / 1e6:.1f} MB of the map there: a save is likely to fail")
 
 
+@dataclass(frozen=True)
+class StartMap:
+    """``map_file`` as read at start, before the mapper is built: what ``read_map`` gave, or the
+    one-line reason it could not be read."""
+
+    path: str
+    contents: tuple | None  # (metadata, indices, alpha)
+    error: MapFileError | None = None
+
+
+def read_map_file_at_start(node) -> StartMap | None:
+    """Read ``map_file`` (None when there is none) before the mapper is built, so that a file
+    that cannot be read is refused at once under ``refuse_bad_map_file`` (``MapFileError``)
+    rather than after seconds of compiling; else the reason is kept for ``load_at_start``.
+    Whether it fits the mapper (grid, classes, prior, frame) is checked when it is loaded."""
+    path = node.param("map_file")
+    if not path or not Path(path).exists():
+        return None
+    try:
+        return StartMap(path, read_map(path))
+    except MapFileError as error:
+        if node.param("refuse_bad_map_file"):
+            raise MapFileError(f"{error} (refuse_bad_map_file is true: not starting)") from None
+        return StartMap(path, None, error)
+
+
 class MapFiles:
     """Load, save and export for ``MapperNode`` (whose ``core`` holds the map and its lock)."""
 
@@ -149,12 +176,16 @@ class MapFiles:
         return self.node.param("map_file")
 
     # -- start -----------------------------------------------------------------------------------
-    def load_at_start(self) -> None:
-        path = self.path
-        if not path or not Path(path).exists():
+    def load_at_start(self, start: StartMap | None) -> None:
+        """The map file read at start (``read_map_file_at_start``) into the map, or one error line
+        and an empty map when it could not be read or does not fit the mapper."""
+        if start is None:
             return
+        path = start.path
         try:
-            count, _ = self.core.load_map(path)
+            if start.error is not None:
+                raise start.error
+            count, _ = self.core.load_map(path, start.contents)
         except MapFileError as error:
             if self.node.param("refuse_bad_map_file"):
                 raise MapFileError(f"{error} (refuse_bad_map_file is true: not starting)") from None

@@ -288,11 +288,12 @@ class MappingCore:
                 self._lost_evidence("~/clear_box")
         return forgotten
 
-    def load_map(self, path: str) -> tuple[int, int]:
+    def load_map(self, path: str, contents: tuple | None = None) -> tuple[int, int]:
         """Replace the map with a map file's; (voxels loaded, voxels replaced). The file is read
-        and checked without the lock (mapping goes on meanwhile): ``MapFileError`` when it cannot be
-        read or was built for another grid, classes, prior or frame, and the map is untouched."""
-        metadata, indices, alpha = read_map(path)
+        (unless its ``read_map`` ``contents`` are given) and checked without the lock (mapping
+        goes on meanwhile): ``MapFileError`` when it cannot be read or was built for another
+        grid, classes, prior or frame, and the map is untouched."""
+        metadata, indices, alpha = contents if contents is not None else read_map(path)
         self.mapper.check_compatible(path, metadata)
         frame = metadata.get("frame_id") or None
         known = (self.frame if self.odometry_frame or self.frames.map_frame else None) or None

@@ -43,7 +43,7 @@ from convbki_core.datasets.labels import load_label_map
 from convbki_core.records import packed_palette
 from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.cloud_encoding import encode_cloud
-from convbki_ros.map_files import MapFiles, check_map_file_at_start
+from convbki_ros.map_files import MapFiles, check_map_file_at_start, read_map_file_at_start
 from convbki_ros.outputs import MapOutputs
 from convbki_ros.params import (
     NODE_NAME,
@@ -81,13 +81,14 @@ class MapperNode(Node):
         self.palette = packed_palette(self.label_map.colors)
         settings = read_start_settings(self, self.label_map)
         check_map_file_at_start(self)
+        start_map = read_map_file_at_start(self)
         # The mapper (torch, compiled kernels) is loaded only once every parameter has passed: a
         # bad one is said at once, not after seconds of loading.
         from convbki_ros.mapping import MappingCore
 
         self.core = MappingCore(self, settings, self.status, self.warnings, self.label_map)
         self.files = MapFiles(self)
-        self.files.load_at_start()
+        self.files.load_at_start(start_map)
         self._warm_up()
 
         inputs, odometry_group, file_io, housekeeping = (MutuallyExclusiveCallbackGroup() for _ in range(4))

@@ -516,13 +516,18 @@ def test_an_unreadable_map_file_gives_an_empty_map_or_a_refusal(tmp_path):
     np.savez(foreign, points=np.zeros((10, 3)))  # a valid archive, not a map
 
     # Refusing: exits 2 naming the file and the problem (runs beside the next node).
+    # Python's import log (before the error line): the file is read before the mapper is loaded.
     refusing = start("convbki_ros.main", domain_id(), "--ros-args", "-p", "device:=cpu",
-                     "-p", f"map_file:={foreign}", "-p", "refuse_bad_map_file:=true")
+                     "-p", f"map_file:={foreign}", "-p", "refuse_bad_map_file:=true",
+                     env={"PYTHONPROFILEIMPORTTIME": "1"})
     rig = Rig(tmp_path / "truncated")
     try:
         code = refusing.wait(timeout=60)
-        output = refusing.communicate()[0]
+        logged = refusing.communicate()[0]
+        imported = [line.rsplit("|", 1)[-1].strip() for line in logged.splitlines() if line.startswith("import time:")]
+        output = "\n".join(line for line in logged.splitlines() if not line.startswith("import time:"))
         assert code == 2, output
+        assert "torch" not in imported, "the unreadable map file was refused only after the mapper was loaded"
         assert re.search(rf"mapper: error: {re.escape(str(foreign))}: not a ConvBKI map file .*"
                          r"\(refuse_bad_map_file is true: not starting\)", output), output
         assert "Traceback" not in output
