@@ -128,8 +128,13 @@ def read_map_file_at_start(node) -> StartMap | None:
         return StartMap(path, read_map(path))
     except MapFileError as error:
         if node.param("refuse_bad_map_file"):
-            raise MapFileError(f"{error} (refuse_bad_map_file is true: not starting)") from None
+            raise refusal(error) from None
         return StartMap(path, None, error)
+
+
+def refusal(error: MapFileError) -> MapFileError:
+    """The start-up error of a map file that cannot be used under ``refuse_bad_map_file``."""
+    return MapFileError(f"{error} (refuse_bad_map_file is true: not starting)")
 
 
 class MapFiles:
@@ -181,14 +186,15 @@ class MapFiles:
         and an empty map when it could not be read or does not fit the mapper."""
         if start is None:
             return
-        path = start.path
-        try:
-            if start.error is not None:
-                raise start.error
-            count, _ = self.core.load_map(path, start.contents)
-        except MapFileError as error:
-            if self.node.param("refuse_bad_map_file"):
-                raise MapFileError(f"{error} (refuse_bad_map_file is true: not starting)") from None
+        path, error = start.path, start.error
+        if error is None:
+            try:
+                count, _ = self.core.load_map(path, start.contents)
+            except MapFileError as unfit:
+                if self.node.param("refuse_bad_map_file"):
+                    raise refusal(unfit) from None
+                error = unfit
+        if error is not None:
             self.unreadable_map_file = path
             self.node.get_logger().error(
                 f"{error}; starting with an EMPTY map. The file is kept: the first save moves it to "

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import convbki_core.free_space as free_space
-from convbki_core.clamping import DEFAULT_LIMIT, FIRST_CONTRADICTION, evidence_scale
+from convbki_core.clamping import DEFAULT_LIMIT, clamp_numpy
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.io.map_file import read_map
 from convbki_core.tools import evaluate, map_tool
@@ -90,12 +90,13 @@ def ground_surface(indices: np.ndarray, alpha: np.ndarray, prior: float, ground_
 
 
 def clamp_first_contradicted(alpha: np.ndarray, added: np.ndarray, prior: float) -> np.ndarray:
-    alpha = alpha.copy()
-    first = (added > 0) & (alpha[:, 0] < FIRST_CONTRADICTION) & (alpha.sum(axis=1) > DEFAULT_LIMIT)
-    for row in np.nonzero(first)[0]:
-        floor, scale = evidence_scale(alpha[row].sum(), DEFAULT_LIMIT, prior, alpha.shape[1])
-        alpha[row] = floor + (alpha[row] - floor) * scale
-    return alpha
+    """``alpha`` (N, C) with clamping's rule (``clamp_numpy``) applied where ``added`` free
+    evidence first contradicts a voxel."""
+    window = np.ascontiguousarray(alpha.T).reshape(alpha.shape[1], -1, 1, 1)  # (C, N, 1, 1)
+    taking = np.nonzero(added > 0)[0]
+    zeros = np.zeros_like(taking)
+    clamp_numpy(window, (taking, zeros, zeros), window[0, taking, 0, 0].copy(), DEFAULT_LIMIT, prior)
+    return window.reshape(alpha.shape[1], -1).T
 
 
 def main() -> int:

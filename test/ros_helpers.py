@@ -60,6 +60,17 @@ def require_current_install() -> None:
         pytest.fail(f"install/ is older than the sources ({stale} differs): run `make setup`", pytrace=False)
 
 
+# Added to a process's environment: Python logs each module it imports ("import time: ... | name").
+IMPORT_LOG = {"PYTHONPROFILEIMPORTTIME": "1"}
+
+
+def split_import_log(output: str) -> tuple[str, list[str]]:
+    """The output of a process run with ``IMPORT_LOG``: (its other lines, the modules it imported)."""
+    lines = output.splitlines()
+    imported = [line.rsplit("|", 1)[-1].strip() for line in lines if line.startswith("import time:")]
+    return "\n".join(line for line in lines if not line.startswith("import time:")), imported
+
+
 def ros_env(domain: int) -> dict:
     return dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                 PYTHONUNBUFFERED="1")

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mapper_rig import BOUNDS, TRANSLATION, WAIT, Rig, expect_file_holds, offline_map
-from ros_helpers import NodeLog, Probe, domain_id, start
+from ros_helpers import IMPORT_LOG, NodeLog, Probe, domain_id, split_import_log, start
 
 from convbki_core.config import MapperConfig
 from convbki_core.mapper import ConvBKIMapper
@@ -198,7 +198,7 @@ def test_a_map_file_in_a_read_only_folder_is_refused_at_start_and_the_file_kept(
     folder.chmod(0o555)
     try:
         # Python's import log (before the error line): the folder is checked before torch is loaded.
-        node = start_node(domain_id(), folder / "map.npz", env={"PYTHONPROFILEIMPORTTIME": "1"})
+        node = start_node(domain_id(), folder / "map.npz", env=IMPORT_LOG)
         logged = node.communicate(timeout=120)[0]
         # Only reading it (no save by itself) is fine: a warning, and the node starts.
         reading = NodeLog(start_node(domain_id(), folder / "map.npz", "-p", "save_on_shutdown:=false"))
@@ -207,8 +207,7 @@ def test_a_map_file_in_a_read_only_folder_is_refused_at_start_and_the_file_kept(
         assert reading.process.returncode == 0, seen
     finally:
         folder.chmod(0o755)
-    imported = [line.rsplit("|", 1)[-1].strip() for line in logged.splitlines() if line.startswith("import time:")]
-    output = "\n".join(line for line in logged.splitlines() if not line.startswith("import time:"))
+    output, imported = split_import_log(logged)
     assert node.returncode == 2, output
     assert "torch" not in imported, "the map folder was checked only after the mapper was loaded"
     lines = output.strip().splitlines()

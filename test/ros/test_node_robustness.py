@@ -34,7 +34,7 @@ from mapper_rig import (
     odometry,
     offline_map,
 )
-from ros_helpers import domain_id, start
+from ros_helpers import IMPORT_LOG, domain_id, split_import_log, start
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_ros.cloud_decoding import decode_cloud
@@ -519,13 +519,11 @@ def test_an_unreadable_map_file_gives_an_empty_map_or_a_refusal(tmp_path):
     # Python's import log (before the error line): the file is read before the mapper is loaded.
     refusing = start("convbki_ros.main", domain_id(), "--ros-args", "-p", "device:=cpu",
                      "-p", f"map_file:={foreign}", "-p", "refuse_bad_map_file:=true",
-                     env={"PYTHONPROFILEIMPORTTIME": "1"})
+                     env=IMPORT_LOG)
     rig = Rig(tmp_path / "truncated")
     try:
         code = refusing.wait(timeout=60)
-        logged = refusing.communicate()[0]
-        imported = [line.rsplit("|", 1)[-1].strip() for line in logged.splitlines() if line.startswith("import time:")]
-        output = "\n".join(line for line in logged.splitlines() if not line.startswith("import time:"))
+        output, imported = split_import_log(refusing.communicate()[0])
         assert code == 2, output
         assert "torch" not in imported, "the unreadable map file was refused only after the mapper was loaded"
         assert re.search(rf"mapper: error: {re.escape(str(foreign))}: not a ConvBKI map file .*"

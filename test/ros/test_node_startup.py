@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 from mapper_rig import BOUNDS, LABELS, POINTS, QUATERNION, SECOND, TRANSLATION, WAIT, Rig, node_default_mapper
-from ros_helpers import domain_id, start
+from ros_helpers import IMPORT_LOG, domain_id, split_import_log, start
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_ros.cloud_decoding import FLOAT32, UINT32, decode_cloud
@@ -50,11 +50,10 @@ def test_every_bad_start_is_one_line_and_exit_2(tmp_path):
             arguments = ["--params-file", str(params)]
         # Python's import log (on stderr, before the error line): which modules the process loaded.
         processes[case] = start("convbki_ros.main", domain_id(), "--ros-args", "-p", "device:=cpu", *arguments,
-                                env={"PYTHONPROFILEIMPORTTIME": "1"})
+                                env=IMPORT_LOG)
     for case, process in processes.items():
-        output, _ = process.communicate(timeout=120)
-        imported = [line.rsplit("|", 1)[-1].strip() for line in output.splitlines() if line.startswith("import time:")]
-        lines = [line for line in output.strip().splitlines() if not line.startswith("import time:")]
+        output, imported = split_import_log(process.communicate(timeout=120)[0])
+        lines = output.strip().splitlines()
         assert process.returncode == 2, (case, lines)
         assert len(lines) == 1 and re.fullmatch(r"mapper: error: .*" + BAD_STARTS[case][1] + ".*", lines[0]), \
             (case, lines)
