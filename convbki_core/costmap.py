@@ -327,18 +327,21 @@ def _gathered_grid(indices: np.ndarray, alpha: np.ndarray, origin: np.ndarray, d
                      np.asarray(origin[:2], np.int64), (int(dims[0]), int(dims[1])))
 
 
-def grid_of_window(window, resolution: float, profile: TraversabilityProfile, prior: float) -> CostGrid:
+def grid_of_window(window, resolution: float, profile: TraversabilityProfile, prior: float,
+                   region: tuple | None = None) -> CostGrid:
     """``window_grid`` of a mapper's window (``RollingWindow`` or ``TorchWindow``) over its
-    footprint: read in place where its arrays are in host memory (numpy, or torch on the CPU),
-    skipping the class runs its ``classes_by_column`` says hold the prior; from its voxels
-    gathered where they are on a GPU."""
+    footprint, or over ``region`` (origin cell (2,), (width, height) cells) only: read in place
+    where its arrays are in host memory (numpy, or torch on the CPU), skipping the class runs
+    its ``classes_by_column`` says hold the prior; from its voxels gathered where they are on a
+    GPU."""
     alpha, mask = window.alpha, window.mask
     if not isinstance(alpha, np.ndarray):
         if alpha.device.type != "cpu":
-            return _gathered_grid(*window.items(), window.origin, window.dims, resolution, profile, prior)
+            grid = _gathered_grid(*window.items(), window.origin, window.dims, resolution, profile, prior)
+            return grid if region is None else crop(grid, *region)
         alpha, mask = alpha.numpy(), mask.numpy()
     return window_grid(alpha, mask, window.origin, window.dims, resolution, profile, prior,
-                       window.classes_by_column())
+                       window.classes_by_column(), region)
 
 
 def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
@@ -357,12 +360,16 @@ def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
 
 
 def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray, resolution: float,
-                profile: TraversabilityProfile, prior: float, classes: np.ndarray | None = None) -> CostGrid:
+                profile: TraversabilityProfile, prior: float, classes: np.ndarray | None = None,
+                region: tuple | None = None) -> CostGrid:
     """The costs of the dense torus window's columns (``RollingWindow``'s ``alpha`` (C, X, Y, Z),
     ``mask``, ``origin``, ``dims``) over its footprint: equal to ``rasterise(column_costs(
     *window.items(), ...))`` on that footprint, without gathering the voxels. ``classes``
     (X, Y) uint64, the window's ``classes_by_column``: the class runs of a column whose bit is
-    clear hold the prior and are not read; None: every run is read.
+    clear hold the prior and are not read; None: every run is read. ``region`` (origin cell
+    (2,), (width, height) cells): only that part, equal to ``crop`` of the footprint's grid,
+    reading only its columns and the NEIGHBOUR_PASSES around them that a hidden ground's
+    estimate depends on (a rolling costmap smaller than the window costs its share of it).
 
     One compiled pass over the columns computes each column's voxel costs and ground, and the
     cell of every column whose ground it saw, and keeps the voxel costs of the columns whose
@@ -370,9 +377,16 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     their cells, without reading the window again."""
     origin = np.asarray(origin, np.int64)
     if not HAVE_NUMBA:  # the same rules, through the voxels gathered
-        return _gathered_grid(*gather_window(alpha, mask.copy(), origin, dims), origin, dims, resolution, profile,
+        grid = _gathered_grid(*gather_window(alpha, mask.copy(), origin, dims), origin, dims, resolution, profile,
                               prior)
+        return grid if region is None else crop(grid, *region)
     size_x, size_y = mask.shape[:2]
+    # The columns read, in the grid's global order (x, y from the window's origin).
+    low, high = np.zeros(2, np.int64), np.array([size_x, size_y], np.int64)
+    if region is not None:
+        start = np.asarray(region[0], np.int64) - origin[:2]
+        low = np.clip(start - NEIGHBOUR_PASSES, 0, high)
+        high = np.clip(start + np.asarray(region[1], np.int64) + NEIGHBOUR_PASSES, low, high)
     dims = np.asarray(dims, np.int64)
     read_all = classes is None
     if read_all:
@@ -382,9 +396,12 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
                       profile.risk_sigma, float(prior) * alpha.shape[0]])
     base = _prior_moments(weights, prior)
     # In global order: row y of the grid is the column at origin + y (the torus unrolled).
-    values = np.empty((size_y, size_x), np.int8)
+    partial = region is not None
+    # Every cell is written when every column is read; a region leaves the rest unknown.
+    values = np.full((size_y, size_x), UNKNOWN, np.int8) if partial else np.empty((size_y, size_x), np.int8)
     top = np.empty((size_x, size_y), np.int64)
-    hidden = np.empty((size_x, size_y), np.int64)  # where the voxel costs of a hidden column are kept, or -1
+    # Where the voxel costs of a hidden column are kept, or -1.
+    hidden = np.full((size_x, size_y), -1, np.int64) if partial else np.empty((size_x, size_y), np.int64)
     ground_z = np.empty((size_x, size_y), np.int64)  # filled where ``hidden``
     # Room for every column of a row, but a row fills only as many slots as it has hidden
     # columns, and only the pages written are ever mapped.
@@ -392,13 +409,20 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     kept_kind = np.empty((size_x * size_y, mask.shape[2]), np.uint8)
     with parallel_region():
         _grounded_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
-                          values, top, hidden, ground_z, kept_risk, kept_kind)
+                          low, high, values, top, hidden, ground_z, kept_risk, kept_kind)
+    if partial:  # the region's hidden columns only: the margin's would need neighbours not read
+        inner_low = np.clip(start, low, high)
+        inner_high = np.clip(start + np.asarray(region[1], np.int64), inner_low, high)
+        cells = np.argwhere(hidden[inner_low[0]:inner_high[0], inner_low[1]:inner_high[1]] >= 0) + inner_low
+    else:
+        cells = np.argwhere(hidden >= 0)
     # C order whatever the count (argwhere's is F for two cells or more): one compiled signature.
-    cells = np.ascontiguousarray(np.argwhere(hidden >= 0))
+    cells = np.ascontiguousarray(cells, np.int64)
     if len(cells):
         with parallel_region():
             _hidden_columns(origin, rules, cells, top, ground_z, hidden, kept_risk, kept_kind, values)
-    return CostGrid(origin[:2].copy(), values, float(resolution))
+    grid = CostGrid(origin[:2].copy(), values, float(resolution))
+    return grid if region is None else crop(grid, *region)
 
 
 _NO_GROUND = np.iinfo(np.int64).min
@@ -524,25 +548,25 @@ if HAVE_NUMBA:
         return np.int8(np.rint(min(max(cost, 0.0), 100.0))) if observed else np.int8(-1)
 
     @njit(parallel=True, nogil=True)
-    def _grounded_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, values, top,
-                          hidden, ground_z, kept_risk, kept_kind):  # pragma: no cover - compiled
-        """Every column: its ground voxel into ``top``, its cell into ``values`` where it saw its
-        own ground or holds no obstacle (then its ground does not matter); a hidden-ground
-        column with an obstacle keeps its voxel costs (``_column_kinds``' ``risk`` and ``kind``)
-        in a row of ``kept_risk``, ``kept_kind`` (the first free one of its physical x's
-        ``size_y`` rows), whose number goes into ``hidden`` (-1 for the others), and the height
-        under its lowest voxel into ``ground_z`` (for when no neighbour has ground); all in
-        global order."""
+    def _grounded_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, low, high,
+                          values, top, hidden, ground_z, kept_risk, kept_kind):  # pragma: no cover - compiled
+        """Every column from ``low`` to ``high`` (x, y in global order, ``high`` excluded): its
+        ground voxel into ``top``, its cell into ``values`` where it saw its own ground or holds
+        no obstacle (then its ground does not matter); a hidden-ground column with an obstacle
+        keeps its voxel costs (``_column_kinds``' ``risk`` and ``kind``) in a row of
+        ``kept_risk``, ``kept_kind`` (the first free one of its x's ``size_y`` rows), whose
+        number goes into ``hidden`` (-1 for the others), and the height under its lowest voxel
+        into ``ground_z`` (for when no neighbour has ground); all in global order."""
         size_x, size_y, size_z = mask.shape
-        for x in prange(size_x):
+        for column_x in prange(low[0], high[0]):
             sums = np.empty((5, size_z))  # the column's moments per physical z
             risk = np.empty(size_z)
             kind = np.empty(size_z, np.uint8)
-            kept = x * size_y  # the next free row of this x's share of the kept costs
-            column_x = (x - origin[0]) % size_x
-            column_y = (0 - origin[1]) % size_y - 1
-            for y in range(size_y):
-                column_y = column_y + 1 if column_y + 1 < size_y else 0
+            kept = column_x * size_y  # the next free row of this x's share of the kept costs
+            x = (column_x + origin[0]) % size_x
+            y = (low[1] + origin[1]) % size_y - 1
+            for column_y in range(low[1], high[1]):
+                y = y + 1 if y + 1 < size_y else 0
                 ground, lowest, obstacle = _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base,
                                                           rules, classes[x, y], read_all, sums, risk, kind)
                 top[column_x, column_y] = ground

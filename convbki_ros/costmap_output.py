@@ -15,7 +15,6 @@ from convbki_core.costmap import (
     CostGrid,
     ProfileError,
     column_costs,
-    crop,
     grid_of_window,
     load_profile,
     rasterise,
@@ -48,8 +47,7 @@ def rolling_grid(window, resolution: float, prior: float, profile, position: np.
     origin, cells = rolling_geometry(position, resolution, size, window_extent)
     if window.origin is None:  # nothing mapped yet
         return CostGrid(origin, np.full((cells, cells), UNKNOWN, np.int8), float(resolution))
-    footprint = grid_of_window(window, resolution, profile, prior)
-    return crop(footprint, origin, (cells, cells))
+    return grid_of_window(window, resolution, profile, prior, (origin, (cells, cells)))
 
 
 def whole_grid(indices: np.ndarray, alpha: np.ndarray, resolution: float, prior: float, profile) -> CostGrid:

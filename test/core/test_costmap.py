@@ -148,6 +148,94 @@ def test_the_grid_read_from_the_dense_window_equals_the_grid_of_its_voxels_gathe
     assert compared > 10_000
 
 
+def test_a_region_of_the_window_reads_its_columns_only_and_equals_the_crop_of_the_whole_grid():
+    """A rolling costmap smaller than the window reads only its own columns and the few around
+    them that a hidden ground's estimate depends on; its cells are those of the whole window's
+    grid cropped, at the window's edges and corners too, for a region partly or wholly outside
+    it, and where columns with hidden ground (a car on the road) lie at the region's edge."""
+    from convbki_core.costmap import NEIGHBOUR_PASSES, crop, grid_of_window, window_grid
+    from convbki_core.mapper import ConvBKIMapper
+    from convbki_core.paths import kernel_path
+
+    label_map = load_label_map("semantic_kitti")
+    config = MapperConfig.paper(local_bounds=((-8, -6, -3), (8, 6, 3)), prior=0.001, device="cpu",
+                                ignore_classes=label_map.ignore_classes, free_space=True)
+    mapper = ConvBKIMapper(config, kernel_path("semantic_kitti_compound"))
+    rng = np.random.default_rng(5)
+    compared = hidden_compared = poisoned_compared = 0
+    # Cars parked in the map's frame: no ground return under their bodies, so their columns'
+    # ground is hidden and comes from their neighbours'.
+    bodies = [(-4.0, -3.0), (1.0, 2.0), (5.0, -4.5), (9.0, -2.0)]
+    # Signs over the road, above the band, with no ground return under them either: their
+    # columns take the ground from their neighbours, which puts the sign above the band.
+    signs = [(-1.0, 3.4), (6.0, 2.9), (3.0, -1.5)]
+    hidden_cells = set()
+    for step in range(4):
+        pose = np.eye(4)
+        pose[:3, 3] = [2.3 * step, -1.1 * step, 0.0]
+        ground = np.column_stack([rng.uniform(-7, 7, (6000, 2)), rng.normal(-1.6, 0.03, 6000)])
+        world = ground[:, :2] + pose[:2, 3]
+        under = np.zeros(len(ground), bool)
+        cars = []
+        for x, y in bodies:
+            under |= (np.abs(world[:, 0] - x) < 1.5) & (np.abs(world[:, 1] - y) < 1.0)
+            body = np.column_stack([rng.uniform(x - 1.5, x + 1.5, 600), rng.uniform(y - 1.0, y + 1.0, 600),
+                                    rng.uniform(-1.2, -0.2, 600)])
+            cars.append(body - [*pose[:2, 3], 0.0])
+        boards = []
+        for x, y in signs:
+            under |= (np.abs(world[:, 0] - x) < 0.5) & (np.abs(world[:, 1] - y) < 0.3)
+            board = np.column_stack([rng.uniform(x - 0.5, x + 0.5, 200), rng.uniform(y - 0.3, y + 0.3, 200),
+                                     rng.uniform(1.25, 1.4, 200)])
+            boards.append(board - [*pose[:2, 3], 0.0])
+        ground, cars, boards = ground[~under], np.concatenate(cars), np.concatenate(boards)
+        points = np.concatenate([ground, cars, boards]).astype(np.float32)
+        raw = np.concatenate([rng.choice([40, 48, 72], len(ground)), np.full(len(cars), 10), np.full(len(boards), 81)])
+        mapper.integrate(points, label_map.to_learning(raw.astype(np.uint32)), pose)
+        window = mapper.window
+        whole = grid_of_window(window, RESOLUTION, CAR, 0.001)
+        for x, y in bodies:  # the centre of a body: its ground hidden, its cell lethal
+            cell = np.floor(np.array([x, y]) / RESOLUTION).astype(np.int64) - whole.origin
+            if 0 <= cell[0] < whole.values.shape[1] and 0 <= cell[1] < whole.values.shape[0]:
+                assert whole.values[cell[1], cell[0]] >= 90
+                hidden_cells.add((x, y))
+        corner, (width, height) = window.origin[:2], window.dims[:2]
+        regions = [(corner + [10, 7], (20, 20)), (corner - [5, 9], (30, 25)),
+                   (corner + [width - 8, height - 4], (16, 12)), (corner + [33, 21], (1, 1)),
+                   (corner + [width + 5, 0], (10, 10)), (corner, (width, height))]
+        for origin, size in regions:
+            part = grid_of_window(window, RESOLUTION, CAR, 0.001, (origin, size))
+            expected = crop(whole, origin, size)
+            assert np.array_equal(part.origin, expected.origin)
+            assert np.array_equal(part.values, expected.values), (origin - corner, size)
+            compared += int((part.values >= 0).sum())
+        # What lies beyond a region and its margin is not read: poisoned, the region's cells stay.
+        # A region of one cell on a car's hidden ground depends on its margin's columns.
+        reach = NEIGHBOUR_PASSES
+        for x, y in bodies + signs:
+            cell = np.floor(np.array([x, y]) / RESOLUTION).astype(np.int64)
+            start = cell - corner
+            if not (0 <= start[0] < width and 0 <= start[1] < height):
+                continue
+            outside = np.ones((width, height), bool)  # global order
+            low = np.maximum(start - reach, 0)
+            outside[low[0]:start[0] + 1 + reach, low[1]:start[1] + 1 + reach] = False
+            alpha = window.alpha.copy()
+            alpha[:, np.roll(outside, tuple(corner % [width, height]), (0, 1))] = np.nan
+            poisoned = window_grid(alpha, window.mask, window.origin, window.dims, RESOLUTION, CAR, 0.001,
+                                   window.classes_by_column(), (cell, (1, 1)))
+            assert poisoned.values[0, 0] == whole.values[start[1], start[0]], (x, y)
+            poisoned_compared += 1
+        # Each lethal cell on its own, a region of one cell: the cars' hidden ground at its edge.
+        for row, column in np.argwhere(whole.values >= 90)[::10]:
+            origin = whole.origin + [column, row]
+            part = grid_of_window(window, RESOLUTION, CAR, 0.001, (origin, (1, 1)))
+            assert part.values[0, 0] == whole.values[row, column]
+            hidden_compared += 1
+    assert compared > 2_000 and hidden_compared > 20 and len(hidden_cells) >= 3 and poisoned_compared >= 6, (
+        compared, hidden_compared, poisoned_compared)
+
+
 @pytest.mark.parametrize("text, problem", [
     ("costs: {car: 100}\nground: [road]\n", "no cost for bicycle"),
     ("costs: {cars: 100}\nground: [road]\n", "unknown class 'cars' in costs"),
