@@ -337,11 +337,24 @@ def grid_of_window(window, resolution: float, profile: TraversabilityProfile, pr
     alpha, mask = window.alpha, window.mask
     if not isinstance(alpha, np.ndarray):
         if alpha.device.type != "cpu":
-            grid = _gathered_grid(*window.items(), window.origin, window.dims, resolution, profile, prior)
-            return grid if region is None else crop(grid, *region)
+            return _cropped(_gathered_grid(*window.items(), window.origin, window.dims, resolution, profile,
+                                           prior), region)
         alpha, mask = alpha.numpy(), mask.numpy()
     return window_grid(alpha, mask, window.origin, window.dims, resolution, profile, prior,
                        window.classes_by_column(), region)
+
+
+def rolling_geometry(position: np.ndarray, resolution: float, size: float, window_extent: float) -> tuple:
+    """(origin cell (2,) int64, cells per edge) of the square grid of edge ``size`` metres (at
+    most ``window_extent``; 0: that) centred on ``position``: the node's rolling costmap."""
+    edge = min(size, window_extent) if size > 0 else window_extent
+    cells = max(1, round(edge / resolution))
+    centre = np.floor(np.asarray(position[:2], np.float64) / resolution).astype(np.int64)
+    return centre - cells // 2, cells
+
+
+def _cropped(grid: CostGrid, region: tuple | None) -> CostGrid:
+    return grid if region is None else crop(grid, *region)
 
 
 def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
@@ -377,16 +390,21 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     their cells, without reading the window again."""
     origin = np.asarray(origin, np.int64)
     if not HAVE_NUMBA:  # the same rules, through the voxels gathered
-        grid = _gathered_grid(*gather_window(alpha, mask.copy(), origin, dims), origin, dims, resolution, profile,
-                              prior)
-        return grid if region is None else crop(grid, *region)
+        return _cropped(_gathered_grid(*gather_window(alpha, mask.copy(), origin, dims), origin, dims, resolution,
+                                       profile, prior), region)
     size_x, size_y = mask.shape[:2]
-    # The columns read, in the grid's global order (x, y from the window's origin).
-    low, high = np.zeros(2, np.int64), np.array([size_x, size_y], np.int64)
-    if region is not None:
+    # In the grid's global order (x, y from the window's origin): the columns whose cells are
+    # asked for (inner) and those read, with the margin a hidden ground's estimate depends on.
+    footprint = np.array([size_x, size_y], np.int64)
+    partial = region is not None
+    if partial:
         start = np.asarray(region[0], np.int64) - origin[:2]
-        low = np.clip(start - NEIGHBOUR_PASSES, 0, high)
-        high = np.clip(start + np.asarray(region[1], np.int64) + NEIGHBOUR_PASSES, low, high)
+        end = start + np.asarray(region[1], np.int64)
+        inner_low, inner_high = np.clip(start, 0, footprint), np.clip(end, 0, footprint)
+        low, high = np.clip(start - NEIGHBOUR_PASSES, 0, footprint), np.clip(end + NEIGHBOUR_PASSES, 0, footprint)
+    else:
+        inner_low = low = np.zeros(2, np.int64)
+        inner_high = high = footprint
     dims = np.asarray(dims, np.int64)
     read_all = classes is None
     if read_all:
@@ -396,7 +414,6 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
                       profile.risk_sigma, float(prior) * alpha.shape[0]])
     base = _prior_moments(weights, prior)
     # In global order: row y of the grid is the column at origin + y (the torus unrolled).
-    partial = region is not None
     # Every cell is written when every column is read; a region leaves the rest unknown.
     values = np.full((size_y, size_x), UNKNOWN, np.int8) if partial else np.empty((size_y, size_x), np.int8)
     top = np.empty((size_x, size_y), np.int64)
@@ -410,19 +427,14 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     with parallel_region():
         _grounded_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
                           low, high, values, top, hidden, ground_z, kept_risk, kept_kind)
-    if partial:  # the region's hidden columns only: the margin's would need neighbours not read
-        inner_low = np.clip(start, low, high)
-        inner_high = np.clip(start + np.asarray(region[1], np.int64), inner_low, high)
-        cells = np.argwhere(hidden[inner_low[0]:inner_high[0], inner_low[1]:inner_high[1]] >= 0) + inner_low
-    else:
-        cells = np.argwhere(hidden >= 0)
+    # The inner columns' hidden grounds only: the margin's would need neighbours not read.
+    inner = hidden[inner_low[0]:inner_high[0], inner_low[1]:inner_high[1]]
     # C order whatever the count (argwhere's is F for two cells or more): one compiled signature.
-    cells = np.ascontiguousarray(cells, np.int64)
+    cells = np.ascontiguousarray(np.argwhere(inner >= 0) + inner_low, np.int64)
     if len(cells):
         with parallel_region():
             _hidden_columns(origin, rules, cells, top, ground_z, hidden, kept_risk, kept_kind, values)
-    grid = CostGrid(origin[:2].copy(), values, float(resolution))
-    return grid if region is None else crop(grid, *region)
+    return _cropped(CostGrid(origin[:2].copy(), values, float(resolution)), region)
 
 
 _NO_GROUND = np.iinfo(np.int64).min

@@ -18,6 +18,7 @@ from convbki_core.costmap import (
     grid_of_window,
     load_profile,
     rasterise,
+    rolling_geometry,
 )
 from convbki_core.paths import traversability_profile
 from convbki_ros.params import StartupError
@@ -30,14 +31,6 @@ def profile_of(node, class_names):
         return load_profile(traversability_profile(node.param("costmap_profile")), tuple(class_names))
     except ProfileError as error:
         raise StartupError(f"parameter costmap_profile: {error}") from None
-
-
-def rolling_geometry(position: np.ndarray, resolution: float, size: float, window_extent: float) -> tuple:
-    """(origin cell (2,) int64, cells per edge) of the square grid centred on ``position``."""
-    edge = min(size, window_extent) if size > 0 else window_extent
-    cells = max(1, round(edge / resolution))
-    centre = np.floor(np.asarray(position[:2], np.float64) / resolution).astype(np.int64)
-    return centre - cells // 2, cells
 
 
 def rolling_grid(window, resolution: float, prior: float, profile, position: np.ndarray, size: float,

@@ -178,7 +178,7 @@ def costmap_figures(frames: list, repeat: int, device: str = "cpu") -> dict:
     window, read from the window in place, as the node does) after each scan, free space on,
     with 1 M and with 10 M voxels stored elsewhere in the map; and, with 1 M, a refresh of a
     40 m grid centred on the sensor (``costmap_size`` 40), which reads only its own columns."""
-    from convbki_core.costmap import grid_of_window, load_profile
+    from convbki_core.costmap import grid_of_window, load_profile, rolling_geometry
     from convbki_core.paths import traversability_profile
 
     label_map = load_label_map("semantic_kitti")
@@ -188,16 +188,15 @@ def costmap_figures(frames: list, repeat: int, device: str = "cpu") -> dict:
         mapper = paper_mapper(free_space=True, device=device)
         mapper.store.write(*far_strip(frames, stored, mapper.num_classes, mapper.prior))
         times, times_40m = [], []
-        cells = round(40.0 / mapper.resolution)
+        extent = float(mapper.window.dims[0]) * mapper.resolution
         for frame, _ in integrate_frames(mapper, frames[:repeat]):
             started = time.perf_counter()
             grid_of_window(mapper.window, mapper.resolution, profile, mapper.prior)
             times.append(1e3 * (time.perf_counter() - started))
             if stored == 1_000_000:
-                centre = np.floor(frame.pose[:2, 3] / mapper.resolution).astype(np.int64)
+                origin, cells = rolling_geometry(frame.pose[:3, 3], mapper.resolution, 40.0, extent)
                 started = time.perf_counter()
-                grid_of_window(mapper.window, mapper.resolution, profile, mapper.prior,
-                               (centre - cells // 2, (cells, cells)))
+                grid_of_window(mapper.window, mapper.resolution, profile, mapper.prior, (origin, (cells, cells)))
                 times_40m.append(1e3 * (time.perf_counter() - started))
         results[stored] = {"costmap_ms": steady(times), "window_voxels": mapper.window.count()}
         if times_40m:
