@@ -37,7 +37,14 @@ from convbki_core.free_space import (
     FREE_CLASS,
 )
 from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
-from convbki_core.io.map_file import MAP_FORMAT, MAP_VERSION, MapFileError, MapSnapshot, read_map
+from convbki_core.io.map_file import (
+    MAP_FORMAT,
+    MAP_VERSION,
+    MapSetupError,
+    MapSnapshot,
+    read_map,
+    setup_differences,
+)
 from convbki_core.io.ply import write_voxels_ply
 from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
@@ -431,16 +438,20 @@ class ConvBKIMapper:
         return metadata
 
     def check_compatible(self, path: str | Path, metadata: dict) -> None:
-        """Raise ``MapFileError`` unless a map file with this metadata (``read_map``) can be
+        """Raise ``MapSetupError`` unless a map file with this metadata (``read_map``) can be
         loaded into this mapper: the same classes, resolution and prior."""
-        if metadata["num_classes"] != self.num_classes:
-            raise MapFileError(f"{path}: map has {metadata['num_classes']} classes, the mapper {self.num_classes}")
-        if not np.isclose(float(metadata["resolution"]), self.resolution):
-            raise MapFileError(f"{path}: map resolution {metadata['resolution']} m differs from the mapper's "
-                               f"{self.resolution} m")
-        if metadata.get("prior") is not None and not np.isclose(float(metadata["prior"]), self.prior):
-            raise MapFileError(f"{path}: map prior {metadata['prior']} differs from the mapper's {self.prior}: its "
-                               "voxels' unobserved classes would hold the wrong concentration")
+        differences = setup_differences(metadata, self.resolution, self.num_classes, self.prior)
+        if not differences:
+            return
+        first = differences[0]
+        if first.what == "num_classes":
+            message = f"{path}: map has {first.in_file} classes, the mapper {first.here}"
+        elif first.what == "resolution":
+            message = f"{path}: map resolution {first.in_file} m differs from the mapper's {first.here} m"
+        else:
+            message = (f"{path}: map prior {first.in_file} differs from the mapper's {first.here}: its voxels' "
+                       "unobserved classes would hold the wrong concentration")
+        raise MapSetupError(message, differences)
 
     def replace_with(self, metadata: dict, indices: np.ndarray, alpha: np.ndarray) -> None:
         """Make the map the given one (a map file's contents, ``read_map``, checked with

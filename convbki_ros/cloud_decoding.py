@@ -193,7 +193,7 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
     except (TypeError, AttributeError):
         raise CloudError("message has no field list: not a PointCloud2") from None
     table = _field_table(fields)
-    point_step, width, height, header_row_step = _header_integers(msg)
+    point_step, width, height, row_step = _header_integers(msg)
     missing = [name for name in ("x", "y", "z") if name not in table]
     if missing:
         raise CloudError(f"cloud has no {'/'.join(missing)} field (fields: {_field_list(table)})")
@@ -221,16 +221,15 @@ def decode_cloud(msg: Any, num_classes: int | None = None, *, require_semantics:
 
     count = width * height
     row_bytes = width * point_step
-    row_step = header_row_step if height > 1 else max(header_row_step, row_bytes)
-    if height > 1 and row_step < row_bytes:
+    # A row holds width points: a shorter row_step (0 included) is a malformed header, whatever
+    # the number of rows (the points it describes cannot be told apart from their neighbours').
+    if count and row_step < row_bytes:
         raise CloudError(f"row_step {row_step} is smaller than width * point_step = {row_bytes}")
     raw = _buffer(msg.data)
-    # A cloud holds height rows of row_step bytes; a row_step of 0 in a one-row cloud (some
-    # drivers leave it unset) means the row's own bytes.
-    needed = max(row_step * (height - 1) + row_bytes, header_row_step * height) if count else 0
+    needed = row_step * height if count else 0  # height rows of row_step bytes
     if raw.size < needed:
         raise CloudError(f"data holds {raw.size} bytes, expected at least {needed} "
-                         f"(width {width} x height {height} x point_step {point_step}, row_step {header_row_step})")
+                         f"(width {width} x height {height} x point_step {point_step}, row_step {row_step})")
     if count and height > 1 and row_step != row_bytes:  # padding at the end of each row: drop it (one copy)
         raw = np.ascontiguousarray(raw[: row_step * height].reshape(height, row_step)[:, :row_bytes]).reshape(-1)
 

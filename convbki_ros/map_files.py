@@ -7,7 +7,11 @@ Nothing a user saved is lost:
   folder that does not exist, is read-only or sits on a full disk is found before a whole
   session's map depends on it;
 * every save is atomic (a temporary file, fsync, rename) and keeps the file it replaces as
-  ``<map_file>.prev``;
+  ``<map_file>.prev``; the temporary files of saves that were killed are removed at start;
+* a ``map_file`` that cannot be read, or (with ``map_file_mismatch`` set_aside) holds a map of
+  another set-up, is moved aside at the first save to a name of its own,
+  ``<map_file>.unreadable-<UTC time>`` or ``<map_file>.other-setup-<UTC time>``, never over
+  another file; by default a map of another set-up stops the start (exit code 2);
 * a save the user did not ask for (autosave, shutdown) never replaces the file with a map
   that lost evidence the file holds: after a reset, a forgotten box, or a ``map_file`` set to
   a file this map did not come from, the file is kept until ``~/save_map`` writes there;
@@ -31,8 +35,8 @@ from pathlib import Path
 
 from rclpy.task import Future
 
-from convbki_core.io.atomic import previous_path
-from convbki_core.io.map_file import MapFileError, read_map
+from convbki_core.io.atomic import previous_path, remove_stale_temp_files, set_aside
+from convbki_core.io.map_file import MapFileError, MapSetupError, SetupDifference, read_map, setup_differences
 from convbki_core.io.ply import write_voxels_ply
 from convbki_ros.params import StartupError
 from convbki_ros.status import ERROR, WARN
@@ -91,7 +95,20 @@ def check_map_file_at_start(node) -> None:
         node.get_logger().warning(f"{problem}: ~/save_map will fail")
     elif not existed:
         node.get_logger().info(f"made the folder {Path(path).parent} for map_file")
+    _remove_killed_saves(node, path)
     _warn_if_no_room(node, path)
+
+
+def _remove_killed_saves(node, path: str) -> None:
+    """Remove the temporary files that saves of map_file (and of its ``.prev``) left when they
+    were killed: only this node's own kind (``.NAME.PID.HOST.RANDOM.tmp``), of processes that
+    are gone. Nothing of this process can be mid-save yet, so its own id counts as gone too."""
+    removed = remove_stale_temp_files(path, own_too=True) + remove_stale_temp_files(previous_path(path), own_too=True)
+    if removed:
+        names = ", ".join(file.name for file, _ in removed)
+        megabytes = sum(size for _, size in removed) / 1e6
+        node.get_logger().info(f"removed {len(removed)} temporary file(s) of killed saves beside map_file "
+                               f"({megabytes:.1f} MB): {names}")
 
 
 def _warn_if_no_room(node, path: str) -> None:
@@ -106,10 +123,17 @@ def _warn_if_no_room(node, path: str) -> None:
                                   f"{size / 1e6:.1f} MB of the map there: a save is likely to fail")
 
 
+# What a map file moved aside is named after: why it could not be loaded.
+UNREADABLE, OTHER_SETUP = "unreadable", "other-setup"
+# The parameter that makes a difference of set-up go away, by what differs.
+MATCHING_PARAMETER = {"resolution": "resolution", "num_classes": "num_classes", "prior": "prior",
+                      "frame_id": "map_frame"}
+
+
 @dataclass(frozen=True)
 class StartMap:
     """``map_file`` as read at start, before the mapper is built: what ``read_map`` gave, or the
-    one-line reason it could not be read."""
+    one-line reason it cannot be loaded."""
 
     path: str
     contents: tuple | None  # (metadata, indices, alpha)
@@ -117,19 +141,42 @@ class StartMap:
 
 
 def read_map_file_at_start(node) -> StartMap | None:
-    """Read ``map_file`` (None when there is none) before the mapper is built, so that a file
-    that cannot be read is refused at once under ``refuse_bad_map_file`` (``MapFileError``)
-    rather than after seconds of compiling; else the reason is kept for ``load_at_start``.
-    Whether it fits the mapper (grid, classes, prior, frame) is checked when it is loaded."""
+    """Read ``map_file`` (None when there is none) and check that it fits the node's set-up,
+    before the mapper is built, so that a refusal comes at once rather than after seconds of
+    compiling. A file that cannot be read is refused under ``refuse_bad_map_file``; a map of
+    another set-up (resolution, classes, prior, map_frame) is refused unless
+    ``map_file_mismatch`` is set_aside. Otherwise the reason is kept for ``load_at_start``."""
     path = node.param("map_file")
     if not path or not Path(path).exists():
         return None
     try:
-        return StartMap(path, read_map(path))
+        contents = read_map(path)
     except MapFileError as error:
         if node.param("refuse_bad_map_file"):
             raise refusal(error) from None
         return StartMap(path, None, error)
+    differences = setup_differences(contents[0], node.param("resolution"), node.param("num_classes"),
+                                    node.param("prior"), node.param("map_frame") or None)
+    if differences:
+        error = MapSetupError(other_setup(path, differences), differences)
+        if node.param("map_file_mismatch") == "refuse":
+            raise StartupError(f"{error}; {ways_out(differences)}")
+        return StartMap(path, None, error)
+    return StartMap(path, contents)
+
+
+def other_setup(path: str, differences: list[SetupDifference]) -> str:
+    """A map file of another set-up, in words."""
+    return f"map_file {path} holds a map of another set-up ({'; '.join(d.words() for d in differences)})"
+
+
+def ways_out(differences: list[SetupDifference]) -> str:
+    """The two ways to start with a map file of another set-up: parameters that match it, or
+    another map_file."""
+    matching = " ".join(f"-p {MATCHING_PARAMETER[d.what]}:={d.in_file}" for d in differences)
+    kernel = " (and a kernel_file of as many classes)" if any(d.what == "num_classes" for d in differences) else ""
+    return (f"to load it, start with {matching}{kernel}; to start a new map, set map_file to another file "
+            "(or map_file_mismatch:=set_aside: an empty map, and this file moved aside at the first save)")
 
 
 def refusal(error: MapFileError) -> MapFileError:
@@ -147,7 +194,8 @@ class MapFiles:
         # core.lineage when the map last was what map_file holds (saved or loaded); None: never.
         # While it differs, the map may lack evidence the file holds, and only ~/save_map writes there.
         self.lineage_in_file: int | None = self.core.lineage
-        self.unreadable_map_file: str | None = None  # moved aside before the first save overwrites it
+        # (path, why): a map_file that could not be loaded, moved aside before the first save writes there
+        self.to_set_aside: tuple[str, str] | None = None
         self.save_error: str | None = None  # the last failed save, until a save succeeds
         self.last_save: str | None = None  # what the last save (or attempt) said
         self._file_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="convbki_files")
@@ -183,22 +231,30 @@ class MapFiles:
     # -- start -----------------------------------------------------------------------------------
     def load_at_start(self, start: StartMap | None) -> None:
         """The map file read at start (``read_map_file_at_start``) into the map, or one error line
-        and an empty map when it could not be read or does not fit the mapper."""
+        and an empty map when it could not be read or holds a map of another set-up."""
         if start is None:
             return
         path, error = start.path, start.error
         if error is None:
             try:
                 count, _ = self.core.load_map(path, start.contents)
-            except MapFileError as unfit:
+            except MapSetupError as unfit:
+                if self.node.param("map_file_mismatch") == "refuse":
+                    raise StartupError(f"{other_setup(path, unfit.differences)}; {ways_out(unfit.differences)}") \
+                        from None
+                error = MapSetupError(other_setup(path, unfit.differences), unfit.differences)
+            except MapFileError as unusable:
                 if self.node.param("refuse_bad_map_file"):
-                    raise refusal(unfit) from None
-                error = unfit
+                    raise refusal(unusable) from None
+                error = unusable
         if error is not None:
-            self.unreadable_map_file = path
+            why = OTHER_SETUP if isinstance(error, MapSetupError) else UNREADABLE
+            self.to_set_aside = (path, why)
+            switch = "map_file_mismatch is set_aside" if why == OTHER_SETUP else \
+                "set refuse_bad_map_file to exit instead"
             self.node.get_logger().error(
-                f"{error}; starting with an EMPTY map. The file is kept: the first save moves it to "
-                f"{path}.unreadable before writing the new map (set refuse_bad_map_file to exit instead)")
+                f"{error}; starting with an EMPTY map ({switch}). The file is kept: the first save moves it to "
+                f"{path}.{why}-<UTC time>, a name of its own, before writing the new map")
             return
         self._file_holds_the_map()
         self.node.get_logger().info(f"loaded {count} voxels from {path}")
@@ -222,10 +278,13 @@ class MapFiles:
         if not requested and self.file_may_hold_more():
             return True, f"kept {path} as it is: {self.kept_reason()}"
         try:
-            if self.unreadable_map_file == path and os.path.lexists(path):
-                os.replace(path, path + ".unreadable")
-                self.node.get_logger().warning(f"moved the unreadable map file {path} to {path}.unreadable")
-            self.unreadable_map_file = None
+            if self.to_set_aside is not None and self.to_set_aside[0] == path and os.path.lexists(path):
+                why = self.to_set_aside[1]
+                kept = set_aside(path, why)
+                what = "the unreadable map file" if why == UNREADABLE else "the map file of another set-up"
+                self.node.get_logger().warning(f"moved {what} {path} to {kept}")
+            self.to_set_aside = None
+            replaces = os.path.lexists(path)
             with self.core.map_lock:
                 snapshot = self.core.mapper.snapshot()
                 version, lineage = self.core.map_version, self.core.lineage
@@ -235,7 +294,7 @@ class MapFiles:
             self.save_error = self.last_save = message
             return False, message
         self.saved_version, self.lineage_in_file, self.save_error = version, lineage, None
-        kept = f" (the file before kept as {previous_path(path).name})" if previous_path(path).exists() else ""
+        kept = f" (the file before kept as {previous_path(path).name})" if replaces else ""
         self.last_save = f"saved {len(snapshot)} voxels to {path}{kept}"
         return True, self.last_save
 
@@ -321,7 +380,7 @@ class MapFiles:
         """map_file now names another file: the map is not what it holds (if it exists)."""
         self.saved_version = None
         self.lineage_in_file = None if os.path.lexists(self.path) else self.core.lineage
-        self.unreadable_map_file = None
+        self.to_set_aside = None
 
     # -- loading at run time -------------------------------------------------------------------------
     async def on_load_map(self, request, response):

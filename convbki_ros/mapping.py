@@ -15,7 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from convbki_core.io.map_file import MapFileError, read_map
+from convbki_core.io.map_file import MapSetupError, SetupDifference, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.warm_up import WarmUpReport, warm_up
 from convbki_ros.cloud_decoding import CloudError, decode_cloud
@@ -24,7 +24,7 @@ from convbki_ros.params import StartupError
 from convbki_ros.pose_buffer import PoseStatus, pose_problem
 from convbki_ros.settings import StartSettings
 from convbki_ros.status import problem_key
-from convbki_ros.sync import CloudQueue, Decision, PendingCloud, SensorFrames, Verdict
+from convbki_ros.sync import NO_MAP_TRANSFORM, CloudQueue, Decision, Missing, PendingCloud, SensorFrames, Verdict
 from convbki_ros.tf_buffer import make_tf_lookup
 from convbki_ros.transforms import pose_from_translation_quaternion, seconds_to_ns, stamp_to_ns
 
@@ -90,7 +90,7 @@ class MappingCore:
             mount += f", map in '{self.frames.map_frame}' through TF where the odometry's frame differs"
         return f"poses from odometry, {mount}"
 
-    def _place(self, pending: PendingCloud, lookup) -> tuple[np.ndarray | None, str | None]:
+    def _place(self, pending: PendingCloud, lookup) -> tuple[np.ndarray | None, Missing | None]:
         """The cloud frame's pose in the map, from its odometry (the queue asks, lock held)."""
         return self.frames.place(self.odometry_frame or "", lookup, pending.msg.header.frame_id,
                                  stamp_to_ns(pending.msg.header.stamp))
@@ -298,7 +298,8 @@ class MappingCore:
         frame = metadata.get("frame_id") or None
         known = (self.frame if self.odometry_frame or self.frames.map_frame else None) or None
         if frame and known and frame != known:
-            raise MapFileError(f"{path}: the map was built in frame '{frame}', this node maps in '{known}'")
+            raise MapSetupError(f"{path}: the map was built in frame '{frame}', this node maps in '{known}'",
+                                [SetupDifference("frame_id", frame, known)])
         with self.map_lock:
             replaced = len(self.mapper)
             self.mapper.replace_with(metadata, indices, alpha)
@@ -343,11 +344,12 @@ class MappingCore:
             self._no_pose(msg, lookup)
             return
         if decision.verdict is Verdict.NO_TRANSFORM:
-            self.status.drop("no transform")
-            self.warnings.warn("transform " + problem_key(decision.why),
+            missing = decision.missing or Missing(NO_MAP_TRANSFORM, "")
+            self.status.drop(missing.reason)
+            self.warnings.warn("transform " + problem_key(missing.detail),
                                f"dropping cloud stamped {stamp_to_ns(msg.header.stamp) / 1e9:.3f} s in frame "
                                f"'{msg.header.frame_id}' after waiting transform_timeout = "
-                               f"{self.queue.transform_timeout:g} s: {decision.why}")
+                               f"{self.queue.transform_timeout:g} s ({missing.reason}): {missing.detail}")
             return
         sensor_pose = decision.pose
         try:

@@ -76,6 +76,8 @@ class MapperNode(Node):
     def __init__(self, **node_options):
         super().__init__(NODE_NAME, **node_options)
         self.status = MapperStatus()
+        # On simulated time a bag's /clock follows the stamps it plays: an arrival minus its stamp says nothing.
+        self.status.odometry_delay_measured = not self.get_parameter("use_sim_time").value
         self.warnings = WarningThrottle(self.get_logger())
         self.label_map = load_label_map("semantic_kitti")
         self.palette = packed_palette(self.label_map.colors)

@@ -174,7 +174,13 @@ PARAMETERS: tuple[Spec, ...] = (
          "while clouds arrive but no usable odometry has for this long, warn (and report ERROR on /diagnostics) "
          "every this many seconds; seconds", 0.1, 3600.0, run_time=True),
     Spec("refuse_bad_map_file", False,
-         "exit (code 2) when map_file exists but cannot be loaded, instead of starting with an empty map; bool"),
+         "exit (code 2) when map_file exists but cannot be read (truncated, corrupted, not a map file), instead of "
+         "starting with an empty map; bool"),
+    Spec("map_file_mismatch", "refuse",
+         "what a map_file that holds a whole map of another set-up (its resolution, num_classes, prior or frame "
+         "differ from this node's) does at start: refuse (exit code 2, naming what differs and the parameter that "
+         "would load it) or set_aside (start with an empty map; the first save moves the file to "
+         "<map_file>.other-setup-<UTC time>, never over another file)", choices=("refuse", "set_aside")),
 )
 SPECS = {spec.name: spec for spec in PARAMETERS}
 # The parameters under headings, as config/mapper.yaml and docs/node.md list them.
@@ -193,8 +199,8 @@ PARAMETER_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Planner's costmap", (
         "costmap_profile", "costmap_size", "costmap_max_cells",)),
     ("Files and map edits", (
-        "map_file", "autosave_period", "save_on_shutdown", "refuse_bad_map_file", "ply_file", "clear_box_min",
-        "clear_box_max",)),
+        "map_file", "autosave_period", "save_on_shutdown", "refuse_bad_map_file", "map_file_mismatch", "ply_file",
+        "clear_box_min", "clear_box_max",)),
     ("Queue and robustness (bad input never stops the node, and never changes the map)", (
         "cloud_queue_size", "cloud_queue_megabytes", "max_points_per_cloud", "pose_wait_timeout", "max_pose_jump",
         "on_pose_jump", "stamp_backwards_tolerance", "reset_on_stamp_backwards", "odometry_timeout",)),

@@ -78,23 +78,40 @@ class Snapshot:
     odometry_delay_ms_max: float = 0.0
     odometry_gap_ms_max: float = 0.0
     publishers: dict[str, int] = field(default_factory=dict)  # per input: the publishers its reader has matched
+    cycles_published: int = 0  # publish cycles (updates, view, costmap) that sent something
+    # False where the node's clock follows the data (use_sim_time: a bag's /clock is set to the
+    # stamps it plays), so an arrival minus its stamp measures nothing.
+    odometry_delay_measured: bool = True
 
     @property
     def dropped_total(self) -> int:
         return sum(self.dropped.values())
 
     def line(self) -> str:
-        """The counters line of the log."""
+        """The counters line of the log. A figure is left out until it was measured (nothing
+        integrated, no map published, no publish cycle, no odometry), never shown as 0."""
         reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(self.dropped.items()))
-        return (f"scans in {self.scans_in}, integrated {self.integrated}, dropped {self.dropped_total}"
-                f"{f' ({reasons})' if reasons else ''}, odometry in {self.odometry_in} "
-                f"(rejected {self.odometry_rejected}), queue {self.queue}, map voxels {self.map_voxels}, "
-                f"last update {self.last_update_ms:.0f} ms, last map publish {self.last_publish_ms:.0f} ms, "
-                f"queue peak {self.queue_peak}, cycle median {self.median_cycle_ms:.0f} ms, {self.odometry_text()}")
+        parts = [f"scans in {self.scans_in}, integrated {self.integrated}, dropped {self.dropped_total}"
+                 f"{f' ({reasons})' if reasons else ''}",
+                 f"odometry in {self.odometry_in} (rejected {self.odometry_rejected})", f"queue {self.queue}",
+                 f"map voxels {self.map_voxels}"]
+        if self.integrated:
+            parts.append(f"last update {self.last_update_ms:.0f} ms")
+        if self.maps_published:
+            parts.append(f"last map publish {self.last_publish_ms:.0f} ms")
+        parts.append(f"queue peak {self.queue_peak}")
+        if self.cycles_published:
+            parts.append(f"cycle median {self.median_cycle_ms:.0f} ms")
+        odometry = self.odometry_text()
+        return ", ".join(parts + ([odometry] if odometry else []))
 
     def odometry_text(self) -> str:
-        """How the odometry arrives, for the counters line."""
-        gap = f"longest gap between arrivals {self.odometry_gap_ms_max:.0f} ms"
+        """How the odometry arrives, for the counters line ("" before any has)."""
+        if self.odometry_in - self.odometry_rejected <= 0:
+            return ""
+        gap = f"longest gap between odometry arrivals {self.odometry_gap_ms_max:.0f} ms"
+        if not self.odometry_delay_measured:
+            return gap
         if abs(self.odometry_delay_ms_median) > PLAUSIBLE_DELAY_MS:
             return f"odometry stamps not in the node's clock (a bag without /clock and use_sim_time?), {gap}"
         return (f"odometry delay median {self.odometry_delay_ms_median:.0f} ms "
@@ -129,6 +146,8 @@ class MapperStatus:
     # matches each side of a connection on its own: a player's writer can count this reader
     # while the reader has not yet matched the writer, and what is sent meanwhile is lost.
     publishers: dict[str, int] = field(default_factory=dict)
+    cycles_published: int = 0
+    odometry_delay_measured: bool = True  # False on use_sim_time (see Snapshot)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _dropped_at_last_report: int = 0
 
@@ -181,6 +200,7 @@ class MapperStatus:
                 self.maps_published += 1
                 self.publish_ms.append(milliseconds)
             else:
+                self.cycles_published += 1
                 self.cycle_ms.append(milliseconds)
 
     def snapshot(self, queue: int, waiting_for_pose: int, map_voxels: int, map_version: int) -> Snapshot:
@@ -193,7 +213,8 @@ class MapperStatus:
                 self.publish_ms[-1] if self.publish_ms else 0.0,
                 statistics.median(self.publish_ms) if self.publish_ms else 0.0,
                 self.maps_published, statistics.median(self.cycle_ms) if self.cycle_ms else 0.0, map_version,
-                *self._odometry_delays(), dict(self.publishers))
+                *self._odometry_delays(), dict(self.publishers), self.cycles_published,
+                self.odometry_delay_measured)
 
     def _odometry_delays(self) -> tuple[float, float, float]:
         """(median delay, largest delay, longest arrival gap) of the recent odometry, in ms (lock held)."""

@@ -43,17 +43,31 @@ class Verdict(Enum):
     NO_TRANSFORM = "no transform"  # its odometry is known, the TF it needs did not come in time
 
 
+# Drop reasons of a cloud whose odometry is known but whose TF never came (Verdict.NO_TRANSFORM):
+NO_MOUNT = "no mount"  # the sensor's mount on the odometry's child frame (base_to_sensor or /tf_static)
+NO_MAP_TRANSFORM = "no transform"  # map_frame -> the odometry's frame, or map_frame -> the cloud's frame
+
+
+@dataclass(frozen=True)
+class Missing:
+    """What a cloud's placement still lacks: the drop reason (``NO_MOUNT``, ``NO_MAP_TRANSFORM``),
+    the name the log, /diagnostics and the docs give it, and the detail in words."""
+
+    reason: str
+    detail: str
+
+
 @dataclass
 class Decision:
     pending: PendingCloud
     verdict: Verdict
     lookup: PoseLookup | None = None
     pose: np.ndarray | None = None  # PLACE: the cloud frame's pose in the map frame
-    why: str = ""  # NO_TRANSFORM: what is missing
+    missing: Missing | None = None  # NO_TRANSFORM: what is missing
 
 
 # A cloud's pose in the map once its odometry is known: (pose, None), or (None, what is missing).
-Placer = Callable[[PendingCloud, PoseLookup], tuple[np.ndarray | None, str | None]]
+Placer = Callable[[PendingCloud, PoseLookup], tuple[np.ndarray | None, Missing | None]]
 
 
 @dataclass
@@ -174,11 +188,11 @@ class CloudQueue:
                 continue
             if lookup.status is not PoseStatus.FOUND:
                 return Decision(self._take(position), Verdict.NO_POSE, lookup)
-            pose, why = self.placer(pending, lookup)
+            pose, missing = self.placer(pending, lookup)
             if pose is not None:
                 return Decision(self._take(position), Verdict.PLACE, lookup, pose)
             if expired(pending, self.transform_timeout):
-                return Decision(self._take(position), Verdict.NO_TRANSFORM, lookup, why=why or "")
+                return Decision(self._take(position), Verdict.NO_TRANSFORM, lookup, missing=missing)
             self.waiting_for_transform = True
         return None
 
@@ -261,14 +275,14 @@ class SensorFrames:
         return pose, None
 
     def place(self, odometry_frame: str, lookup: PoseLookup, cloud_frame: str,
-              stamp: int) -> tuple[np.ndarray | None, str | None]:
+              stamp: int) -> tuple[np.ndarray | None, Missing | None]:
         """The cloud frame's pose in the map: TF's map <- odometry frame, the odometry, the mount."""
         mount, why = self.mount(lookup.child_frame_id, cloud_frame, stamp)
         if mount is None:
-            return None, why
+            return None, Missing(NO_MOUNT, why)
         in_front, why = self.map_from(odometry_frame, stamp)
         if in_front is None:
-            return None, why
+            return None, Missing(NO_MAP_TRANSFORM, why)
         return in_front @ lookup.pose @ mount, None
 
     def locate(self, cloud_frame: str, stamp: int) -> PoseLookup:

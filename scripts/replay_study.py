@@ -31,7 +31,8 @@ from pathlib import Path
 from convbki_core.paths import config_dir
 from convbki_ros.tools.demo import COUNTERS, LineReader
 
-ODOMETRY_DELAY = re.compile(r"odometry delay median (\d+) ms \(max (\d+)\), longest gap between arrivals (\d+) ms")
+ODOMETRY_DELAY = re.compile(r"odometry delay median (\d+) ms \(max (\d+)\), longest gap between odometry arrivals "
+                            r"(\d+) ms")
 
 
 class DiagnosticsWatch:

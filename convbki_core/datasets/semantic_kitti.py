@@ -139,11 +139,11 @@ class SemanticKittiSequence:
             raise DatasetError(f"{velodyne}: no .bin scans")
         self.names = [path.stem for path in self.scan_files]
 
+        # What a user should know about how the files were read (one line each), e.g. poses not used.
+        self.notices: list[str] = []
         self.calibration = read_calibration(self.folder / "calib.txt")
-        self.poses = read_poses(self.folder / "poses.txt", self.calibration)
-        # One pose per scan, exactly: a longer or shorter file belongs to another sequence or cut.
-        if len(self.poses) != len(self.scan_files):
-            raise DatasetError(f"{self.folder / 'poses.txt'}: {len(self.poses)} poses for {len(self.scan_files)} scans")
+        self.poses = self._one_per_scan(read_poses(self.folder / "poses.txt", self.calibration),
+                                        self.folder / "poses.txt", "poses")
         self.times = self._read_times()
 
         self.labels_folder = self.folder / "labels"
@@ -167,9 +167,29 @@ class SemanticKittiSequence:
             times = np.array([float(line) for line in path.read_text().split()], dtype=np.float64)
         except ValueError:
             raise DatasetError(f"{path}: holds something that is not a number") from None
-        if len(times) != len(self.scan_files):
-            raise DatasetError(f"{path}: {len(times)} times for {len(self.scan_files)} scans")
-        return times
+        return self._one_per_scan(times, path, "times")
+
+    def _one_per_scan(self, rows: np.ndarray, path: Path, what: str) -> np.ndarray:
+        """The rows of a per-scan file (poses.txt, times.txt), one per scan. A file with one row
+        per scan is read in order. A longer one is the whole sequence's, beside only some of its
+        scans (a partial download, a published excerpt): row k belongs to scan NNNNNN = k, so the
+        scans must be numbered; the rows not used are said in ``notices``. Fewer rows than scans
+        belong to another sequence or cut: an error."""
+        scans = len(self.scan_files)
+        if len(rows) == scans:
+            return rows
+        if len(rows) < scans:
+            raise DatasetError(f"{path}: {len(rows)} {what} for {scans} scans")
+        if not all(name.isdigit() for name in self.names):
+            raise DatasetError(f"{path}: {len(rows)} {what} for {scans} scans, and the scans' names are not their "
+                               f"numbers in the sequence (e.g. {next(n for n in self.names if not n.isdigit())}.bin)")
+        numbers = np.array([int(name) for name in self.names])
+        if numbers.max() >= len(rows):
+            raise DatasetError(f"{path}: {len(rows)} {what}, none for scan {self.names[int(numbers.argmax())]} "
+                               f"(row {numbers.max() + 1})")
+        self.notices.append(f"{path}: {len(rows)} {what} for {scans} numbered scans: row k used for scan k, "
+                            f"{len(rows) - scans} not used")
+        return rows[numbers]
 
     def __len__(self) -> int:
         return len(self.scan_files)

@@ -28,10 +28,13 @@ files written on this host are ever removed; another machine's are left alone.
 
 from __future__ import annotations
 
+import errno
+import itertools
 import os
 import shutil
 import socket
 import tempfile
+import time
 import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -149,22 +152,54 @@ def temp_files(path: str | Path) -> list[Path]:
         return []
 
 
-def remove_stale_temp_files(path: str | Path) -> int:
-    """Remove ``path``'s temporary files left by processes that no longer exist; returns how many."""
-    removed = 0
+def remove_stale_temp_files(path: str | Path, own_too: bool = False) -> list[tuple[Path, int]]:
+    """Remove ``path``'s temporary files left by processes that no longer exist; returns each
+    removed file with its size in bytes. ``own_too``: this process's files count as stale too,
+    for a program that has not started writing ``path`` yet (in a container every start may get
+    the same process id as the run that was killed)."""
+    removed = []
     prefix = temp_prefix(path)
     for candidate in temp_files(path):
         owner = ".".join(candidate.name[len(prefix):].split(".")[:2])
-        if not _stale_writer(owner):
+        if not (_stale_writer(owner) or (own_too and owner == writer_tag())):
             continue  # not one of ours, another host's, or its writer may still be writing it
         try:
+            size = candidate.stat().st_size
             candidate.unlink()
-            removed += 1
+            removed.append((candidate, size))
         except FileNotFoundError:
             pass  # another writer cleaned it first
         except OSError:
             pass  # cannot remove it (read-only folder): the save itself will report that
     return removed
+
+
+def set_aside(path: str | Path, why: str) -> Path:
+    """Move ``path`` to a name of its own beside it, ``NAME.WHY-YYYYmmddTHHMMSSZ`` (UTC; ``-2``,
+    ``-3``, ... appended when that name is taken), never over another file; returns the new path.
+
+    The new name is taken with a hard link, which fails rather than replace an existing file,
+    and the old name is then removed; where the file system has no hard links, a rename to a
+    name checked to be free."""
+    path = Path(path)
+    base = f"{path.name}.{why}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}"
+    for number in itertools.count(1):
+        target = path.with_name(base if number == 1 else f"{base}-{number}")
+        try:
+            os.link(path, target, follow_symlinks=False)
+        except FileExistsError:
+            continue
+        except OSError as error:
+            if error.errno not in (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EMLINK, errno.EXDEV):
+                raise
+            if os.path.lexists(target):
+                continue
+            os.rename(path, target)
+        else:
+            os.unlink(path)
+        _fsync_folder(path.parent if str(path.parent) else Path("."))
+        return target
+    raise AssertionError("unreachable")
 
 
 def staging_prefix(final: str | Path) -> str:

@@ -40,6 +40,48 @@ class MapFileError(ValueError):
     """A map file that cannot be loaded; the message names the file and the problem."""
 
 
+@dataclass(frozen=True)
+class SetupDifference:
+    """One way a readable map file's set-up differs from a mapper's: ``what`` (resolution,
+    num_classes, prior or frame_id), the file's value and the mapper's."""
+
+    what: str
+    in_file: object
+    here: object
+
+    def words(self) -> str:
+        """The difference in words, e.g. ``resolution 0.2 m in the file, 0.4 m here``."""
+        unit = " m" if self.what == "resolution" else ""
+        quote = "'" if self.what == "frame_id" else ""
+        return f"{self.what} {quote}{self.in_file}{quote}{unit} in the file, {quote}{self.here}{quote}{unit} here"
+
+
+class MapSetupError(MapFileError):
+    """A whole, readable map file built for another set-up (grid, classes, prior or frame) than
+    the mapper that would load it: not damaged, only not this mapper's. ``differences`` says how."""
+
+    def __init__(self, message: str, differences: list[SetupDifference]):
+        super().__init__(message)
+        self.differences = differences
+
+
+def setup_differences(metadata: dict, resolution: float, num_classes: int, prior: float,
+                      frame_id: str | None = None) -> list[SetupDifference]:
+    """How a map file's metadata (``read_map``) differs from a mapper's set-up: the classes, the
+    resolution, the prior and (when ``frame_id`` is known) the frame. Empty when it fits."""
+    differences = []
+    if metadata["num_classes"] != num_classes:
+        differences.append(SetupDifference("num_classes", metadata["num_classes"], num_classes))
+    if not np.isclose(float(metadata["resolution"]), resolution):
+        differences.append(SetupDifference("resolution", metadata["resolution"], resolution))
+    if metadata.get("prior") is not None and not np.isclose(float(metadata["prior"]), prior):
+        differences.append(SetupDifference("prior", metadata["prior"], prior))
+    in_file = metadata.get("frame_id") or None
+    if in_file and frame_id and in_file != frame_id:
+        differences.append(SetupDifference("frame_id", in_file, frame_id))
+    return differences
+
+
 @dataclass
 class MapSnapshot:
     """A copy of a map's contents, taken quickly; writing it to disk can then happen unlocked."""

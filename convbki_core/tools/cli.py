@@ -165,6 +165,13 @@ class NewOutputs:
         self.created.clear()
 
 
+def say_notices(prog: str, notices: Sequence[str]) -> None:
+    """What a user should know about how their input was read (``prog: note: ...`` on stderr,
+    one line each), e.g. a dataset's poses that were not used."""
+    for notice in notices:
+        print(f"{prog}: note: {notice}", file=sys.stderr)
+
+
 def progress(items: Iterable[T], total: int | None = None, description: str = "") -> Iterable[T]:
     """A tqdm progress bar on stderr (plain iteration when tqdm is missing)."""
     try:

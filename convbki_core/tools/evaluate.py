@@ -41,6 +41,7 @@ from convbki_core.tools.cli import (
     output_folder,
     progress,
     run,
+    say_notices,
     sequence_arg,
     window_bounds,
 )
@@ -351,6 +352,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     if args.save_map:
         check_writable_file(args.save_map, "--save-map")
     dataset = SemanticKittiSequence(args.dataset, args.sequence, args.predictions_dir, args.probabilities_dir)
+    say_notices(PROG, dataset.notices)
     if dataset.predictions_folder is None and dataset.probabilities_folder is None:
         raise UserError("no input segmentation: give --predictions-dir or --probabilities-dir")
     if not dataset.has_ground_truth:

@@ -43,6 +43,7 @@ from convbki_core.tools.cli import (
     positive,
     progress,
     run,
+    say_notices,
     sequence_arg,
     window_bounds,
 )
@@ -272,6 +273,7 @@ def _train_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
 
 def _dataset(args: argparse.Namespace, sequence: str) -> SemanticKittiSequence:
     dataset = SemanticKittiSequence(args.dataset, sequence, args.predictions_dir, args.probabilities_dir)
+    say_notices(PROG, dataset.notices)
     if not dataset.has_ground_truth:
         raise UserError(f"{dataset.folder}: no labels/ folder: training needs ground truth")
     if dataset.predictions_folder is None and dataset.probabilities_folder is None:

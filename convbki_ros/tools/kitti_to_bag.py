@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from convbki_core.io.atomic import remove_stale_staging_folders, staging_prefix
-from convbki_core.tools.cli import NewOutputs, UserError, frames_arg, progress, run, sequence_arg
+from convbki_core.tools.cli import NewOutputs, UserError, frames_arg, progress, run, say_notices, sequence_arg
 
 PROG = "kitti_to_bag"
 
@@ -173,6 +173,7 @@ def convert(args: argparse.Namespace) -> int:
     predictions = args.predictions_dir or (None if probabilities else DEFAULT_PREDICTIONS_DIR)
     sequence = SemanticKittiSequence(args.dataset, args.sequence, predictions_dir=predictions,
                                      probabilities_dir=args.probabilities_dir)
+    say_notices(PROG, sequence.notices)
     try:
         positions = parse_frames(args.frames, len(sequence))
     except ValueError as error:

@@ -58,8 +58,8 @@ from convbki_ros.tools.demo import LineReader, run_module
 PROG = "realtime_check"
 COUNTERS = re.compile(
     r"scans in (?P<scans_in>\d+), integrated (?P<integrated>\d+), dropped (?P<dropped>\d+)(?: \((?P<reasons>[^)]*)\))?"
-    r".*?, queue (?P<queue>\d+), map voxels (?P<voxels>\d+), last update (?P<update_ms>\d+) ms, "
-    r"last map publish (?P<publish_ms>\d+) ms(?:, queue peak (?P<queue_peak>\d+))?")
+    r".*?, queue (?P<queue>\d+), map voxels (?P<voxels>\d+)(?:, last update (?P<update_ms>\d+) ms)?"
+    r"(?:, last map publish (?P<publish_ms>\d+) ms)?, queue peak (?P<queue_peak>\d+)")
 REASON = re.compile(r"\s*(.+?) (\d+)$")
 
 
@@ -305,7 +305,7 @@ def _report(args, out: Path, scans: int, samples: list[dict], arrivals: dict, re
     # Counter lines while scans were arriving (the last ones repeat after the bag ended).
     busy = [s for s in samples if 0 < s["integrated"] < scans]
     update_ms = [s["update_ms"] for s in busy]
-    publish_ms = [s["publish_ms"] for s in busy if s["publish_ms"] > 0]
+    publish_ms = [s["publish_ms"] for s in busy if s.get("publish_ms", 0) > 0]
     listeners = {name: _listener_figures(LISTENERS[name], received) for name, received in arrivals.items()}
     figures = {
         "scans_in_bag": scans, "scans_in": last["scans_in"], "integrated": last["integrated"],

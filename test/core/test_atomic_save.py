@@ -20,6 +20,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import selectors
 import signal
 import subprocess
@@ -36,11 +37,13 @@ from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError
 from convbki_core.config import MapperConfig
+from convbki_core.io import atomic
 from convbki_core.io.atomic import (
     atomic_write_bytes,
     atomic_write_with,
     previous_path,
     remove_stale_temp_files,
+    set_aside,
     temp_files,
     writer_tag,
 )
@@ -254,8 +257,10 @@ def test_map_save_survives_kill_9_at_every_point_of_a_save(tmp_path):
             writer.kill()
             writer.wait()
     # The last writer, killed mid-save, left its temporary file; removing stale files removes it.
-    assert len(temp_files(path)) == 1
-    assert remove_stale_temp_files(path) == 1
+    stale = temp_files(path)
+    assert len(stale) == 1
+    sizes = [file.stat().st_size for file in stale]
+    assert remove_stale_temp_files(path) == list(zip(stale, sizes))
     assert temp_files(path) == []
 
 
@@ -273,6 +278,32 @@ def test_stale_temp_files_of_live_processes_and_other_names_are_kept(tmp_path):
     atomic_write_bytes(path, b"complete")
     assert path.read_bytes() == b"complete"
     assert not stale.exists() and mine.exists() and parent.exists() and other.exists() and remote.exists()
+    # A program that has not begun to write the file (a node at start) counts its own process's
+    # files as stale too: a killed run in a container may have had the same process id.
+    assert remove_stale_temp_files(path, own_too=True) == [(mine, len(b"partial"))]
+    assert parent.exists() and other.exists() and remote.exists()
+
+
+def test_a_file_set_aside_gets_a_name_of_its_own_and_never_replaces_another(tmp_path, monkeypatch):
+    path = tmp_path / "map.npz"
+    path.write_bytes(b"first")
+    first = set_aside(path, "unreadable")
+    assert re.fullmatch(r"map\.npz\.unreadable-\d{8}T\d{6}Z", first.name), first.name
+    assert first.read_bytes() == b"first" and not path.exists()
+    # Within one second (the clock held), each file still gets a name of its own, and a file
+    # already there under the next name is not replaced either.
+    monkeypatch.setattr(atomic.time, "strftime", lambda form, moment=None: "20261206T120000Z")
+    squatter = tmp_path / "map.npz.unreadable-20261206T120000Z-2"
+    squatter.write_bytes(b"someone else's")
+    kept = []
+    for content in (b"second", b"third", b"fourth"):
+        path.write_bytes(content)
+        kept.append(set_aside(path, "unreadable"))
+    assert [file.name for file in kept] == ["map.npz.unreadable-20261206T120000Z",
+                                            "map.npz.unreadable-20261206T120000Z-3",
+                                            "map.npz.unreadable-20261206T120000Z-4"]
+    assert [file.read_bytes() for file in kept] == [b"second", b"third", b"fourth"]
+    assert squatter.read_bytes() == b"someone else's" and first.read_bytes() == b"first"
 
 
 def test_failed_save_leaves_the_old_file_and_no_temp_file(tmp_path):

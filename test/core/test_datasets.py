@@ -77,6 +77,47 @@ def test_broken_sequences_give_clear_errors(tmp_path, damage, message):
         [dataset[i] for i in range(len(dataset))]
 
 
+def keep_only(folder, numbers) -> None:
+    """Remove every scan (and its labels) of a sequence folder but those numbered ``numbers``:
+    what a partial download of a sequence holds beside its whole poses.txt and times.txt."""
+    for sub in ("velodyne", "labels", "predictions"):
+        for path in (folder / sub).iterdir():
+            if int(path.stem) not in numbers:
+                path.unlink()
+
+
+def test_numbered_scans_beside_the_whole_sequence_s_poses_take_pose_k_for_scan_k(tmp_path):
+    rng = np.random.default_rng(2)
+    poses = [pose_about_z(0.2 * k, [3.0 * k, 1.0 - k, 0.1 * k]) for k in range(6)]
+    frames = [(rng.normal(size=(8, 3)), np.full(8, 40), np.full(8, 40)) for _ in poses]
+    times = [0.0, 0.11, 0.19, 0.32, 0.41, 0.5]
+    folder = write_sequence(tmp_path, "00", frames, poses, times=times)
+    whole = SemanticKittiSequence(tmp_path, "00")
+    assert whole.notices == []
+    keep_only(folder, {1, 3, 4})
+    partial = SemanticKittiSequence(tmp_path, "00")
+    assert partial.names == ["000001", "000003", "000004"]
+    np.testing.assert_allclose(partial.poses, whole.poses[[1, 3, 4]], atol=1e-12)
+    np.testing.assert_array_equal(partial.times, [0.11, 0.32, 0.41])
+    assert partial.notices == [f"{folder / name}: 6 {what} for 3 numbered scans: row k used for scan k, 3 not used"
+                               for name, what in (("poses.txt", "poses"), ("times.txt", "times"))]
+    np.testing.assert_allclose(partial[1].pose, poses[3], atol=1e-9)
+
+    # A scan with no row of its own, names that are not numbers, fewer poses than scans: errors.
+    (folder / "poses.txt").write_text("".join((folder / "poses.txt").read_text().splitlines(keepends=True)[:4]))
+    with pytest.raises(DatasetError, match=r"4 poses, none for scan 000004 \(row 5\)"):
+        SemanticKittiSequence(tmp_path, "00")
+    (folder / "poses.txt").write_text("".join((folder / "poses.txt").read_text().splitlines(keepends=True)[:2]))
+    with pytest.raises(DatasetError, match=r"2 poses for 3 scans$"):
+        SemanticKittiSequence(tmp_path, "00")
+    folder = write_sequence(tmp_path / "named", "00", frames[:2], poses)
+    for sub in ("velodyne", "labels", "predictions"):
+        for path in sorted((folder / sub).iterdir()):
+            path.rename(path.with_name(f"scan_{path.name}"))
+    with pytest.raises(DatasetError, match=r"6 poses for 2 scans, and the scans' names are not their numbers"):
+        SemanticKittiSequence(tmp_path / "named", "00")
+
+
 def test_missing_folders_are_named(tmp_path):
     with pytest.raises(DatasetError, match="dataset folder not found"):
         SemanticKittiSequence(tmp_path / "nowhere", "00")

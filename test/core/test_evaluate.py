@@ -96,6 +96,36 @@ def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys
     assert "road" in printed and "mIoU" in printed
 
 
+def test_evaluate_maps_a_partial_sequence_with_the_whole_sequence_s_poses(tmp_path, capsys):
+    """Scans 2-4 of a 6-scan drive beside its whole poses.txt (a partial download): pose k is
+    used for scan k, one line says how many were not, and the scores equal those of frames 2:5
+    of the whole drive."""
+    import shutil
+
+    write_drive(tmp_path / "whole", "08", frames=6)
+    partial = tmp_path / "partial" / "sequences" / "08"
+    shutil.copytree(tmp_path / "whole" / "sequences" / "08", partial)
+    for sub in ("velodyne", "labels", "predictions"):
+        for path in (partial / sub).iterdir():
+            if int(path.stem) not in (2, 3, 4):
+                path.unlink()
+    reports = {}
+    runs = (("whole", tmp_path / "whole", ["--frames", "2:5"]), ("partial", tmp_path / "partial", []))
+    for name, root, frames in runs:
+        report = tmp_path / f"{name}.json"
+        assert evaluate.main(["--dataset", str(root), "--sequence", "08", "--report", str(report), "--quiet",
+                              *SMALL_WINDOW, *frames]) == 0
+        reports[name] = json.loads(report.read_text())
+        notes = [line for line in capsys.readouterr().err.splitlines() if "note:" in line]
+        assert notes == ([] if name == "whole" else
+                         [f"evaluate: note: {partial / 'poses.txt'}: 6 poses for 3 numbered scans: row k used for "
+                          "scan k, 3 not used"]), notes
+    assert reports["partial"]["frames"] == reports["whole"]["frames"] == 3
+    for part in ("input", "map"):
+        assert reports["partial"][part]["iou"] == reports["whole"][part]["iou"], part
+        assert reports["partial"][part]["miou"] == reports["whole"][part]["miou"] > 0
+
+
 def test_evaluate_compares_several_kernels(tmp_path):
     write_drive(tmp_path / "data", "00", frames=3)
     kernels = [str(kernel_path(name)) for name in ("semantic_kitti_sbki", "semantic_kitti_compound")]

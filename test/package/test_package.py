@@ -322,6 +322,26 @@ def test_node_reference_documents_every_parameter() -> None:
     assert {spec.name for spec in PARAMETERS} <= rows
 
 
+def test_every_drop_reason_of_the_node_is_documented() -> None:
+    """The reasons the node counts drops by (``dropped.<reason>`` on /diagnostics, the counters
+    line and the drop warnings) are the ones docs/node.md lists: every reason the code passes to
+    ``MapperStatus.drop``, as a literal or through a constant, is in the docs' list."""
+    import ast
+
+    from convbki_ros import mapping, sync
+
+    reasons = set(mapping.DROP_REASONS.values()) | {sync.NO_MOUNT, sync.NO_MAP_TRANSFORM}
+    for node in ast.walk(ast.parse(Path(mapping.__file__).read_text())):
+        if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "drop" and node.args \
+                and isinstance(node.args[0], ast.Constant):
+            reasons.add(node.args[0].value)
+    docs = (REPO / "docs" / "node.md").read_text()
+    row = next(line for line in docs.splitlines() if line.startswith("| `dropped.<reason>` |"))
+    listed = set(row.split("|")[2].split(":", 1)[1].replace("`", "").replace(" ", "").split(","))
+    assert {reason.replace(" ", "") for reason in reasons} <= listed, sorted(reasons)
+    assert len(reasons) >= 14
+
+
 def test_every_program_takes_its_mapping_defaults_from_one_configuration() -> None:
     """One set of defaults (``MapperConfig``): the node's declared parameters, the shipped
     parameters file, ``evaluate``'s and ``train``'s flags and a mapper built without settings

@@ -132,6 +132,34 @@ def test_kitti_to_bag_round_trip(dataset, tmp_path: Path, storage: str, capsys) 
         assert (qos["reliability"], qos["durability"], qos["history"]) == ("reliable", durability, "keep_last")
 
 
+def test_kitti_to_bag_of_a_partial_sequence_uses_pose_k_for_scan_k(dataset, tmp_path: Path, capsys) -> None:
+    """Scans 1 and 2 of the 4 beside the whole poses.txt and times.txt: the bag carries their own
+    poses and stamps, and one line says how many poses were not used."""
+    import shutil
+
+    from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+
+    root, frames, _ = dataset
+    partial = tmp_path / "partial"
+    shutil.copytree(root / "sequences" / "08", partial / "sequences" / "08")
+    for sub in ("velodyne", "labels", "predictions", "probabilities"):
+        for path in (partial / "sequences" / "08" / sub).iterdir():
+            if int(path.stem) not in (1, 2):
+                path.unlink()
+    out = tmp_path / "bag"
+    assert convert("--dataset", partial, "--sequence", "08", "--out", out) == 0
+    assert f"kitti_to_bag: note: {partial / 'sequences' / '08' / 'poses.txt'}: 4 poses for 2 numbered scans: row k " \
+        "used for scan k, 2 not used" in capsys.readouterr().err
+    messages, _, _ = read_bag(out)
+    whole = SemanticKittiSequence(root, "08")
+    odometry = messages["/kitti/odom"]
+    assert [timestamp for timestamp, _ in odometry] == [EPOCH_NS + round(TIMES[k] * 1e9) for k in (1, 2)]
+    for (_, odom), number in zip(odometry, (1, 2), strict=True):
+        assert np.allclose(odometry_to_pose(odom), whole[number].pose, atol=1e-12)
+    clouds = [decode_cloud(cloud).points for _, cloud in messages["/kitti/velo/pointcloud"]]
+    assert [points.tobytes() for points in clouds] == [frames[k][0].tobytes() for k in (1, 2)]
+
+
 def test_kitti_to_bag_probabilities_and_frames(dataset, tmp_path: Path) -> None:
     root, frames, probabilities = dataset
     out = tmp_path / "probs"

@@ -314,6 +314,10 @@ XYZ = [_field("x", 0, pc.FLOAT32), _field("y", 4, pc.FLOAT32), _field("z", 8, pc
      r"incomplete probability fields for 1 classes: unexpected prob_1"),
     ({"fields": XYZ + [_field("prob_0", 12, pc.UINT32)]}, 1, r"'prob_0' has unsupported datatype uint32"),
     ({"height": 2, "width": 2, "row_step": 30}, None, r"row_step 30 is smaller than width \* point_step = 32"),
+    # One row or two: the same answer (a row_step of 0 included).
+    ({"height": 1, "width": 4, "row_step": 60}, None, r"row_step 60 is smaller than width \* point_step = 64"),
+    ({"height": 1, "width": 4, "row_step": 0}, None, r"row_step 0 is smaller than width \* point_step = 64"),
+    ({"height": 2, "width": 2, "row_step": 0}, None, r"row_step 0 is smaller than width \* point_step = 32"),
 ])
 def test_malformed_clouds_are_refused_with_a_reason(changes, num_classes, message) -> None:
     with pytest.raises(pc.CloudError, match=message):

@@ -80,8 +80,8 @@ def test_a_cloud_whose_transform_never_comes_is_dropped_and_said(tmp_path):
         stats = rig.wait_stats(lambda s: s.dropped == 1)
         assert stats.integrated == 0 and stats.reasons == {"no transform": 1}, stats
         rig.wait_log(r"\[WARN\].*dropping cloud stamped 1001\.000 s in frame 'velo_link' after waiting "
-                     r"transform_timeout = 0\.3 s: no transform from map_frame 'map' to the odometry's 'odom' "
-                     r"\(frames 'map' and 'odom' are unknown\)", since=0)
+                     r"transform_timeout = 0\.3 s \(no transform\): no transform from map_frame 'map' to the "
+                     r"odometry's 'odom' \(frames 'map' and 'odom' are unknown\)", since=0)
 
         # transform_timeout 0 at run time: the next cloud waits (four reports, 0.8 s, outlast the
         # 0.3 s before) until map -> odom comes, and is then mapped.

@@ -20,7 +20,8 @@ STARTUP = "test_node_startup.py::test_every_bad_start_is_one_line_and_exit_2 via
 MAP_SETTINGS = "test_node_parameters.py::test_map_settings_at_start_shape_the_map_and_its_outputs"
 RUN_TIME = "test_node_parameters.py::test_queue_timing_and_robustness_settings_at_start_and_at_run_time"
 RESETS = "test_node_robustness.py::test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm"
-UNREADABLE = "test_node_robustness.py::test_an_unreadable_map_file_gives_an_empty_map_or_a_refusal"
+UNREADABLE = "test_node_robustness.py::test_bad_map_files_met_in_three_starts_are_each_set_aside_under_a_name_of_" \
+    "their_own"
 OVERRIDES = "test_node_startup.py::test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_effect"
 FILES = "test_node_files.py::test_load_map_clear_box_and_a_run_time_map_file_show_in_the_published_map"
 
@@ -76,6 +77,8 @@ SET_AT_START = {
     "reset_on_stamp_backwards": RESETS,
     "odometry_timeout": RESETS,
     "refuse_bad_map_file": UNREADABLE,
+    "map_file_mismatch": "test_node_robustness.py::test_a_map_of_another_set_up_stops_the_start_and_two_mistaken_" \
+                         "restarts_lose_no_map",
 }
 
 # parameter: the test that changes it while the node runs (set_parameters, ros2 param set)

@@ -21,15 +21,19 @@ def snapshot(**changes) -> Snapshot:
                   odometry_rejected=2, queue=5, queue_peak=7, waiting_for_pose=1, map_voxels=2186145,
                   last_update_ms=12.4, median_update_ms=11.0, last_publish_ms=309.7, median_publish_ms=300.0,
                   maps_published=40, median_cycle_ms=25.0, map_version=146, odometry_delay_ms_median=3.0,
-                  odometry_delay_ms_max=9.0, odometry_gap_ms_max=120.0)
+                  odometry_delay_ms_max=9.0, odometry_gap_ms_max=120.0, cycles_published=12)
     return Snapshot(**{**values, **changes})
 
 
 def expected_sample(counters: Snapshot) -> dict:
-    return {"scans_in": counters.scans_in, "integrated": counters.integrated, "dropped": counters.dropped_total,
-            "queue": counters.queue, "voxels": counters.map_voxels, "update_ms": round(counters.last_update_ms),
-            "publish_ms": round(counters.last_publish_ms), "queue_peak": counters.queue_peak,
-            "reasons": counters.dropped}
+    sample = {"scans_in": counters.scans_in, "integrated": counters.integrated, "dropped": counters.dropped_total,
+              "queue": counters.queue, "voxels": counters.map_voxels, "queue_peak": counters.queue_peak,
+              "reasons": counters.dropped}
+    if counters.integrated:
+        sample["update_ms"] = round(counters.last_update_ms)
+    if counters.maps_published:
+        sample["publish_ms"] = round(counters.last_publish_ms)
+    return sample
 
 
 def test_the_node_s_counters_line_is_read_back() -> None:
@@ -43,6 +47,25 @@ def test_the_node_s_counters_line_is_read_back() -> None:
     assert "odometry stamps not in the node's clock" in line
     assert parse_counters(line) == expected_sample(none_dropped)
     assert parse_counters("[INFO] [1.0] [convbki_mapper]: ConvBKI mapper ready: compound kernel") is None
+
+
+def test_the_counters_line_leaves_out_what_was_not_measured() -> None:
+    """Before anything was integrated or published, and on simulated time (a bag's /clock is set
+    to the stamps it plays), the line shows no update, publish, cycle or odometry delay figure
+    rather than a 0; each figure appears once it is measured."""
+    replay = snapshot(integrated=0, maps_published=0, cycles_published=0, odometry_delay_measured=False,
+                      last_update_ms=0.0, last_publish_ms=0.0, median_cycle_ms=0.0, odometry_delay_ms_median=0.0,
+                      odometry_delay_ms_max=0.0)
+    line = replay.line()
+    for unmeasured in ("last update", "last map publish", "cycle median", "odometry delay", "0 ms,"):
+        assert unmeasured not in line, line
+    assert line.endswith("queue peak 7, longest gap between odometry arrivals 120 ms"), line
+    assert parse_counters(logged(replay)) == expected_sample(replay)
+    # No odometry at all (pose_source tf): no odometry figures either.
+    assert snapshot(odometry_in=0, odometry_rejected=0).line().endswith("cycle median 25 ms")
+    measured = snapshot(last_update_ms=31.0, last_publish_ms=88.0, median_cycle_ms=14.0)
+    assert ("last update 31 ms, last map publish 88 ms, queue peak 7, cycle median 14 ms, odometry delay median 3 ms "
+            "(max 9), longest gap between odometry arrivals 120 ms") in measured.line()
 
 
 def test_listeners_argument() -> None:
