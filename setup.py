@@ -80,6 +80,7 @@ setup(
             "evaluate = convbki_core.tools.evaluate:main",
             "train = convbki_core.tools.train:main",
             "synth = convbki_core.tools.synth:main",
+            "label_noise = convbki_core.tools.label_noise:main",
             "bench = convbki_core.tools.bench:main",
             "map_tool = convbki_core.tools.map_tool:main",
             "realtime_check = convbki_ros.tools.realtime_check:main",

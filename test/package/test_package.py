@@ -37,6 +37,8 @@ EXECUTABLES: dict[str, tuple[str, tuple[str, ...]]] = {
         "--dataset", "--sequences", "--kernel", "--out", "--frames-per-sample", "--epochs",
         "--lr")),
     "synth": ("convbki_core.tools.synth", ("--out", "--sequence", "--frames", "--seed")),
+    "label_noise": ("convbki_core.tools.label_noise", (
+        "--dataset", "--sequence", "--out", "--input-miou", "--seed", "--predictions-dir", "--frames")),
     "bench": ("convbki_core.tools.bench", ("--config", "--repeat", "--json")),
     "map_tool": ("convbki_core.tools.map_tool", (
         "info", "merge", "export-ply", "--json", "--out", "--force", "--max-variance", "--quiet")),
@@ -59,6 +61,7 @@ VALID_ARGS = {
     "evaluate": ["--dataset", "ds", "--sequence", "8", "--report", "r.json"],
     "train": ["--dataset", "ds", "--sequences", "0", "--out", "k.yaml"],
     "synth": ["--out", "ds"],
+    "label_noise": ["--dataset", "ds", "--sequence", "5", "--out", "o"],
     "bench": ["--repeat", "1"],
     "map_tool": ["info", "map.npz"],
     "realtime_check": ["--frames", "10", "--listeners", "map,variance", "--busy-cores", "1"],
