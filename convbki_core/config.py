@@ -49,6 +49,11 @@ class FreeSpaceConfig:
     enabled: bool = True
     max_concentration: float = 300.0
     forget_movers: bool = True
+    # A return contradicts a movable voxel (the movers' first rule) only where this scan has no
+    # return of a movable class within this many metres (horizontally): where the object is in
+    # view, a return of another class on it is the input's label noise, not a change (0: no
+    # such condition, every contradicting return resets).
+    contradiction_radius: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -82,6 +87,7 @@ _FLAT = {
     "filter_size": ("window", "filter_size"), "prior": ("window", "prior"),
     "free_space": ("free_space", "enabled"), "max_concentration": ("free_space", "max_concentration"),
     "forget_movers": ("free_space", "forget_movers"),
+    "contradiction_radius": ("free_space", "contradiction_radius"),
     "device": ("compute", "device"), "update_path": ("compute", "update_path"),
     "track_changes": ("store", "track_changes"),
     "label_map": ("classes", "label_map"), "ignore_classes": ("classes", "ignore_classes"),

@@ -20,15 +20,23 @@ grid: 0 free .. 100 lethal, -1 unknown. Per column:
 3. **The band.** Voxels from ``min_obstacle_height`` above the ground up to
    ``robot_height`` can be in the robot's way; a kerb lower than the first, or a canopy
    above the second, is not.
-4. **Expected cost.** An occupied voxel's cost is the expectation of the class cost under
-   its Dirichlet posterior given that it is occupied, not the cost of its most likely class.
-   By the Dirichlet's aggregation property the occupied classes' share is again Dirichlet,
-   with the concentrations ``alpha_1 .. alpha_C`` and ``A = alpha0 - alpha_empty``:
-   ``E[cost] = sum alpha_c c_c / A`` and ``Var[cost] = (sum alpha_c c_c^2 / A - E^2) /
-   (A + 1)``. A risk margin adds ``risk_sigma`` standard deviations, so a voxel the map is
-   unsure about costs more than one it is sure about. (Conditioning on occupancy matters:
-   the rays that graze a fence leave empty-space evidence in its voxels, and the plain
-   expectation would call a 70 % fence voxel 70 % of an obstacle.)
+4. **The voxel's cost.** An occupied voxel's classes are read as kinds, as a planner reads
+   costs: free (a class cost of at most ``FREE_MAX``: road and parking for a car), costly
+   (between: a kerb-side surface) and lethal (at least ``LETHAL_MIN``: what stands in the way).
+   Given that the voxel is occupied, its Dirichlet posterior gives each kind an expected share
+   (the aggregation property: the occupied classes' share is again Dirichlet, with the
+   concentrations ``alpha_1 .. alpha_C`` summing to ``A = alpha0 - alpha_empty``), ``p_free``,
+   ``p_costly`` and ``p_lethal``. The voxel costs its most likely kind, read from the cheapest:
+   0 when ``p_free`` is over one half (a road whose evidence the input also called sidewalk
+   or terrain now and then is free, whatever that noise), else the mean cost of its costly
+   classes while ``p_lethal`` is under one half, else ``LETHAL`` (100). The
+   uncertainty goes where a planner needs it, near what stands in the way: ``p_lethal`` (from
+   the lethal classes' evidence, the prior left out) has the Beta posterior standard deviation
+   ``sqrt(p_lethal (1 - p_lethal) / (A + 1))``, and the voxel costs at least ``LETHAL *
+   (p_lethal + risk_sigma * sd)``: a road voxel with a little of a car's evidence costs a
+   little, one the map is unsure between road and car costs more the less it has seen.
+   (Conditioning on occupancy matters: the rays that graze a fence leave empty-space evidence
+   in its voxels, which must not make the fence a part-obstacle.)
 5. **The cell** costs the most of its ground voxel and its band voxels. A column with
    neither ground evidence nor anything occupied in its band (only empty space, or nothing
    seen) is unknown.
@@ -50,6 +58,10 @@ if HAVE_NUMBA:
 
 UNKNOWN = -1
 LETHAL = 100
+# Cost kinds, as a planner reads them (Nav2's map_server: free at most 25 of 100): a class cost of
+# at most FREE_MAX is free, of at least LETHAL_MIN lethal, and costly between.
+FREE_MAX = 25
+LETHAL_MIN = 90
 GROUND_SHARE = 0.5  # an occupied voxel is ground when the ground classes hold more than this share
 EMPTY_SHARE = 0.75  # a voxel is empty space when class 0 (seen empty by rays) holds more than this share
 NEIGHBOUR_PASSES = 3  # how many cells away a hidden column looks for its ground height
@@ -69,7 +81,7 @@ class TraversabilityProfile:
     ground_classes: tuple[int, ...]
     robot_height: float = 2.0  # metres above the ground in which evidence is in the way
     min_obstacle_height: float = 0.25  # metres: lower steps (a kerb) are not obstacles
-    risk_sigma: float = 1.0  # standard deviations of the cost added as a margin
+    risk_sigma: float = 1.0  # standard deviations of the lethal share added as a margin
     # Voxels with less evidence than this (summed kernel weights of the points, past the prior)
     # are left out as unobserved: the kernel spreads a surface's evidence thinly over the
     # voxels around it, and such a voxel would pass for ground or obstacle on a whiff.
@@ -129,19 +141,61 @@ class ColumnCosts:
     ground: np.ndarray
 
 
-def _moment_weights(profile: TraversabilityProfile) -> np.ndarray:
-    """(5, C) float64: the weights of alpha0, sum alpha c, sum alpha c^2, the ground classes'
-    alpha and class 0's alpha."""
+# The sums each voxel's cost is read from (its "moments"), rows of ``_moment_weights``: every
+# class (alpha0); the free and the costly kinds' classes (class 0, empty space, in neither; the
+# lethal classes' sum is what the occupied concentration leaves); the costly classes weighted
+# by their costs; the ground classes; class 0.
+(_TOTAL, _FREE, _COSTLY, _COSTLY_COST, _GROUND_SUM, _EMPTY_SUM) = range(6)
+MOMENTS = 6
+# What a class adds its run to, in the compiled column pass (``_class_codes``): each common
+# set of moments has a loop of its own, so a lethal class's run is added once, not six times.
+_ONLY_TOTAL, _FREE_GROUND, _COSTLY_GROUND, _EMPTY_ONLY, _ANY_ROWS = range(5)
+
+
+def _kinds(profile: TraversabilityProfile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(C,) bool each: the free, costly and lethal classes of a profile (class 0 in none)."""
     costs = profile.class_costs.astype(np.float64)
+    free, lethal = costs <= FREE_MAX, costs >= LETHAL_MIN
+    costly = ~free & ~lethal
+    for kind in (free, costly, lethal):
+        kind[0] = False
+    return free, costly, lethal
+
+
+def _moment_weights(profile: TraversabilityProfile) -> np.ndarray:
+    """(MOMENTS, C) float64: per row, each class's weight in that sum."""
+    costs = profile.class_costs.astype(np.float64)
+    free, costly, _ = _kinds(profile)
     ground = np.zeros(len(costs))
     ground[list(profile.ground_classes)] = 1.0
     empty = np.zeros(len(costs))
     empty[0] = 1.0
-    return np.ascontiguousarray(np.stack([np.ones(len(costs)), costs, costs ** 2, ground, empty]))
+    return np.ascontiguousarray(np.stack([np.ones(len(costs)), free, costly, costly * costs, ground, empty])
+                                .astype(np.float64))
+
+
+def _class_codes(weights: np.ndarray) -> np.ndarray:
+    """(C,) int64: per class, which of the column pass's loops adds its run (the moments it
+    has a weight in): the total alone (a lethal class), the total, free and ground sums (road),
+    the total, costly, costly-cost and ground sums (sidewalk), the total and empty sums (class
+    0), or every moment with its weight (any other class)."""
+    codes = np.full(weights.shape[1], _ANY_ROWS, np.int64)
+    for c in range(weights.shape[1]):
+        used = tuple(np.flatnonzero(weights[:, c]).tolist())
+        exact = all(weights[k, c] == 1.0 for k in used if k != _COSTLY_COST)  # indicators, as they are
+        if used == (_TOTAL,) and exact:
+            codes[c] = _ONLY_TOTAL
+        elif used == (_TOTAL, _FREE, _GROUND_SUM) and exact:
+            codes[c] = _FREE_GROUND
+        elif used == (_TOTAL, _COSTLY, _COSTLY_COST, _GROUND_SUM) and exact:
+            codes[c] = _COSTLY_GROUND
+        elif used == (_TOTAL, _EMPTY_SUM) and exact:
+            codes[c] = _EMPTY_ONLY
+    return codes
 
 
 def _prior_moments(weights: np.ndarray, prior: float) -> np.ndarray:
-    """(5,) float64: the moments of a voxel whose every class holds the prior, summed in class order."""
+    """(MOMENTS,) float64: the moments of a voxel whose every class holds the prior, summed in class order."""
     base = np.zeros(weights.shape[0])
     prior = float(np.float32(prior))  # the window's float32 prior
     for c in range(weights.shape[1]):
@@ -150,11 +204,10 @@ def _prior_moments(weights: np.ndarray, prior: float) -> np.ndarray:
 
 
 def _moments(alpha: np.ndarray, profile: TraversabilityProfile, prior: float) -> np.ndarray:
-    """Per voxel: alpha0, sum alpha c, sum alpha c^2, the ground classes' alpha, class 0's
-    alpha; float64 (N, 5). Written as the prior's moments plus those of the evidence above
-    it, class by class in float64: a class at the prior adds exactly nothing, so the window's
-    kernel below skips it and computes the same sums, and a grid from the window equals the
-    grid of the same voxels saved."""
+    """Per voxel, the sums of ``_moment_weights``, float64 (N, MOMENTS). Written as the
+    prior's moments plus those of the evidence above it, class by class in float64: a class
+    at the prior adds exactly nothing, so the window's kernel below skips it and computes the
+    same sums, and a grid from the window equals the grid of the same voxels saved."""
     weights = _moment_weights(profile)
     base = _prior_moments(weights, prior)
     if HAVE_NUMBA:
@@ -167,9 +220,9 @@ if HAVE_NUMBA:
     @njit(nogil=True)
     def _row_moments(alpha, weights, prior, base):  # pragma: no cover - compiled
         rows, classes = alpha.shape
-        out = np.zeros((rows, 5))
+        out = np.zeros((rows, MOMENTS))
         for row in range(rows):
-            for k in range(5):
+            for k in range(MOMENTS):
                 total = base[k]
                 for c in range(classes):
                     above = np.float64(alpha[row, c]) - prior
@@ -179,17 +232,27 @@ if HAVE_NUMBA:
         return out
 
 
-def _voxel_risks(moments: np.ndarray, risk_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per voxel: its risk (the expected cost given that it is occupied, plus ``risk_sigma``
-    standard deviations, clipped to 0..100; 0 where it is empty space), whether it is
-    ground (the ground classes hold most of its occupied evidence) and whether it is empty."""
-    total = moments[:, 0]
-    occupied = np.maximum(total - moments[:, 4], np.finfo(np.float64).tiny)
-    is_empty = moments[:, 4] / total > EMPTY_SHARE
-    mean = moments[:, 1] / occupied
-    variance = np.maximum(moments[:, 2] / occupied - mean * mean, 0.0) / (occupied + 1.0)
-    risk = np.where(is_empty, 0.0, np.clip(mean + risk_sigma * np.sqrt(variance), 0.0, LETHAL))
-    is_ground = ~is_empty & (moments[:, 3] / occupied > GROUND_SHARE)
+def _lethal_prior(profile: TraversabilityProfile, prior: float) -> float:
+    """What the prior alone puts in the lethal classes' sum (left out of the lethal share)."""
+    return float(np.float32(prior)) * float(_kinds(profile)[2].sum())
+
+
+def _voxel_risks(moments: np.ndarray, risk_sigma: float, lethal_prior: float) -> tuple[np.ndarray, np.ndarray,
+                                                                                       np.ndarray]:
+    """Per voxel: its cost (the module docstring's rule 4; 0 where it is empty space), whether
+    it is ground (the ground classes hold most of its occupied evidence) and whether it is empty."""
+    total = moments[:, _TOTAL]
+    occupied = np.maximum(total - moments[:, _EMPTY_SUM], np.finfo(np.float64).tiny)
+    is_empty = moments[:, _EMPTY_SUM] / total > EMPTY_SHARE
+    lethal = np.maximum(occupied - moments[:, _FREE] - moments[:, _COSTLY], 0.0)
+    free, lethal_share = moments[:, _FREE] / occupied, np.minimum(lethal / occupied, 1.0)
+    kind_cost = np.where(free > 0.5, 0.0, np.where(
+        lethal_share < 0.5, moments[:, _COSTLY_COST] / np.maximum(moments[:, _COSTLY], np.finfo(np.float64).tiny),
+        LETHAL))
+    evidence = np.clip((lethal - lethal_prior) / occupied, 0.0, 1.0)
+    margin = LETHAL * (evidence + risk_sigma * np.sqrt(evidence * (1.0 - evidence) / (occupied + 1.0)))
+    risk = np.where(is_empty, 0.0, np.clip(np.maximum(kind_cost, margin), 0.0, LETHAL))
+    is_ground = ~is_empty & (moments[:, _GROUND_SUM] / occupied > GROUND_SHARE)
     return risk, is_ground, is_empty
 
 
@@ -202,12 +265,12 @@ def column_costs(indices: np.ndarray, alpha: np.ndarray, resolution: float,
     if not np.issubdtype(alpha.dtype, np.floating):
         alpha = alpha.astype(np.float64)
     moments = _moments(alpha, profile, prior)
-    evident = moments[:, 0] - prior * alpha.shape[1] >= profile.min_evidence
+    evident = moments[:, _TOTAL] - prior * alpha.shape[1] >= profile.min_evidence
     indices, moments = indices[evident], moments[evident]
     if not len(indices):
         empty = np.zeros((0, 2), np.int64)
         return ColumnCosts(empty, np.zeros(0, np.int8), np.zeros(0, np.int64))
-    risk, is_ground, is_empty = _voxel_risks(moments, profile.risk_sigma)
+    risk, is_ground, is_empty = _voxel_risks(moments, profile.risk_sigma, _lethal_prior(profile, prior))
     # Columns by a linear key (unique over one int64 is far faster than over rows).
     low = indices[:, :2].min(axis=0)
     span = indices[:, 1].max() - low[1] + 1
@@ -410,8 +473,9 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     if read_all:
         classes = np.zeros((size_x, size_y), np.uint64)
     weights = _moment_weights(profile)
+    codes = _class_codes(weights)
     rules = np.array([float(resolution), profile.min_obstacle_height, profile.robot_height, profile.min_evidence,
-                      profile.risk_sigma, float(prior) * alpha.shape[0]])
+                      profile.risk_sigma, float(prior) * alpha.shape[0], _lethal_prior(profile, prior)])
     base = _prior_moments(weights, prior)
     # In global order: row y of the grid is the column at origin + y (the torus unrolled).
     # Every cell is written when every column is read; a region leaves the rest unknown.
@@ -425,8 +489,8 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
     kept_risk = np.empty((size_x * size_y, mask.shape[2]))
     kept_kind = np.empty((size_x * size_y, mask.shape[2]), np.uint8)
     with parallel_region():
-        _grounded_columns(alpha, mask, origin, dims, weights, np.float32(prior), base, rules, classes, read_all,
-                          low, high, values, top, hidden, ground_z, kept_risk, kept_kind)
+        _grounded_columns(alpha, mask, origin, dims, codes, weights, np.float32(prior), base, rules, classes,
+                          read_all, low, high, values, top, hidden, ground_z, kept_risk, kept_kind)
     # The inner columns' hidden grounds only: the margin's would need neighbours not read.
     inner = hidden[inner_low[0]:inner_high[0], inner_low[1]:inner_high[1]]
     # C order whatever the count (argwhere's is F for two cells or more): one compiled signature.
@@ -442,7 +506,7 @@ _NO_VOXEL = np.iinfo(np.int64).max
 _EVIDENT, _GROUND, _EMPTY = 1, 2, 4
 _TINY = np.finfo(np.float64).tiny
 # The profile's numbers as the compiled passes take them (one float64 array).
-_RESOLUTION, _MIN_HEIGHT, _ROBOT_HEIGHT, _MIN_EVIDENCE, _RISK_SIGMA, _PRIOR_TOTAL = range(6)
+_RESOLUTION, _MIN_HEIGHT, _ROBOT_HEIGHT, _MIN_EVIDENCE, _RISK_SIGMA, _PRIOR_TOTAL, _LETHAL_PRIOR = range(7)
 
 if HAVE_NUMBA:
 
@@ -456,9 +520,10 @@ if HAVE_NUMBA:
         return evident
 
     @njit(nogil=True, inline="always")
-    def _add_run(alpha, c, x, y, read_all, weights, prior, sums):  # pragma: no cover - compiled
-        """Class c's run of the column into its moment ``sums`` (5, Z), as ``_row_moments`` adds
-        it (nothing where it holds the prior)."""
+    def _add_run(alpha, c, x, y, read_all, codes, weights, prior, sums):  # pragma: no cover - compiled
+        """Class c's run of the column into its moment ``sums`` (MOMENTS, Z), as ``_row_moments``
+        adds it (nothing where it holds the prior), to the moments it has a weight in only
+        (``_class_codes``: one loop per common set of them, each vectorised)."""
         size_z = alpha.shape[3]
         if read_all:
             held = False
@@ -467,14 +532,40 @@ if HAVE_NUMBA:
             if not held:
                 return
         prior64 = np.float64(prior)
-        w0, w1, w2, w3, w4 = weights[0, c], weights[1, c], weights[2, c], weights[3, c], weights[4, c]
-        for z in range(size_z):  # one contiguous run: vectorised
-            value = np.float64(alpha[c, x, y, z]) - prior64
-            sums[0, z] += value * w0
-            sums[1, z] += value * w1
-            sums[2, z] += value * w2
-            sums[3, z] += value * w3
-            sums[4, z] += value * w4
+        code = codes[c]
+        if code == _ONLY_TOTAL:
+            for z in range(size_z):
+                sums[_TOTAL, z] += np.float64(alpha[c, x, y, z]) - prior64
+        elif code == _FREE_GROUND:
+            for z in range(size_z):
+                value = np.float64(alpha[c, x, y, z]) - prior64
+                sums[_TOTAL, z] += value
+                sums[_FREE, z] += value
+                sums[_GROUND_SUM, z] += value
+        elif code == _COSTLY_GROUND:
+            cost = weights[_COSTLY_COST, c]
+            for z in range(size_z):
+                value = np.float64(alpha[c, x, y, z]) - prior64
+                sums[_TOTAL, z] += value
+                sums[_COSTLY, z] += value
+                sums[_COSTLY_COST, z] += value * cost
+                sums[_GROUND_SUM, z] += value
+        elif code == _EMPTY_ONLY:
+            for z in range(size_z):
+                value = np.float64(alpha[c, x, y, z]) - prior64
+                sums[_TOTAL, z] += value
+                sums[_EMPTY_SUM, z] += value
+        else:
+            w0, w1, w2 = weights[0, c], weights[1, c], weights[2, c]
+            w3, w4, w5 = weights[3, c], weights[4, c], weights[5, c]
+            for z in range(size_z):
+                value = np.float64(alpha[c, x, y, z]) - prior64
+                sums[0, z] += value * w0
+                sums[1, z] += value * w1
+                sums[2, z] += value * w2
+                sums[3, z] += value * w3
+                sums[4, z] += value * w4
+                sums[5, z] += value * w5
 
     @njit(nogil=True, inline="always")
     def _reads_class(c, runs, read_all):  # pragma: no cover - compiled
@@ -483,8 +574,23 @@ if HAVE_NUMBA:
         return read_all or c == 0 or ((runs >> np.uint64(c)) & np.uint64(1)) != 0
 
     @njit(nogil=True, inline="always")
+    def _voxel_cost(free, costly, costly_cost, occupied, rules):  # pragma: no cover - compiled
+        """``_voxel_risks``' cost of one occupied voxel from its moments."""
+        lethal = max(occupied - free - costly, 0.0)
+        lethal_share = min(lethal / occupied, 1.0)
+        if free / occupied > 0.5:
+            kind_cost = 0.0
+        elif lethal_share < 0.5:
+            kind_cost = costly_cost / max(costly, _TINY)
+        else:
+            kind_cost = np.float64(LETHAL)
+        evidence = min(max((lethal - rules[_LETHAL_PRIOR]) / occupied, 0.0), 1.0)
+        margin = LETHAL * (evidence + rules[_RISK_SIGMA] * np.sqrt(evidence * (1.0 - evidence) / (occupied + 1.0)))
+        return min(max(max(kind_cost, margin), 0.0), 100.0)
+
+    @njit(nogil=True, inline="always")
     def _column_kinds(sums, mask, x, y, origin, dims, rules, risk, kind):  # pragma: no cover - compiled
-        """One column's voxels (physical x, y) from their moment ``sums`` (5, Z by physical z):
+        """One column's voxels (physical x, y) from their moment ``sums`` (MOMENTS, Z by physical z):
         per step up the window (global z = origin z + step) its risk and kind bits
         (``_voxel_risks``' rules) into ``risk``, ``kind``; returns (its ground voxel's global z
         by ``column_costs``' rule, its lowest voxel's, whether it holds an occupied voxel that
@@ -500,19 +606,17 @@ if HAVE_NUMBA:
             z = z + 1 if z + 1 < size_z else 0
             if (mask[x, y, z] & EVIDENCE) == 0:
                 continue
-            m0, m1, m2, m3, m4 = sums[0, z], sums[1, z], sums[2, z], sums[3, z], sums[4, z]
-            if not m0 - rules[_PRIOR_TOTAL] >= rules[_MIN_EVIDENCE]:
+            total, empty = sums[_TOTAL, z], sums[_EMPTY_SUM, z]
+            if not total - rules[_PRIOR_TOTAL] >= rules[_MIN_EVIDENCE]:
                 continue
             low = min(low, global_z)
-            if m4 / m0 > EMPTY_SHARE:
+            if empty / total > EMPTY_SHARE:
                 risk[step] = 0.0
                 kind[step] = _EVIDENT | _EMPTY
                 continue
-            occupied = max(m0 - m4, _TINY)
-            mean = m1 / occupied
-            variance = max(m2 / occupied - mean * mean, 0.0) / (occupied + 1.0)
-            risk[step] = min(max(mean + rules[_RISK_SIGMA] * np.sqrt(variance), 0.0), 100.0)
-            if m3 / occupied > GROUND_SHARE:
+            occupied = max(total - empty, _TINY)
+            risk[step] = _voxel_cost(sums[_FREE, z], sums[_COSTLY, z], sums[_COSTLY_COST, z], occupied, rules)
+            if sums[_GROUND_SUM, z] / occupied > GROUND_SHARE:
                 kind[step] = _EVIDENT | _GROUND
                 ground_any = global_z
                 if not obstacle_seen:
@@ -523,7 +627,8 @@ if HAVE_NUMBA:
         return (ground_below if ground_below != _NO_GROUND else ground_any), low, obstacle_seen
 
     @njit(nogil=True, inline="always")
-    def _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base, rules, runs, read_all, sums, risk,
+    def _column_voxels(alpha, mask, x, y, origin, dims, codes, weights, prior, base, rules, runs, read_all, sums,
+                       risk,
                        kind):  # pragma: no cover - compiled
         """``_column_kinds`` of one column read on its own (``runs``: its class bits)."""
         if not _column_evident(mask, x, y, kind):
@@ -531,11 +636,11 @@ if HAVE_NUMBA:
         # Class by class along z: a class's run of the column is contiguous in memory, where the
         # classes of one voxel lie a whole class plane apart. A run at the prior adds nothing and
         # is skipped: most classes of a column hold no evidence.
-        for k in range(5):
+        for k in range(MOMENTS):
             sums[k, :] = base[k]
         for c in range(alpha.shape[0]):
             if _reads_class(c, runs, read_all):
-                _add_run(alpha, c, x, y, read_all, weights, prior, sums)
+                _add_run(alpha, c, x, y, read_all, codes, weights, prior, sums)
         return _column_kinds(sums, mask, x, y, origin, dims, rules, risk, kind)
 
     @njit(nogil=True, inline="always")
@@ -560,8 +665,9 @@ if HAVE_NUMBA:
         return np.int8(np.rint(min(max(cost, 0.0), 100.0))) if observed else np.int8(-1)
 
     @njit(parallel=True, nogil=True)
-    def _grounded_columns(alpha, mask, origin, dims, weights, prior, base, rules, classes, read_all, low, high,
-                          values, top, hidden, ground_z, kept_risk, kept_kind):  # pragma: no cover - compiled
+    def _grounded_columns(alpha, mask, origin, dims, codes, weights, prior, base, rules, classes, read_all, low,
+                          high, values, top, hidden, ground_z, kept_risk,
+                          kept_kind):  # pragma: no cover - compiled
         """Every column from ``low`` to ``high`` (x, y in global order, ``high`` excluded): its
         ground voxel into ``top``, its cell into ``values`` where it saw its own ground or holds
         no obstacle (then its ground does not matter); a hidden-ground column with an obstacle
@@ -571,7 +677,7 @@ if HAVE_NUMBA:
         into ``ground_z`` (for when no neighbour has ground); all in global order."""
         size_x, size_y, size_z = mask.shape
         for column_x in prange(low[0], high[0]):
-            sums = np.empty((5, size_z))  # the column's moments per physical z
+            sums = np.empty((MOMENTS, size_z))  # the column's moments per physical z
             risk = np.empty(size_z)
             kind = np.empty(size_z, np.uint8)
             kept = column_x * size_y  # the next free row of this x's share of the kept costs
@@ -579,8 +685,8 @@ if HAVE_NUMBA:
             y = (low[1] + origin[1]) % size_y - 1
             for column_y in range(low[1], high[1]):
                 y = y + 1 if y + 1 < size_y else 0
-                ground, lowest, obstacle = _column_voxels(alpha, mask, x, y, origin, dims, weights, prior, base,
-                                                          rules, classes[x, y], read_all, sums, risk, kind)
+                ground, lowest, obstacle = _column_voxels(alpha, mask, x, y, origin, dims, codes, weights, prior,
+                                                          base, rules, classes[x, y], read_all, sums, risk, kind)
                 top[column_x, column_y] = ground
                 hidden[column_x, column_y] = -1
                 if ground != _NO_GROUND:

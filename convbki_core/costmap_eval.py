@@ -32,10 +32,17 @@ from dataclasses import dataclass, field, replace
 import numba
 import numpy as np
 
-from convbki_core.costmap import LETHAL, UNKNOWN, CostGrid, TraversabilityProfile, column_costs, rasterise
+from convbki_core.costmap import (
+    FREE_MAX,
+    LETHAL,
+    LETHAL_MIN,
+    UNKNOWN,
+    CostGrid,
+    TraversabilityProfile,
+    column_costs,
+    rasterise,
+)
 
-FREE_MAX = 25
-LETHAL_MIN = 90
 COST_WEIGHT = 25.0
 GROUPS = ("free", "costly", "lethal")
 

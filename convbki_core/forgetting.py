@@ -7,15 +7,22 @@ the rays' reach, and the Dirichlet sum keeps them for as long as the drive lasts
    arrives in voxels that still hold the truck's evidence, and the query of the car's returns
    answers "truck" until the car has out-counted it. A road point where a bus stood meets
    the same. A movable class is the state of a voxel at one time, not what the voxel is, so
-   a return of another class in it says that the object has gone. For each voxel v holding
+   a return of another class in it can say that the object has gone. For each voxel v holding
    this scan's returns, with F[c, v] their class evidence, before the scan's update:
 
        if  m = argmax_{c >= 1} alpha[c, v]  is a movable class, v holds class evidence
-       (sum_{c >= 1} alpha[c, v] > C_1 a0), and  argmax_c F[c, v] != m:
+       (sum_{c >= 1} alpha[c, v] > C_1 a0), argmax_c F[c, v] != m, and
+       either no return of this scan within ``contradiction_radius`` (horizontally) of v is
+       of a movable class, or v is empty space (alpha[0, v] > 1/2 of its concentration):
            alpha[c, v] <- a0   for c = 1 .. C-1        (class 0, the free evidence, is kept)
 
-   Static classes keep the paper's sum: a wall that the input calls "fence" in one scan
-   is out-voted, not reset.
+   The radius tells label noise from change. Segmentation networks call a parked van "car"
+   in one scan and "other-vehicle" in the next, a truck's box "building" here and there:
+   while the object is in view some of its returns are of a movable class, and a return of
+   another class on it is the input's noise, which the paper's sum out-votes. Where no such
+   return is near, the object has gone (the road where a car stood), and where rays found the
+   voxel empty since, what is there now is new. Static classes keep the paper's sum: a wall
+   that the input calls "fence" in one scan is out-voted, not reset.
 
 2. **A mover needs support.** Vehicles and people stand on the ground. Rays cross the lower
    part of the space a bus swept, but no ray passes through its upper part once it has gone
@@ -77,10 +84,15 @@ class MoverForgetting:
     kernel's half width in voxels (how far a return's evidence spreads)."""
 
     def __init__(self, movable_classes, num_classes: int, prior: float, dims: np.ndarray, reach: int,
-                 resolution: float):
+                 resolution: float, near_radius: float = 0.0):
         self.movable = np.zeros(num_classes, np.bool_)
         self.movable[list(movable_classes)] = True
         self.movable[FREE_CLASS] = False
+        # Columns (in voxels, each way) around this scan's movable returns where no voxel is reset:
+        # the object is in view there, so a return of another class on it is a label, not a change.
+        # -1: no such condition.
+        self.near = int(np.ceil(near_radius / resolution - 1e-9)) if near_radius > 0 else -1
+        self._near_columns = np.zeros(tuple(np.asarray(dims, np.int64)[:2]), np.bool_)
         self.movable_bits = class_bits(np.flatnonzero(self.movable))
         self.prior = float(prior)
         self.dims = np.asarray(dims, np.int64)
@@ -107,6 +119,7 @@ class MoverForgetting:
         # Every class movable (class 0 never is), so that the rules find voxels to act on.
         small = MoverForgetting(np.arange(len(self.movable)), len(self.movable), self.prior, scratch.geometry.dims,
                                 self.reach, scratch.geometry.resolution)
+        small.near = self.near
         window = scratch.window
         for origin in (scratch.origin, *scratch.origins()):
             window.move_to(origin)
@@ -130,15 +143,23 @@ class MoverForgetting:
                 count = int(_contradicted_and_flag_numba(
                     window.alpha, volume.linear, np.asarray(volume.dims, np.int64),
                     np.asarray(volume.origin, np.int64), self.dims, volume.features, self.movable,
-                    np.float32(self.prior), self.columns, self.reach, held_by_column, movable_bits))
+                    np.float32(self.prior), self.columns, self.reach, held_by_column, movable_bits, self.near,
+                    self._near_columns))
             self.reset_voxels += count
             return count
         physical = np.mod(unravel_linear(volume.linear, volume.dims) + volume.origin, self.dims)
         seen = volume.features.argmax(axis=1)
-        if isinstance(window.alpha, torch.Tensor):
-            count = _contradicted_torch(window.alpha, physical, seen, self.movable, self.prior)
+        if self.near >= 0:  # near this scan's movable returns, only voxels that rays found empty
+            self._near_columns[:] = False
+            self._mark_around(self._near_columns, physical[self.movable[seen]], self.near, True)
+            candidates = ~self._near_columns[physical[:, 0], physical[:, 1]] | _empty_at(window.alpha, physical)
+            physical_tried, seen_tried = physical[candidates], seen[candidates]
         else:
-            count = _contradicted_numpy(window.alpha, physical, seen, self.movable, self.prior)
+            physical_tried, seen_tried = physical, seen
+        if isinstance(window.alpha, torch.Tensor):
+            count = _contradicted_torch(window.alpha, physical_tried, seen_tried, self.movable, self.prior)
+        else:
+            count = _contradicted_numpy(window.alpha, physical_tried, seen_tried, self.movable, self.prior)
         # Any movable evidence, also in a voxel whose returns are mostly static: its spread can
         # make a neighbour's most likely class a movable one.
         self._flag_around(physical[volume.features[:, self.movable].max(axis=1) > 0], _FLAGGED)
@@ -156,15 +177,20 @@ class MoverForgetting:
         return held_by_column, self.movable_bits
 
     def _flag_around(self, physical: np.ndarray, bits: int) -> None:
+        self._mark_around(self.columns, physical, self.reach, np.uint8(bits))
+
+    def _mark_around(self, target: np.ndarray, physical: np.ndarray, reach: int, value) -> None:
+        """``target[x, y] |= value`` for every column within ``reach`` columns (each way, on the
+        torus) of the voxels ``physical`` (M, 3)."""
         if not len(physical):
             return
         columns = np.unique(physical[:, 0] * self.dims[1] + physical[:, 1])
         x, y = columns // self.dims[1], columns % self.dims[1]
-        steps = np.arange(-self.reach, self.reach + 1)
+        steps = np.arange(-reach, reach + 1)
         xs = np.mod(x[:, None, None] + steps[None, :, None], self.dims[0])
         ys = np.mod(y[:, None, None] + steps[None, None, :], self.dims[1])
-        self.columns[np.broadcast_to(xs, (len(x), len(steps), len(steps))).reshape(-1),
-                     np.broadcast_to(ys, (len(x), len(steps), len(steps))).reshape(-1)] |= np.uint8(bits)
+        target[np.broadcast_to(xs, (len(x), len(steps), len(steps))).reshape(-1),
+               np.broadcast_to(ys, (len(x), len(steps), len(steps))).reshape(-1)] |= value
 
     def window_moved(self, origin: np.ndarray, mask) -> None:
         """The window now starts at global ``origin``: the columns it brought in (new x or y
@@ -215,12 +241,25 @@ class MoverForgetting:
         return count
 
 
+def _empty_at(alpha, physical: np.ndarray) -> np.ndarray:
+    """(M,) bool: the voxels at ``physical`` are empty space (class 0 holds more than
+    ``EMPTY_SHARE`` of their concentration), in the order the compiled rule sums them."""
+    x, y, z = physical.T
+    if isinstance(alpha, torch.Tensor):
+        index = torch.as_tensor(physical, device=alpha.device)
+        values = alpha[:, index[:, 0], index[:, 1], index[:, 2]]
+        rest = _occupied_sum(values[1:])
+        return (values[FREE_CLASS] > EMPTY_SHARE * (values[FREE_CLASS] + rest)).cpu().numpy()
+    values = alpha[:, x, y, z]
+    return values[FREE_CLASS] > np.float32(EMPTY_SHARE) * (values[FREE_CLASS] + _occupied_sum(values[1:]))
+
+
 def _contradicted_numpy(alpha, physical, seen, movable, prior) -> int:
     x, y, z = physical.T
     values = alpha[:, x, y, z]  # (C, M)
     occupied = values[1:]
     held = occupied.argmax(axis=0) + 1
-    has_evidence = occupied.sum(axis=0) > prior * occupied.shape[0] * (1 + 1e-6)
+    has_evidence = _occupied_sum(occupied) > np.float32(prior) * np.float32(occupied.shape[0]) * np.float32(1 + 1e-6)
     reset = movable[held] & has_evidence & (seen != held)
     if reset.any():
         alpha[1:, x[reset], y[reset], z[reset]] = prior
@@ -232,7 +271,8 @@ def _contradicted_torch(alpha, physical, seen, movable, prior) -> int:
     x, y, z = index[:, 0], index[:, 1], index[:, 2]
     occupied = alpha[1:, x, y, z]
     held = occupied.argmax(dim=0) + 1
-    has_evidence = occupied.sum(dim=0) > prior * occupied.shape[0] * (1 + 1e-6)
+    limit = float(np.float32(prior) * np.float32(occupied.shape[0]) * np.float32(1 + 1e-6))
+    has_evidence = _occupied_sum(occupied) > limit
     seen_t = torch.as_tensor(seen, device=alpha.device)
     reset = torch.as_tensor(movable, device=alpha.device)[held] & has_evidence & (seen_t != held)
     if bool(reset.any()):
@@ -350,10 +390,12 @@ if HAVE_NUMBA:
         return total, best, held
 
     @njit(nogil=True, inline="always")
-    def _reset_if_contradicted(alpha, movable, x, y, z, seen, prior, runs):  # pragma: no cover - compiled
+    def _reset_if_contradicted(alpha, movable, x, y, z, seen, prior, runs,
+                               protected=False):  # pragma: no cover - compiled
         """Reset the classes of voxel (x, y, z) when its most likely class is movable, it holds
-        class evidence and this scan saw ``seen`` there; returns whether it did. ``runs``: its
-        column's class bits (as ``_occupied_classes``)."""
+        class evidence and this scan saw ``seen`` there, and (``protected``: a movable return of
+        this scan is near) it is empty space; returns whether it did. ``runs``: its column's
+        class bits (as ``_occupied_classes``)."""
         # No class ever falls below the prior, so a voxel whose movable classes all hold just
         # the prior has a static most likely class, or no evidence: skip its other classes.
         if not _holds_movable(alpha, movable, x, y, z, prior, runs):
@@ -361,6 +403,9 @@ if HAVE_NUMBA:
         classes = alpha.shape[0]
         total, _, held = _occupied_classes(alpha, x, y, z, runs, prior)
         if not (movable[held] and total > prior * np.float32(classes - 1) * np.float32(1 + 1e-6) and seen != held):
+            return False
+        empty = alpha[FREE_CLASS, x, y, z]
+        if protected and not empty > np.float32(EMPTY_SHARE) * (empty + total):
             return False
         for c in range(1, classes):
             alpha[c, x, y, z] = prior
@@ -375,38 +420,41 @@ if HAVE_NUMBA:
         return count
 
     @njit(parallel=True, nogil=True)
-    def _contradicted_and_flag_numba(alpha, linear, volume_dims, volume_origin, dims, features, movable, prior, columns,
-                                     reach, held_by_column, movable_bits):  # pragma: no cover - compiled
-        """``MoverForgetting.contradicted`` in one pass over the scan's voxels (as the numpy
-        path: unravel, argmax, ``_contradicted_numpy``, ``_flag_around`` twice). The voxels are
-        distinct, so the threads never write the same one. ``held_by_column``: the window's
-        class bits per column, and ``movable_bits`` the movable classes' (0: no bits, read
-        every voxel): a voxel of a column whose movable runs all hold the prior has nothing
-        to reset, and its classes are not read."""
+    def _contradicted_and_flag_numba(alpha, linear, volume_dims, volume_origin, dims, features, movable, prior,
+                                     columns, reach, held_by_column, movable_bits, near,
+                                     near_columns):  # pragma: no cover - compiled
+        """``MoverForgetting.contradicted`` in three passes over the scan's voxels (as the numpy
+        path: unravel, argmax, ``_flag_around`` twice, the columns near this scan's movable
+        returns (``near`` >= 0: within ``near`` columns, into ``near_columns``), and
+        ``_contradicted_numpy`` on the voxels of the other columns). The voxels are distinct, so
+        the threads never write the same one. ``held_by_column``: the window's class bits per
+        column, and ``movable_bits`` the movable classes' (0: no bits, read every voxel): a voxel
+        of a column whose movable runs all hold the prior has nothing to reset, and its classes
+        are not read."""
         count_voxels, classes = features.shape
-        physical = np.empty((count_voxels, 2), np.int64)
+        physical = np.empty((count_voxels, 3), np.int64)
+        seen_by_voxel = np.empty(count_voxels, np.int64)
         bits = np.zeros(count_voxels, np.uint8)
         reset = np.zeros(count_voxels, np.int64)
         for i in prange(count_voxels):
             rest = linear[i] // volume_dims[2]
-            x = (rest // volume_dims[1] + volume_origin[0]) % dims[0]
-            y = (rest % volume_dims[1] + volume_origin[1]) % dims[1]
-            z = (linear[i] % volume_dims[2] + volume_origin[2]) % dims[2]
-            physical[i, 0], physical[i, 1] = x, y
+            physical[i, 0] = (rest // volume_dims[1] + volume_origin[0]) % dims[0]
+            physical[i, 1] = (rest % volume_dims[1] + volume_origin[1]) % dims[1]
+            physical[i, 2] = (linear[i] % volume_dims[2] + volume_origin[2]) % dims[2]
             best, seen, evidence = features[i, 0], 0, False
             for c in range(classes):
                 value = features[i, c]
                 if value > best:
                     best, seen = value, c
                 evidence |= movable[c] and value > 0
+            seen_by_voxel[i] = seen
             if evidence:
                 bits[i] = _FLAGGED
             if movable[seen]:
                 bits[i] = _FLAGGED | _NEAR_MOVERS
-            runs = _EVERY_RUN if movable_bits == 0 else held_by_column[x, y]
-            if (runs & movable_bits) != 0 or movable_bits == 0:
-                reset[i] = _reset_if_contradicted(alpha, movable, x, y, z, seen, prior, runs)
         size_x, size_y = columns.shape
+        if near >= 0:
+            near_columns[:, :] = False
         for i in range(count_voxels):
             if bits[i] == 0:
                 continue
@@ -414,7 +462,63 @@ if HAVE_NUMBA:
                 x = (physical[i, 0] + dx) % size_x
                 for dy in range(-reach, reach + 1):
                     columns[x, (physical[i, 1] + dy) % size_y] |= bits[i]
+            if near >= 0 and (bits[i] & _NEAR_MOVERS) != 0:
+                near_columns[physical[i, 0], physical[i, 1]] = True  # grown to the radius below
+        if near >= 0:
+            _grow_on_torus(near_columns, near)
+        for i in prange(count_voxels):
+            x, y, z = physical[i, 0], physical[i, 1], physical[i, 2]
+            runs = _EVERY_RUN if movable_bits == 0 else held_by_column[x, y]
+            if (runs & movable_bits) != 0 or movable_bits == 0:
+                reset[i] = _reset_if_contradicted(alpha, movable, x, y, z, seen_by_voxel[i], prior, runs,
+                                                  near >= 0 and near_columns[x, y])
         return reset.sum()
+
+    @njit(nogil=True)
+    def _grow_on_torus(marked, radius):  # pragma: no cover - compiled
+        """Every cell within ``radius`` cells (each way: a square, wrapping around) of a marked
+        cell becomes marked: a running count along y (each row of x contiguous), then along x
+        (whole rows at once); rows of x with no mark near are only cleared."""
+        size_x, size_y = marked.shape
+        if 2 * radius + 1 >= min(size_x, size_y):  # the square spans the grid: any mark marks it all
+            if marked.any():
+                marked[:, :] = True
+            return
+        grown = np.zeros((size_x, size_y), np.int64)
+        rows = np.zeros(size_x, np.int64)  # 1 where row x holds a mark
+        for x in range(size_x):
+            if not marked[x].any():
+                continue
+            rows[x] = 1
+            count = 0
+            for dy in range(-radius, radius + 1):
+                count += np.int64(marked[x, dy % size_y])
+            enter, leave = radius + 1, size_y - radius  # the cells the window gains and loses as y steps on
+            for y in range(size_y):
+                grown[x, y] = count
+                count += np.int64(marked[x, enter]) - np.int64(marked[x, leave])
+                enter = enter + 1 if enter + 1 < size_y else 0
+                leave = leave + 1 if leave + 1 < size_y else 0
+        count = np.zeros(size_y, np.int64)
+        near_rows = 0  # rows with a mark within the window along x
+        for dx in range(-radius, radius + 1):
+            if rows[dx % size_x]:
+                count += grown[dx % size_x]
+                near_rows += 1
+        enter, leave = radius + 1, size_x - radius
+        for x in range(size_x):
+            if near_rows:
+                marked[x] = count > 0
+            else:
+                marked[x] = False
+            if rows[enter]:
+                count += grown[enter]
+                near_rows += 1
+            if rows[leave]:
+                count -= grown[leave]
+                near_rows -= 1
+            enter = enter + 1 if enter + 1 < size_x else 0
+            leave = leave + 1 if leave + 1 < size_x else 0
 
     @njit(nogil=True, inline="always")
     def _reoccupied(alpha, mask, movable, x, y, prior, runs):  # pragma: no cover - compiled

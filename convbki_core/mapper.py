@@ -178,7 +178,8 @@ class ConvBKIMapper:
         self.movable_classes = config.movable_classes()
         forgetting_classes = config.forgetting_classes()
         self.forgetting = (MoverForgetting(forgetting_classes, kernel.num_classes, self.prior, self.geometry.dims,
-                                           kernel.filter_size // 2, self.resolution)
+                                           kernel.filter_size // 2, self.resolution,
+                                           config.free_space.contradiction_radius)
                            if self.free_space and forgetting_classes else None)
         if self.forgetting is not None:
             # The rules read only the class runs the window's per-column bits say are held:

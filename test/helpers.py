@@ -4,6 +4,7 @@ The package itself never needs them. The ROS side's helpers are in ros_helpers.p
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,22 @@ from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
 from convbki_core.io.ply import PLY_DTYPE
 from convbki_core.kernels import ConvBKIKernel
+
+# Real labelled SemanticKITTI scans (the first 10 scans of sequences 00, 01 and 05 in the
+# dataset's layout), where this machine has them: CONVBKI_REAL_SCANS, else the project's shared
+# data folder beside the repository. Never copied into the repository: tests skip without them.
+REAL_SCANS = Path(os.environ.get("CONVBKI_REAL_SCANS") or
+                  Path(__file__).resolve().parents[1].parent / "shared" / "data" / "semantic_kitti_real")
+
+
+def real_sequence(sequence: str) -> Path:
+    """The root holding real sequence ``sequence``; skips the test with the reason when absent."""
+    import pytest
+
+    if not (REAL_SCANS / "sequences" / sequence / "velodyne").is_dir():
+        pytest.skip(f"the real SemanticKITTI scans are not here ({REAL_SCANS}; set CONVBKI_REAL_SCANS)")
+    return REAL_SCANS
+
 
 # A street for the simple LiDAR below: SemanticKITTI learning ids, and a house front across it
 # (what the LiDAR sees through the space a car has left).

@@ -69,6 +69,10 @@ class KernelRun:
     # The same protocol on the points the ground truth marks as moving only: input and map.
     moving_input_scores: ConfusionMatrix | None = None
     moving_map_scores: ConfusionMatrix | None = None
+    # ... and on the points it does not mark as moving (parked and standing objects, everything
+    # static): the movable classes' IoU there says whether the map keeps what did not move.
+    static_input_scores: ConfusionMatrix | None = None
+    static_map_scores: ConfusionMatrix | None = None
     calibration: MapCalibration | None = None  # the map's uncertainty on the scored points
 
 
@@ -114,6 +118,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
                                                                              label_map.ignore_classes), mapper=mapper)
     run_result.calibration = MapCalibration(label_map.num_classes, label_map.ignore_classes,
                                             free_space=mapper.free_space)
+    run_result.static_input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
+    run_result.static_map_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
     out_folder = labels_folder
     swept = SweptSpace(mapper.resolution)
     coverage = StaticCoverage(mapper.resolution)
@@ -144,6 +150,9 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
             tempered_calibration.add(frame.ground_truth, tempered_distribution(frame.probabilities, config.temperature))
         if out_folder is not None:
             write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
+        still = ~frame.moving if frame.moving is not None else slice(None)
+        run_result.static_input_scores.add(frame.ground_truth[still], input_labels[still])
+        run_result.static_map_scores.add(frame.ground_truth[still], predicted[still])
         if frame.moving is not None and label_map.movable_classes:
             swept.add(points_map, frame.moving)
             if run_result.moving_map_scores is None:
@@ -197,12 +206,22 @@ def build_report(sequence: str, frame_count: int, class_names: Sequence[str], in
             return None
         return float(scores.counts[c, c] / scores.counts[c].sum())
 
+    def iou(scores: ConfusionMatrix | None, c: int) -> float | None:
+        if scores is None or not scores.present[c]:
+            return None
+        return float(scores.iou()[c])
+
     def movable_entry(run_result: KernelRun) -> dict:
-        """Per movable class: IoU of input and map over all points, and the share of the
-        moving points (ground truth) that each labels right."""
+        """Per movable class: IoU of input and map over all points; over the points the ground
+        truth does not mark as moving (parked and standing objects) and over those it does;
+        and the share of the moving points that each labels right."""
         input_iou, map_iou = input_scores.iou(), run_result.map_scores.iou()
         return {class_names[c]: {"input_iou": float(input_iou[c]), "map_iou": float(map_iou[c]),
                                  "map_minus_input": float(map_iou[c] - input_iou[c]),
+                                 "static_input_iou": iou(run_result.static_input_scores, c),
+                                 "static_map_iou": iou(run_result.static_map_scores, c),
+                                 "moving_input_iou": iou(run_result.moving_input_scores, c),
+                                 "moving_map_iou": iou(run_result.moving_map_scores, c),
                                  "moving_points_input_recall": recall(run_result.moving_input_scores, c),
                                  "moving_points_map_recall": recall(run_result.moving_map_scores, c)}
                 for c in movable_classes if input_scores.present[c]}
@@ -402,7 +421,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                                     truth_voxels=truth_voxels if number == 0 else None,
                                     input_voxels=input_voxels if number == 0 else None,
                                     moving_labels=args.moving_labels))
-    movable = label_map.movable_classes if any(run.trail_voxels is not None for run in runs) else ()
+    movable = label_map.movable_classes
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,
                           input_calibration, tempered, movable)
 
@@ -455,10 +474,10 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
               + (", the input's moving labels used" if run_result.moving_labels_used else ""))
         if movable:
             entry = (report["runs"][runs.index(run_result)] if "runs" in report else report)["map"]["movable_classes"]
-            print("  movable classes, IoU % input -> map (moving points labelled right, % input -> map): " + ", ".join(
-                f"{name} {100 * v['input_iou']:.1f} -> {100 * v['map_iou']:.1f}"
-                + ("" if v["moving_points_map_recall"] is None else
-                   f" ({100 * v['moving_points_input_recall']:.1f} -> {100 * v['moving_points_map_recall']:.1f})")
+            print("  movable classes, IoU % input -> map; not moving (parked, standing) | moving: " + ", ".join(
+                f"{name} {100 * v['input_iou']:.1f} -> {100 * v['map_iou']:.1f}; "
+                + _pair(v["static_input_iou"], v["static_map_iou"]) + " | " + _pair(v["moving_input_iou"],
+                                                                                      v["moving_map_iou"])
                 for name, v in entry.items()))
         calibration = run_result.calibration.summary()
         line = (f"  uncertainty on {calibration['calibration_points']} scored points with map evidence "
@@ -519,6 +538,11 @@ def write_costmap_report(mapper, truth_voxels, profile, label_map, path: Path, o
     atomic_write_bytes(outputs.file(path), (json.dumps(report, indent=2) + "\n").encode())
     lines.append(f"costmap report: {path}; picture: {picture}")
     return lines
+
+
+def _pair(before: float | None, after: float | None) -> str:
+    """``input -> map`` IoU in %, or ``-`` where the class has no such points."""
+    return "-" if before is None or after is None else f"{100 * before:.1f} -> {100 * after:.1f}"
 
 
 def _number(value: float | None) -> str:

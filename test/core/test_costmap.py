@@ -56,16 +56,36 @@ def test_a_car_on_hidden_ground_is_lethal_at_its_neighbours_ground_height():
     assert costs_of(voxels) == {(0, 0): 0, (1, 0): 100, (2, 0): 0}
 
 
-def test_an_unsure_grass_cell_costs_its_expectation_and_the_margin():
-    # terrain 3, road 2: p = (0.6, 0.4); E[cost] = 0.6 * 70 = 42; E[cost^2] = 0.6 * 4900 = 2940;
-    # Var = (2940 - 42^2) / (5 + 1) = 196, sigma = 14: with the margin 42 + 14 = 56.
-    voxels = {(0, 0, 0): voxel(terrain=3, road=2)}
-    assert costs_of(voxels, with_sigma(CAR, 0.0)) == {(0, 0): 42}
-    assert costs_of(voxels) == {(0, 0): 56}
-    assert costs_of(voxels, with_sigma(CAR, 2.0)) == {(0, 0): 70}
-    # The arg-max class (terrain) would cost 70 with no doubt; a surer grass costs more: 30, 20
-    # gives E = 42 again, Var = 1176 / 51 = 23.06, sigma 4.80: 46.8 -> 47.
-    assert costs_of({(0, 0, 0): voxel(terrain=30, road=20)}) == {(0, 0): 47}
+def test_a_road_whatever_its_ground_class_noise_is_free_and_an_unsure_surface_costs_its_kind():
+    # Road 8, sidewalk 1, terrain 1: p_free = 0.8 > 1/2, no lethal evidence: 0, with or without a
+    # margin. (The expected cost plus a standard deviation called it 22: E = 14, Var = (980 - 196)
+    # / 11 = 71.3, sigma 8.4.)
+    noisy_road = {(0, 0, 0): voxel(road=8, sidewalk=1, terrain=1)}
+    for sigma in (0.0, 1.0, 2.0):
+        assert costs_of(noisy_road, with_sigma(CAR, sigma)) == {(0, 0): 0}
+    # Terrain 3, road 2: p_free = 0.4 is not over one half, and nothing lethal: the costly
+    # classes' cost, 70, however sure (30, 20 the same); road 3, terrain 2 is free.
+    assert costs_of({(0, 0, 0): voxel(terrain=3, road=2)}) == {(0, 0): 70}
+    assert costs_of({(0, 0, 0): voxel(terrain=30, road=20)}) == {(0, 0): 70}
+    assert costs_of({(0, 0, 0): voxel(terrain=2, road=3)}) == {(0, 0): 0}
+    # Sidewalk 3 and other-ground 1: the costly classes' mean, (3 * 70 + 50) / 4 = 65.
+    assert costs_of({(0, 0, 0): voxel(sidewalk=3, other_ground=1)}) == {(0, 0): 65}
+
+
+def test_the_margin_goes_where_the_posterior_gives_a_lethal_class_weight():
+    # Road 6, car 4 (A = 10): free by its kind (p_free 0.6), but p_lethal = 0.4 with the Beta
+    # standard deviation sqrt(0.4 * 0.6 / 11) = 0.1477: 100 * (0.4 + s * 0.1477) = 40, 54.8, 69.5.
+    near_car = {(0, 0, 0): voxel(road=6, car=4)}
+    assert costs_of(near_car, with_sigma(CAR, 0.0)) == {(0, 0): 40}
+    assert costs_of(near_car) == {(0, 0): 55}
+    assert costs_of(near_car, with_sigma(CAR, 2.0)) == {(0, 0): 70}
+    # The same shares seen ten times as often: a surer posterior, a smaller margin:
+    # sqrt(0.24 / 101) = 0.0487: 44.9 -> 45.
+    assert costs_of({(0, 0, 0): voxel(road=60, car=40)}) == {(0, 0): 45}
+    # Car 6, road 4 in the band over a road: lethal by its kind (p_lethal 0.6 is at least one half).
+    assert costs_of({(0, 0, 0): voxel(road=10), (0, 0, 3): voxel(road=4, car=6)}, with_sigma(CAR, 0.0)) == {(0, 0): 100}
+    # A fence's posterior with a whiff of road: 100 * (0.9 + sqrt(0.09 / 11)) > 100: lethal.
+    assert costs_of({(0, 0, 0): voxel(road=10), (0, 0, 3): voxel(fence=9, road=1)}) == {(0, 0): 100}
 
 
 def test_unobserved_and_only_empty_columns_are_unknown_and_a_departed_car_leaves_no_obstacle():
@@ -91,13 +111,13 @@ def test_empty_space_evidence_in_an_occupied_voxel_does_not_dilute_its_cost():
     # Rays that grazed it more often (fence 3, empty 7: more likely empty than not, not clearly)
     # leave it an obstacle as well.
     assert costs_of({(0, 0, 0): voxel(road=10), (0, 0, 3): voxel(fence=3, unlabeled=7)}) == {(0, 0): 100}
-    # The grass of the test above with three times as much empty-space evidence as class
-    # evidence (not more: still occupied) costs what it did: 42 without the margin, 56 with it.
-    grass = {(0, 0, 0): voxel(terrain=3, road=2, unlabeled=15)}
-    assert costs_of(grass, with_sigma(CAR, 0.0)) == {(0, 0): 42}
-    assert costs_of(grass) == {(0, 0): 56}
+    # Road 6 and car 4 (the test above) with three times as much empty-space evidence as class
+    # evidence (not more: still occupied) costs what it did: 40 without the margin, 55 with it.
+    grass = {(0, 0, 0): voxel(road=6, car=4, unlabeled=30)}
+    assert costs_of(grass, with_sigma(CAR, 0.0)) == {(0, 0): 40}
+    assert costs_of(grass) == {(0, 0): 55}
     # A little more empty space and it is empty space: a column with nothing else is unknown.
-    assert costs_of({(0, 0, 0): voxel(terrain=3, road=2, unlabeled=15.01)}) == {(0, 0): -1}
+    assert costs_of({(0, 0, 0): voxel(road=6, car=4, unlabeled=30.01)}) == {(0, 0): -1}
 
 
 def test_leaves_read_as_terrain_on_top_of_a_tree_do_not_lift_the_ground_into_the_canopy():

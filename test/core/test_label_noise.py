@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import REAL_SCANS
 
 from convbki_core.datasets import label_noise as noise
 from convbki_core.datasets.labels import load_label_map
@@ -23,7 +24,7 @@ from convbki_core.metrics import ConfusionMatrix
 from convbki_core.tools import label_noise as tool
 
 REPO = Path(__file__).resolve().parents[2]
-SHARED = REPO.parent / "shared" / "data" / "semantic_kitti_real"
+SHARED = REAL_SCANS
 SEQUENCE = "05"  # urban: cars, trucks, an other-vehicle, a person; 20 classes
 FRAMES = "0:4"
 TARGET = 0.55
