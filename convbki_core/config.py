@@ -14,6 +14,7 @@ Groups:
 * ``free_space``: rays, clamping and the movers' rules;
 * ``compute``: torch device and update path;
 * ``store``: whether the map remembers its changes for outputs that send only changes;
+* ``scan_log``: the log of integrated scans that a SLAM's correction moves, and its bounds;
 * ``classes``: the label map whose ignored and movable classes apply, or explicit lists.
 """
 
@@ -57,6 +58,17 @@ class FreeSpaceConfig:
 
 
 @dataclass(frozen=True)
+class ScanLogConfig:
+    """The scan log (``scan_log``): every integrated scan kept bit for bit with its pose, so a
+    SLAM's correction can move it (``correction``); the oldest fall out past ``max_scans``
+    scans or ``max_megabytes`` of memory (0: no such bound), and are frozen into the map."""
+
+    enabled: bool = True
+    max_scans: int = 3000
+    max_megabytes: float = 1024.0
+
+
+@dataclass(frozen=True)
 class ComputeConfig:
     """``device``: auto (CUDA when present), cpu, cuda[:N]. ``update_path``: auto (fast on the
     CPU, torch on CUDA), fast, dense (the paper's conv3d, the reference) or torch."""
@@ -81,6 +93,10 @@ class ClassesConfig:
     ground_classes: tuple[int, ...] | None = None
 
 
+# The settings that decide what a scan does to the map (a map file keeps them with its scan log).
+MAPPING_SETTINGS = ("local_bounds", "resolution", "filter_size", "prior", "free_space", "max_concentration",
+                    "forget_movers", "contradiction_radius", "label_map", "ignore_classes", "movable_classes",
+                    "ground_classes", "frame_id")
 # Each flat name (the node's parameter names where it has one) and the group that holds it.
 _FLAT = {
     "local_bounds": ("window", "local_bounds"), "resolution": ("window", "resolution"),
@@ -90,6 +106,8 @@ _FLAT = {
     "contradiction_radius": ("free_space", "contradiction_radius"),
     "device": ("compute", "device"), "update_path": ("compute", "update_path"),
     "track_changes": ("store", "track_changes"),
+    "scan_log": ("scan_log", "enabled"), "scan_log_scans": ("scan_log", "max_scans"),
+    "scan_log_megabytes": ("scan_log", "max_megabytes"),
     "label_map": ("classes", "label_map"), "ignore_classes": ("classes", "ignore_classes"),
     "movable_classes": ("classes", "movable_classes"), "ground_classes": ("classes", "ground_classes"),
     "kernel_file": (None, "kernel_file"), "frame_id": (None, "frame_id"),
@@ -103,6 +121,7 @@ class MapperConfig:
     free_space: FreeSpaceConfig = field(default_factory=FreeSpaceConfig)
     compute: ComputeConfig = field(default_factory=ComputeConfig)
     store: StoreConfig = field(default_factory=StoreConfig)
+    scan_log: ScanLogConfig = field(default_factory=ScanLogConfig)
     classes: ClassesConfig = field(default_factory=ClassesConfig)
     frame_id: str = "map"
 
@@ -190,6 +209,31 @@ class MapperConfig:
         from convbki_core.paths import kernel_path
 
         return Path(self.kernel_file) if self.kernel_file else kernel_path(PAPER_KERNEL)
+
+    def mapping_record(self, resolution: float, filter_size: int) -> dict:
+        """The settings that decide what a scan does to the map, resolved and JSON-ready (a map
+        file keeps them, so that its logged scans can be mapped again the same way); ``resolution``
+        and ``filter_size``: the mapper's, which the kernel decides unless set here."""
+        record = {name: value for name, value in self.flat().items() if name in MAPPING_SETTINGS}
+        record.update(resolution=float(resolution), filter_size=int(filter_size),
+                      local_bounds=[list(corner) for corner in self.window.local_bounds],
+                      ignore_classes=list(self.ignore_classes()), movable_classes=list(self.movable_classes()),
+                      ground_classes=list(self.ground_classes()))
+        return record
+
+    @classmethod
+    def from_mapping_record(cls, record: dict) -> MapperConfig:
+        """The configuration of a ``mapping_record`` (a map file's), the rest at the defaults;
+        raises ValueError naming what does not fit."""
+        if not isinstance(record, dict):
+            raise ValueError("the mapping settings are not a mapping")
+        unknown = set(record) - set(MAPPING_SETTINGS)
+        if unknown:
+            raise ValueError(f"unknown mapping settings {sorted(unknown)}")
+        try:
+            return cls().replace(**record)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"mapping settings that do not fit: {error}") from None
 
     def flat(self) -> dict:
         """Every setting by its flat name."""

@@ -31,6 +31,7 @@ import numpy as np
 
 from convbki_core.clamping import check_limit
 from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
+from convbki_core.correction import CorrectionResult, continue_correction, pose_displacement
 from convbki_core.devices import resolve_device
 from convbki_core.forgetting import MoverForgetting
 from convbki_core.free_space import (
@@ -51,6 +52,7 @@ from convbki_core.layer import ConvBKILayer
 from convbki_core.parts import KernelFilters, Scratch, Voxelizer, make_free_space, make_update
 from convbki_core.present_movers import PresentMovers, labels_now, present_movers, whole_movers
 from convbki_core.records import RECORD, records_from_alpha, window_records
+from convbki_core.scan_log import LoggedScan, ScanLog, Segment
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
 from convbki_core.torch_window import TorchWindow
@@ -62,6 +64,8 @@ from convbki_core.volume import (
     transform_points,
     voxel_centres,
     voxel_indices,
+    voxel_keys,
+    voxels_of_keys,
 )
 from convbki_core.window import CHANGED, EVIDENCE, MAX_CLASS_BITS, RECLASSED, TOUCHED, RollingWindow
 
@@ -174,7 +178,11 @@ class ConvBKIMapper:
         self.sensor_position: np.ndarray | None = None  # map frame (m), at the last scan (or from a loaded file)
         self._removed: list[np.ndarray] = []  # voxels that left the map since the changes were taken
         self._everything_changed = False  # a load replaced the map: every voxel is a change
+        self._replaced_keys: np.ndarray | None = None  # voxels of a map this one replaced (linear keys)
         self.present_movers: PresentMovers | None = None  # the last scan's moving points, never in the map
+        # Every integrated scan, bit for bit with its pose, so that a SLAM's correction can move it.
+        log = config.scan_log
+        self.scan_log = (ScanLog(int(log.max_scans), int(log.max_megabytes * 1e6)) if log.enabled else None)
         self.movable_classes = config.movable_classes()
         forgetting_classes = config.forgetting_classes()
         self.forgetting = (MoverForgetting(forgetting_classes, kernel.num_classes, self.prior, self.geometry.dims,
@@ -222,7 +230,8 @@ class ConvBKIMapper:
 
     # -- the update ------------------------------------------------------------------------
     def integrate(self, points: np.ndarray, values: np.ndarray, pose: np.ndarray,
-                  moving: np.ndarray | None = None) -> IntegrationResult:
+                  moving: np.ndarray | None = None, stamp_ns: int | None = None,
+                  mount: np.ndarray | None = None, logged: LoggedScan | None = None) -> IntegrationResult:
         """Fuse one scan into the map.
 
         ``points`` (N, 3) in the sensor frame (m); ``values`` (N,) integer learning labels
@@ -234,6 +243,11 @@ class ConvBKIMapper:
         voxels read them. With labels, the points of movable classes connected to a moving
         point stay out of the map too (``whole_movers``): a mover's parts the input did not
         mark move with it.
+
+        With the scan log on, the scan is logged as integrated (``scan_log``), with ``stamp_ns``
+        (default: 0.1 s after the scan before) and ``mount`` (body <- sensor, the pose of the
+        sensor on the body whose poses a SLAM corrects; default the identity); ``logged``: the
+        scan as a log already holds it (a correction maps logged scans again), logged as it is.
         """
         started = time.perf_counter()
         pose = check_pose(pose)
@@ -274,11 +288,134 @@ class ConvBKIMapper:
         self.sensor_position = pose[:3, 3].copy()
         self.present_movers = movers
         finished = time.perf_counter()
+        if self.scan_log is not None:
+            stamp = stamp_ns if stamp_ns is not None else (self.scans_integrated - 1) * 100_000_000
+            self.scan_log.append(logged if logged is not None else LoggedScan.of(points, values, pose, stamp, mount))
+            if self.scan_log.wants_segment():
+                self._begin_log_segment()
+        logged_at = time.perf_counter()
         result.timing_ms = {"voxelize": 1e3 * (voxelized - started), "query": 1e3 * (moved - voxelized),
                             "update": 1e3 * (updated - moved - forgetting_s),
-                            "free": 1e3 * (finished - updated + forgetting_s),
-                            "total": 1e3 * (finished - started)}
+                            "free": 1e3 * (finished - updated + forgetting_s), "log": 1e3 * (logged_at - finished),
+                            "total": 1e3 * (logged_at - started)}
         return result
+
+    def withdraw(self, points: np.ndarray, values: np.ndarray, pose: np.ndarray) -> int:
+        """Take the class evidence of a scan integrated at ``pose`` out of the map again: Eq. 4 is
+        a sum, so the update with the scan's evidence negated leaves the map as it was before the
+        scan, up to float rounding (the voxels only it reached are back at the prior). Only for
+        a map that is that sum alone: free space, clamping and the movers' rules read the map's
+        state at each scan, so their map is not a sum (``correction`` maps scans again instead).
+        Returns the voxels of the scan. The scan log, if any, is not changed."""
+        if self.free_space:
+            raise ValueError("withdraw needs the paper's set-up: with free space the map is not a sum of its scans")
+        pose = check_pose(pose)
+        points, values = check_scan(points, values, self.num_classes)
+        origin = self.geometry.origin_for(pose[:3, 3])
+        volume = self.voxelize(points, values, pose, origin)
+        self.window.move_to(origin)
+        if volume.num_voxels:
+            volume.features = -volume.features
+            self.update(volume, EVIDENCE | CHANGED)
+        return volume.num_voxels
+
+    # -- the scan log and corrections (a SLAM moved poses) -------------------------------------
+    def base_copy(self):
+        """The map as it is now, as a store of its own (a log segment's base): the global
+        store's chunks shared, the window's voxels written into it. Returns (store, the memory
+        it takes beside the map's store: about the window's voxels)."""
+        base = self.store.copy()
+        base.write(*self.window.items())
+        return base, base.bytes_not_shared_with(self.store)
+
+    def _begin_log_segment(self) -> None:
+        self.scan_log.refresh_base_bytes(self.store)  # the bound counts what the older bases own by now
+        base, nbytes = self.base_copy()
+        self.scan_log.begin_segment(base, self.sensor_position, nbytes)
+
+    def _restart_log(self, why: str) -> None:
+        """The map changed other than by a scan (a load, a forgotten box): a correction can
+        reach back to here only, from the map as it is now; ``why`` the scans before cannot move."""
+        if self.scan_log is not None:
+            base, nbytes = self.base_copy()
+            self.scan_log.restart(base, self.sensor_position, nbytes, self.scans_integrated, why)
+
+    def plan_correction(self, poses: dict[int, np.ndarray], tolerance: float = 0.0, reach: float | None = None,
+                        log: ScanLog | None = None) -> tuple[dict[int, np.ndarray], int, float]:
+        """Which logged scans a correction moves: of ``poses`` (corrected map <- sensor poses by
+        the drive's scan index), those still in the log whose points within ``reach`` m (default:
+        the window's half extent) move by ``tolerance`` m or more; ``log``: a copy of this
+        mapper's log taken earlier (default: the log). Returns (moves, scans left alone, the
+        largest displacement of a sensor in m)."""
+        log = self.scan_log if log is None else log
+        if log is None:
+            raise ValueError("this mapper keeps no scan log: nothing can be moved")
+        reach = float(np.max(np.abs(self.geometry.bounds_max))) if reach is None else reach
+        logged = dict(log.scans())
+        moves, skipped, largest = {}, 0, 0.0
+        for index, pose in poses.items():
+            if index not in logged:
+                continue
+            pose = check_pose(pose)
+            if pose_displacement(logged[index].pose, pose, reach) < tolerance:
+                skipped += 1
+                continue
+            moves[index] = pose
+            largest = max(largest, float(np.linalg.norm(pose[:3, 3] - logged[index].pose[:3, 3])))
+        return moves, skipped, largest
+
+    def corrected(self, poses: dict[int, np.ndarray], tolerance: float = 0.0, until: int | None = None,
+                  reuse: ConvBKIMapper | None = None, log: ScanLog | None = None
+                  ) -> tuple[ConvBKIMapper, CorrectionResult]:
+        """This map as it would be had the logged scans been integrated at corrected poses
+        (``poses``: map <- sensor by the drive's scan index; scans no longer logged, or moved by
+        less than ``tolerance`` m, are left alone), and what that took. The map is not changed:
+        a new mapper maps every logged scan again, in the order they came, from the base of the
+        log's segment that holds the first moved one (``correction``), up to scan ``until``
+        (exclusive; default: every logged scan). ``reuse``: a mapper of the same set-up to map
+        into instead of a new one (the one a correction replaced: its window is already in
+        memory, where a new window's pages cost more than the scans). ``log``: a copy of this
+        mapper's log (``ScanLog.copy``) to read instead of the log, so that this mapper may go
+        on mapping meanwhile (the node's live scans). Returns (the new mapper, or this one when
+        nothing moves; the result)."""
+        started = time.perf_counter()
+        log = self.scan_log if log is None else log
+        moves, skipped, largest = self.plan_correction(poses, tolerance, log=log)
+        result = CorrectionResult(scans=len(moves), largest_move=largest, skipped=skipped)
+        if not moves:
+            result.seconds = time.perf_counter() - started
+            return self, result
+        segment = log.segment_for(min(moves))
+        new = reuse if reuse is not None and reuse is not self else ConvBKIMapper(self.config, self.layer.kernel)
+        new.frame_id = self.frame_id
+        new.start_from(segment, log)
+        replayed = continue_correction(new, log, moves, segment.first_index, until)
+        result.replayed = replayed
+        result.seconds = time.perf_counter() - started
+        return new, result
+
+    def start_from(self, segment, log: ScanLog) -> None:
+        """Make this (new) mapper the map as it was when ``segment`` of ``log`` began: its base,
+        and the log's segments before it (a correction maps the scans from there again)."""
+        if self.scans_integrated or len(self) or self.sensor_position is not None:
+            self._clear()  # a fresh mapper is already empty: its window is not filled twice
+        if segment.base is not None:
+            self.store = segment.base.copy()
+            self.window.store = self.store
+        self.scans_integrated = segment.first_index
+        if segment.base_position is not None:
+            self.sensor_position = np.asarray(segment.base_position, np.float64).copy()
+            self.window.move_to(self.geometry.origin_for(self.sensor_position))
+        self._everything_changed = True
+        self._removed = []
+        self._replaced_keys = None
+        if self.scan_log is not None:
+            older = [s for s in log.segments() if s.first_index < segment.first_index]
+            self.scan_log.frozen, self.scan_log.frozen_stamp_ns = log.frozen, log.frozen_stamp_ns
+            self.scan_log.frozen_why = log.frozen_why
+            self.scan_log.calibration = log.calibration
+            self.scan_log.replace_from(0, [*older, Segment(segment.first_index, segment.base, segment.base_position,
+                                                           segment.base_bytes)])
 
     # -- reading the map -------------------------------------------------------------------
     def concentrations_at(self, points_map: np.ndarray,
@@ -368,10 +505,21 @@ class ConvBKIMapper:
 
     # -- persistence -----------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget every voxel (the kernel and settings stay)."""
+        """Forget every voxel, and the scan log (the kernel and settings stay)."""
         self._removed.append(self.items()[0])
+        self._clear()
+
+    def retire(self) -> None:
+        """Forget every voxel and the log without reporting them as removed: a map another took
+        the place of, kept only for its window (``corrected``'s ``reuse``)."""
+        self._clear()
+        self._removed, self._everything_changed, self._replaced_keys = [], False, None
+
+    def _clear(self) -> None:
         self.store.clear()
         self.window.clear()
+        if self.scan_log is not None:
+            self.scan_log.clear()
         self.scans_integrated = 0
         self.sensor_position = None
         self.present_movers = None
@@ -393,6 +541,9 @@ class ConvBKIMapper:
             return np.zeros((0, 3), np.int64)
         forgotten = np.concatenate([self.store.forget_box(lo, hi), self.window.forget_box(lo, hi)])
         self._removed.append(forgotten)
+        if len(forgotten):
+            # A correction mapping older scans again would bring the box back.
+            self._restart_log("a box of the map was forgotten after them")
         return forgotten
 
     def take_changes(self, everything: bool = False) -> MapChanges:
@@ -404,7 +555,18 @@ class ConvBKIMapper:
         if everything or self._everything_changed:
             self._everything_changed = False
             indices, alpha = self.items()
+            if self._replaced_keys is not None:  # what the map this one replaced had and this one has not
+                gone = np.setdiff1d(self._replaced_keys, voxel_keys(indices), assume_unique=True)
+                removed = np.concatenate([removed, voxels_of_keys(gone)])
+                self._replaced_keys = None
         return MapChanges(removed, indices, alpha)
+
+    def announce_replacement(self, previous_indices: np.ndarray) -> None:
+        """This map took the place of another (a correction's): the next changes are every voxel,
+        and the other's voxels (``previous_indices``, (n, 3)) this map does not have as removed,
+        so a copy kept from the changes becomes this map."""
+        self._replaced_keys = np.unique(voxel_keys(previous_indices))
+        self._everything_changed = True
 
     def save(self, path: str | Path) -> None:
         """Write the whole map to one self-describing file, atomically."""
@@ -425,15 +587,17 @@ class ConvBKIMapper:
             "local_bounds": [list(self.geometry.bounds_min), list(self.geometry.bounds_max)],
             "kernel": kernel_config_to_dict(self.kernel.to_config()),
             "scans_integrated": self.scans_integrated,
+            "mapping": self.config.replace(frame_id=self.frame_id).mapping_record(self.resolution,
+                                                                                  self.kernel.filter_size),
         }
         if self.sensor_position is not None:
             metadata["sensor_position"] = [float(v) for v in self.sensor_position]
-        return MapSnapshot(metadata, indices, alpha)
+        return MapSnapshot(metadata, indices, alpha, self.scan_log.copy() if self.scan_log is not None else None)
 
     def load(self, path: str | Path) -> dict:
         """Replace the map's voxels with those of a map file (resolution, classes and prior must
         match); the map is untouched if the file is unusable. Returns the file's metadata."""
-        metadata, indices, alpha = read_map(path)
+        metadata, indices, alpha = read_map(path, with_scan_log=True)
         self.check_compatible(path, metadata)
         self.replace_with(metadata, indices, alpha)
         return metadata
@@ -468,6 +632,10 @@ class ConvBKIMapper:
         if position is not None:
             self.sensor_position = np.asarray(position, np.float64)
             self.window.move_to(self.geometry.origin_for(self.sensor_position))
+        if self.scan_log is not None and metadata.get("scan_log") is not None:
+            self.scan_log.adopt(metadata["scan_log"])
+        else:  # a file without a log: its map is where corrections begin
+            self._restart_log("they came from a map file without a scan log")
         self._everything_changed = True
 
     def export_ply(self, path: str | Path, max_variance: float | None = None) -> int:

@@ -178,6 +178,21 @@ class VoxelStore:
         """``nbytes`` plus the Python bookkeeping: the chunk table and, per chunk, its objects."""
         return self.nbytes + sys.getsizeof(self._chunks) + _PER_CHUNK_BYTES * len(self._chunks)
 
+    def copy(self) -> VoxelStore:
+        """A copy that shares every chunk with this store: a chunk is never changed in place (a
+        write makes a new one), so each store goes on as if the other did not exist."""
+        other = VoxelStore(self.num_classes, self.prior)
+        other._chunks = dict(self._chunks)
+        other._count = self._count
+        return other
+
+    def bytes_not_shared_with(self, other: VoxelStore) -> int:
+        """The memory this store holds that ``other`` (a store it was copied from) does not share:
+        its chunk table and the chunks written since the copy."""
+        own = [c for key, c in self._chunks.items() if other._chunks.get(key) is not c]
+        return (sum(c.offsets.nbytes + c.counts.nbytes + c.classes.nbytes + c.values.nbytes for c in own)
+                + sys.getsizeof(self._chunks) + _PER_CHUNK_BYTES * len(own))
+
     def clear(self) -> None:
         self._chunks.clear()
         self._count = 0

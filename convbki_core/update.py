@@ -231,7 +231,10 @@ def dense_volume(volume: SparseVolume, layer: ConvBKILayer, alpha: np.ndarray, m
         reach = torch.nn.functional.conv3d((features > 0).to(features.dtype)[None], support,
                                            padding=layer.kernel.filter_size // 2, groups=features.shape[0])[0]
         touched = (reach.amax(dim=0) > 0.5).cpu().numpy()
-        increment = increment.clamp_min_(0.0).cpu().numpy()
+        # The convolution's rounding may leave tiny values of the wrong sign around the evidence
+        # (negative evidence: a scan withdrawn, ``ConvBKIMapper.withdraw``).
+        withdrawn = bool((volume.features < 0).any())
+        increment = (increment.clamp_max_(0.0) if withdrawn else increment.clamp_min_(0.0)).cpu().numpy()
     # Window-local index i lives at (origin + i) mod dims on the torus.
     shift = tuple(int(v) for v in volume.origin % volume.dims)
     touched = np.roll(touched, shift, axis=(0, 1, 2))

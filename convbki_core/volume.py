@@ -128,6 +128,13 @@ def linear_index(local: np.ndarray, dims: np.ndarray) -> np.ndarray:
     return (local[:, 0] * dims[1] + local[:, 1]) * dims[2] + local[:, 2]
 
 
+def voxels_of_keys(keys: np.ndarray) -> np.ndarray:
+    """The global voxel indices (n, 3) of ``voxel_keys``."""
+    mask = (1 << _KEY_BITS) - 1
+    keys = np.asarray(keys, np.int64)
+    return np.stack([keys >> (2 * _KEY_BITS), (keys >> _KEY_BITS) & mask, keys & mask], axis=1) - _KEY_OFFSET
+
+
 def unravel_linear(linear: np.ndarray, dims: np.ndarray) -> np.ndarray:
     """(N,) linear indices -> (N, 3) window-local indices."""
     z = linear % dims[2]

@@ -150,7 +150,7 @@ def read_map_file_at_start(node) -> StartMap | None:
     if not path or not Path(path).exists():
         return None
     try:
-        contents = read_map(path)
+        contents = read_map(path, with_scan_log=True)
     except MapFileError as error:
         if node.param("refuse_bad_map_file"):
             raise refusal(error) from None

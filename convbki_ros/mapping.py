@@ -293,7 +293,7 @@ class MappingCore:
         (unless its ``read_map`` ``contents`` are given) and checked without the lock (mapping
         goes on meanwhile): ``MapFileError`` when it cannot be read or was built for another
         grid, classes, prior or frame, and the map is untouched."""
-        metadata, indices, alpha = contents if contents is not None else read_map(path)
+        metadata, indices, alpha = contents if contents is not None else read_map(path, with_scan_log=True)
         self.mapper.check_compatible(path, metadata)
         frame = metadata.get("frame_id") or None
         known = (self.frame if self.odometry_frame or self.frames.map_frame else None) or None
@@ -309,6 +309,11 @@ class MappingCore:
                 self.position = self.mapper.sensor_position.copy()
             self._lost_evidence(f"~/load_map of {path}" if replaced else None)
         return len(indices), replaced
+
+    def replace_mapper(self, mapper) -> None:
+        """Put ``mapper`` in the place of the map (a correction's; call with the map lock held)."""
+        self.mapper = mapper
+        self.map_version += 1
 
     def _lost_evidence(self, why: str | None) -> None:
         """The map changed other than by adding evidence (call with the map lock held)."""
@@ -379,12 +384,23 @@ class MappingCore:
             if decision.pending.generation != self.queue.generation:  # a reset came while it was decoded
                 self.status.drop("map reset")
                 return
-            result = self.mapper.integrate(cloud.points, values, sensor_pose, moving)
+            result = self.mapper.integrate(cloud.points, values, sensor_pose, moving,
+                                           stamp_ns=stamp_to_ns(msg.header.stamp), mount=self._mount(decision))
             self.map_version += 1
             self.last_stamp = msg.header.stamp
             self.position = sensor_pose[:3, 3]
         self.status.integrated_one(result.timing_ms["total"])
         self.on_integrated()
+
+    def _mount(self, decision: Decision) -> np.ndarray | None:
+        """The cloud frame's pose on the body whose poses a SLAM corrects (the odometry's child
+        frame), for the scan log; None (the cloud's own frame) with poses from TF."""
+        lookup = decision.lookup
+        if self.pose_source == "tf" or lookup is None:
+            return None
+        mount, _ = self.frames.mount(lookup.child_frame_id, decision.pending.msg.header.frame_id,
+                                     stamp_to_ns(decision.pending.msg.header.stamp))
+        return mount
 
     def _no_pose(self, msg, lookup) -> None:
         status = lookup.status

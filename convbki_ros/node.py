@@ -27,7 +27,7 @@ import threading
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import Odometry, Path
 from nav_msgs.srv import GetMap
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -43,6 +43,7 @@ from convbki_core.datasets.labels import load_label_map
 from convbki_core.records import packed_palette
 from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.cloud_encoding import encode_cloud
+from convbki_ros.corrections import CorrectionRunner
 from convbki_ros.map_files import MapFiles, check_map_file_at_start, read_map_file_at_start
 from convbki_ros.outputs import MapOutputs
 from convbki_ros.params import (
@@ -105,6 +106,11 @@ class MapperNode(Node):
                                      callback_group=odometry_group, event_callbacks=self._count_publishers("odom"))
         self.status.uses_odometry = self.core.pose_source == "odometry"
         self.outputs = MapOutputs(self)
+        # A SLAM's optimised keyframes: the scans the map holds move where it now says they were.
+        self.corrections = CorrectionRunner(self.core, self, self.warnings)
+        self.create_subscription(Path, "pose_corrections", self.corrections.on_path,
+                                 QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
+                                            durability=DurabilityPolicy.VOLATILE), callback_group=housekeeping)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/save_map", self.files.on_save_map, callback_group=file_io)
         self.create_service(Trigger, "~/load_map", self.files.on_load_map, callback_group=file_io)
@@ -134,6 +140,7 @@ class MapperNode(Node):
         self.core.on_integrated = lambda: self.outputs.request("local")
         self.update_thread = threading.Thread(target=self.core.run, name="convbki_update", daemon=True)
         self.update_thread.start()
+        self.corrections.start()
         self.outputs.start()
         self.status.ready()
         mapper = self.core.mapper
@@ -240,6 +247,7 @@ class MapperNode(Node):
                                   values=[KeyValue(key=k, value=v) for k, v in diagnostic_values(snapshot)])
         status.values.append(KeyValue(key="last_save", value=self.files.last_save or ""))
         status.values.append(KeyValue(key="queue_limit", value=str(self.param("cloud_queue_size"))))
+        status.values.extend(KeyValue(key=k, value=v) for k, v in self.corrections.diagnostic_values())
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_publisher.publish(array)
@@ -306,6 +314,7 @@ class MapperNode(Node):
         """Stop the threads (the scan in progress finishes) and save when asked to; False when
         that save failed (the map of this session is then not on disk)."""
         self.core.stop()
+        self.corrections.stop()
         self.outputs.stop()
         self.update_thread.join(timeout=1.5)
         self.files.close()

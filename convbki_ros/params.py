@@ -176,6 +176,19 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("refuse_bad_map_file", False,
          "exit (code 2) when map_file exists but cannot be read (truncated, corrupted, not a map file), instead of "
          "starting with an empty map; bool"),
+    Spec("scan_log", DEFAULTS.scan_log.enabled,
+         "keep every integrated scan (its points, labels or probabilities, stamp and pose; about 9 bytes a "
+         "point) so that a SLAM's Path on pose_corrections can move it, and save the log in map_file; false: "
+         "corrections are refused; bool"),
+    Spec("scan_log_scans", DEFAULTS.scan_log.max_scans,
+         "the most scans the log keeps: older ones fall out, frozen into the map where no correction can move "
+         "them; count; 0 = no bound but scan_log_megabytes", 0, 10_000_000),
+    Spec("scan_log_megabytes", DEFAULTS.scan_log.max_megabytes,
+         "the most memory the log (and the map as it was where its segments begin) may take, and so what it "
+         "adds to map_file; megabytes (1e6 bytes); 0.0 = no bound but scan_log_scans", 0.0, 1e7),
+    Spec("correction_tolerance", 0.05,
+         "a Path on pose_corrections leaves a logged scan alone where it moves none of its points within the "
+         "local window by this much or more (a fraction of a voxel); metres", 0.0, 1e3, run_time=True),
     Spec("map_file_mismatch", "refuse",
          "what a map_file that holds a whole map of another set-up (its resolution, num_classes, prior or frame "
          "differ from this node's) does at start: refuse (exit code 2, naming what differs and the parameter that "
@@ -204,6 +217,8 @@ PARAMETER_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Queue and robustness (bad input never stops the node, and never changes the map)", (
         "cloud_queue_size", "cloud_queue_megabytes", "max_points_per_cloud", "pose_wait_timeout", "max_pose_jump",
         "on_pose_jump", "stamp_backwards_tolerance", "reset_on_stamp_backwards", "odometry_timeout",)),
+    ("SLAM corrections (a Path of optimised keyframe poses moves the scans the map holds)", (
+        "scan_log", "scan_log_scans", "scan_log_megabytes", "correction_tolerance",)),
     ("Logs and diagnostics", (
         "stats_period", "diagnostics_period",)),
 )
@@ -336,7 +351,8 @@ def config_from_node(node, label_map) -> MapperConfig:
         ignore_classes=label_map.ignore_classes, movable_classes=label_map.movable_classes,
         ground_classes=label_map.ground_classes, track_changes=True,
         free_space=node.param("free_space"), max_concentration=node.param("max_concentration"),
-        forget_movers=node.param("forget_movers"))
+        forget_movers=node.param("forget_movers"), scan_log=node.param("scan_log"),
+        scan_log_scans=node.param("scan_log_scans"), scan_log_megabytes=node.param("scan_log_megabytes"))
 
 
 def optional(node, name: str):

@@ -129,6 +129,11 @@ class CloudQueue:
         with self.changed:
             return len(self.clouds)
 
+    def oldest_stamp(self) -> int | None:
+        """The stamp (ns) of the oldest queued cloud, None when none is queued."""
+        with self.changed:
+            return min((stamp_to_ns(pending.msg.header.stamp) for pending in self.clouds), default=None)
+
     def waiting_for_pose(self) -> int:
         """Queued clouds whose odometry has not come yet."""
         with self.changed:

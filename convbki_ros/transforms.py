@@ -13,7 +13,7 @@ and the bag writer.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -220,6 +220,22 @@ def pose_to_transform_stamped(pose: np.ndarray, stamp: Any, frame_id: str, child
         rotation=_quaternion(types, quaternion))
     return types("geometry_msgs/msg/TransformStamped")(header=make_header(types, stamp, frame_id),
                                                       child_frame_id=child_frame_id, transform=transform)
+
+
+def poses_to_path(poses: np.ndarray, stamps: Sequence[int], frame_id: str, stamp: Any,
+                  types: TypeResolver | None = None) -> Any:
+    """nav_msgs/Path in ``frame_id`` stamped ``stamp``: one PoseStamped per 4x4 pose of ``poses``
+    at its stamp of ``stamps`` (ns), in ``frame_id`` too (a SLAM's optimised keyframes)."""
+    types = types or message_types()
+    stamped = []
+    for pose, pose_stamp in zip(poses, stamps, strict=True):
+        translation, quaternion = pose_to_translation_quaternion(pose)
+        position = types("geometry_msgs/msg/Point")(x=float(translation[0]), y=float(translation[1]),
+                                                     z=float(translation[2]))
+        stamped.append(types("geometry_msgs/msg/PoseStamped")(
+            header=make_header(types, int(pose_stamp), frame_id),
+            pose=types("geometry_msgs/msg/Pose")(position=position, orientation=_quaternion(types, quaternion))))
+    return types("nav_msgs/msg/Path")(header=make_header(types, stamp, frame_id), poses=stamped)
 
 
 def transform_to_pose(msg: Any) -> np.ndarray:

@@ -46,6 +46,9 @@ def generate_launch_description() -> LaunchDescription:
                               description="labelled sensor_msgs/PointCloud2 input (a relative name follows namespace)"),
         DeclareLaunchArgument("odom_topic", default_value="/odom",
                               description="nav_msgs/Odometry input (a relative name follows namespace)"),
+        DeclareLaunchArgument("corrections_topic", default_value="pose_corrections",
+                              description="nav_msgs/Path of a SLAM's optimised keyframe poses (docs/slam.md; a "
+                              "relative name follows namespace)"),
         DeclareLaunchArgument("log_level", default_value="info",
                               description="log level of the node: debug, info, warn, error or fatal"),
         DeclareLaunchArgument("rviz", default_value="false", choices=["true", "false"],
@@ -60,7 +63,8 @@ def generate_launch_description() -> LaunchDescription:
         output="screen",
         # The params file first: a use_sim_time given on the command line wins over the file's.
         parameters=[params_file, {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
-        remappings=[("cloud_in", LaunchConfiguration("cloud_topic")), ("odom", LaunchConfiguration("odom_topic"))],
+        remappings=[("cloud_in", LaunchConfiguration("cloud_topic")), ("odom", LaunchConfiguration("odom_topic")),
+                    ("pose_corrections", LaunchConfiguration("corrections_topic"))],
         ros_arguments=["--log-level", LaunchConfiguration("log_level")],
     )
 

@@ -5,11 +5,14 @@ plays the bag with ``play_bag --clock`` (at ``--rate`` or paced with ``--wait-fo
 optionally stops the player with SIGSTOP for some seconds and resumes it, and prints one JSON
 line per replay: scans integrated and dropped, the queue's peak, how many "no usable odometry"
 warnings the node logged, the worst ``/diagnostics`` level it published, the odometry delay it
-reported last, and play_bag's exit code and seconds.
+reported last, the corrections it applied (a drift bag's ``/pose_corrections``), and play_bag's
+exit code and seconds.
 
     scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --replays 10
     scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --stop-after 4 --stop-for 20
     scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --wait-for-node
+    scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/drift/bag --param map_frame:=map \
+        --expect-corrections 1
 
 Run it alone on the machine: the figures are timings.
 """
@@ -84,10 +87,12 @@ def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
     node = subprocess.Popen(
         [sys.executable, "-m", "convbki_ros.main", "--ros-args", "--params-file", str(config_dir() / "mapper.yaml"),
          "-r", "cloud_in:=/kitti/velo/pointcloud", "-r", "odom:=/kitti/odom", "-p", "use_sim_time:=true",
-         "-p", f"map_file:={map_file}", "-p", "stats_period:=1.0", "-p", "save_on_shutdown:=false"],
+         "-p", f"map_file:={map_file}", "-p", "stats_period:=1.0", "-p", "save_on_shutdown:=false",
+         *[word for parameter in args.param for word in ("-p", parameter)]],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     result = {"replay": index}
     odometry_warnings = 0
+    corrections: list[str] = []
     counters = (0, 0, 0, 0)
     peak = 0
     delay = None
@@ -116,6 +121,8 @@ def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
                         continue
                     raise
                 odometry_warnings += "no usable odometry" in line
+                if "pose_corrections applied" in line:
+                    corrections.append(line[line.index("pose_corrections applied"):].strip())
                 match = COUNTERS.search(line)
                 if match:
                     counters = tuple(int(v) for v in match.groups())
@@ -125,7 +132,7 @@ def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
                     delay = [int(v) for v in found.groups()]
                 scans_in, integrated, dropped, queued = counters
                 if player.poll() is not None and integrated + dropped == scans_in and queued == 0 \
-                        and scans_in >= args.expect:
+                        and scans_in >= args.expect and len(corrections) >= args.expect_corrections:
                     break
                 if player.poll() is not None and time.monotonic() - started > 600:
                     break
@@ -142,7 +149,7 @@ def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
         watch.close()
     result.update(scans_in=counters[0], integrated=counters[1], dropped=counters[2], queue_peak=peak,
                   odometry_warnings=odometry_warnings, worst_diagnostics=watch.worst,
-                  errors=watch.messages[:3], last_odometry_delay_ms=delay)
+                  errors=watch.messages[:3], last_odometry_delay_ms=delay, corrections=corrections)
     return result
 
 
@@ -155,6 +162,10 @@ def main() -> int:
     parser.add_argument("--stop-after", type=float, default=4.0, help="seconds into the replay to stop the player")
     parser.add_argument("--stop-for", type=float, default=0.0, help="seconds the player stays stopped (0: never)")
     parser.add_argument("--expect", type=int, default=150, help="clouds in the bag")
+    parser.add_argument("--expect-corrections", type=int, default=0, metavar="N",
+                        help="wait for the node to apply N corrections (a drift bag's /pose_corrections)")
+    parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
+                        help="a node parameter more (e.g. map_frame:=map for a drift bag's corrections)")
     parser.add_argument("--out", default="out/replay_study")
     args = parser.parse_args()
     out = Path(args.out)

@@ -1,6 +1,6 @@
 """The map file: one self-describing, versioned file holding a whole ConvBKI map.
 
-Layout (version 2): an uncompressed NumPy ``.npz`` archive (readable from any language
+Layout (versions 2 and 3): an uncompressed NumPy ``.npz`` archive (readable from any language
 with a zip reader and the .npy spec) with five members:
 
 * ``metadata``: UTF-8 JSON bytes: format name and version, resolution (m), num_classes,
@@ -13,8 +13,11 @@ with a zip reader and the .npy spec) with five members:
 * ``value``: (M,) float32 Dirichlet concentrations. Every other class holds exactly the
   metadata's ``prior`` (as float32).
 
-Version 1 files (a dense ``alpha`` (N, C) float32 member instead of the last three) still
-load. Saves are atomic (temp file in the same folder, fsync, rename).
+Version 3 adds, optionally, the map's scan log (``scan_log``: every scan a correction can
+still move, bit for bit as integrated, with its pose, and the map as it was before each
+segment of them): members ``scan_log_*`` (``ScanLog.to_arrays``). Versions 1 (a dense
+``alpha`` (N, C) float32 member instead of the class lists) and 2 (no log) still load. Saves are atomic
+(temp file in the same folder, fsync, rename).
 """
 
 from __future__ import annotations
@@ -31,9 +34,11 @@ from convbki_core.compact_rows import compress_rows, expand_rows
 from convbki_core.io.atomic import atomic_write_with
 
 MAP_FORMAT = "convbki_map"
-MAP_VERSION = 2
+MAP_VERSION = 3
 _MEMBERS = {1: ("metadata", "voxel_index", "alpha"),
-            2: ("metadata", "voxel_index", "class_count", "class_id", "value")}
+            2: ("metadata", "voxel_index", "class_count", "class_id", "value"),
+            3: ("metadata", "voxel_index", "class_count", "class_id", "value")}
+SCAN_LOG_PREFIX = "scan_log_"  # version 3, optional: the scan log's members (``scan_log.ScanLog.to_arrays``)
 
 
 class MapFileError(ValueError):
@@ -89,13 +94,15 @@ class MapSnapshot:
     metadata: dict
     indices: np.ndarray  # (N, 3) int64
     alpha: np.ndarray  # (N, C) float32
+    scan_log: object | None = None  # a ``ScanLog`` copy (``ScanLog.copy``), written with the map
 
     def __len__(self) -> int:
         return int(self.indices.shape[0])
 
     def write(self, path: str | Path) -> None:
-        """Write the map file (version 2) atomically: a failed write leaves the previous file as it was,
-        and a successful one keeps the file it replaced as ``NAME.prev``.
+        """Write the map file (the current version, with the scan log when there is one) atomically:
+        a failed write leaves the previous file as it was, and a successful one keeps the file it
+        replaced as ``NAME.prev``.
 
         Only values that differ from the metadata's ``prior`` are written; the rest is the prior.
         """
@@ -105,7 +112,8 @@ class MapSnapshot:
         if not _is_positive_number(prior):
             raise ValueError(f"the metadata's prior must be a positive number, got {prior!r}")
         counts, classes, values = compress_rows(self.alpha, prior)
-        metadata = dict(self.metadata, version=MAP_VERSION)
+        metadata = {key: value for key, value in self.metadata.items() if key != "scan_log"}
+        metadata["version"] = MAP_VERSION
         arrays = {
             "metadata": np.frombuffer(json.dumps(metadata).encode(), dtype=np.uint8),
             "voxel_index": self.indices.astype(np.int32),
@@ -113,15 +121,18 @@ class MapSnapshot:
             "class_id": classes,
             "value": values.view(np.float32),
         }
+        if self.scan_log is not None:
+            arrays.update(self.scan_log.to_arrays())
         atomic_write_with(path, lambda handle: np.savez(handle, **arrays), keep_previous=True)
 
 
-def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
+def read_map(path: str | Path, with_scan_log: bool = False) -> tuple[dict, np.ndarray, np.ndarray]:
     """Read and check a map file: (metadata, voxel_index (N, 3) int64, alpha (N, C) float32 dense).
 
     Anything that is not a complete map file of this format (empty, truncated, corrupted,
     another program's .npz or .npy, an unknown format version) raises ``MapFileError``
-    naming the file and the problem. Versions 1 and 2 load.
+    naming the file and the problem. Versions 1 and 2 load. ``with_scan_log``: also read the
+    scan log, into ``metadata["scan_log"]`` (a ``ScanLog``, or None where the file has none).
     """
     path = Path(path)
     try:
@@ -144,6 +155,8 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
             if missing:
                 raise MapFileError(f"{path}: not a ConvBKI map file (missing {', '.join(sorted(missing))})")
             arrays = {name: archive[name] for name in _MEMBERS[metadata["version"]][1:]}
+            if with_scan_log and metadata["version"] >= 3 and f"{SCAN_LOG_PREFIX}meta" in members:
+                arrays.update({name: archive[name] for name in members if name.startswith(SCAN_LOG_PREFIX)})
     except MapFileError:
         raise
     except FileNotFoundError:
@@ -158,7 +171,9 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
                            f"({error.__class__.__name__}{': ' + detail if detail else ''})") from None
     _check_metadata(path, metadata)
     indices = arrays["voxel_index"]
-    alpha = _dense_alpha(path, metadata, indices, arrays) if metadata["version"] == 2 else arrays["alpha"]
+    alpha = _dense_alpha(path, metadata, indices, arrays) if metadata["version"] >= 2 else arrays["alpha"]
+    if with_scan_log:
+        metadata["scan_log"] = _scan_log(path, arrays, metadata) if f"{SCAN_LOG_PREFIX}meta" in arrays else None
     num_classes = metadata["num_classes"]
     if indices.ndim != 2 or indices.shape[1] != 3 or alpha.ndim != 2 or alpha.shape != (indices.shape[0], num_classes):
         raise MapFileError(f"{path}: inconsistent arrays (voxel_index {indices.shape}, alpha {alpha.shape}, "
@@ -170,6 +185,19 @@ def read_map(path: str | Path) -> tuple[dict, np.ndarray, np.ndarray]:
     if len(np.unique(indices, axis=0)) != indices.shape[0]:
         raise MapFileError(f"{path}: duplicate voxel indices")
     return metadata, indices.astype(np.int64), alpha.astype(np.float32, copy=False)
+
+
+def _scan_log(path: Path, arrays: dict, metadata: dict):
+    """The scan log of a version 3 file (a ``ScanLog`` without bounds), checked."""
+    from convbki_core.scan_log import ScanLog
+
+    try:
+        meta = json.loads(arrays[f"{SCAN_LOG_PREFIX}meta"].tobytes().decode())
+        if not isinstance(meta, dict):
+            raise ValueError("its metadata is not a JSON object")
+        return ScanLog.from_arrays(arrays, meta, metadata["num_classes"], float(metadata.get("prior") or 1e-3))
+    except (ValueError, TypeError, KeyError, json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise MapFileError(f"{path}: corrupted scan log ({str(error).splitlines()[0][:200]})") from None
 
 
 # What a file that is not an .npz archive usually is, by its first bytes.

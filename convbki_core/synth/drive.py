@@ -27,7 +27,7 @@ import numpy as np
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.metrics import ConfusionMatrix
-from convbki_core.synth import lidar, movers, traffic, writer
+from convbki_core.synth import drift, lidar, movers, traffic, writer
 from convbki_core.synth.noise import BLUR_WIDTH, CalibrationSample, NoiseModel, PointNoise, calibrate
 from convbki_core.synth.primitives import OUTLIER
 from convbki_core.synth.route import Trajectory, drive
@@ -73,6 +73,10 @@ class DriveConfig:
     movers: int = 0  # moving road users planned over the drive
     traffic: str = "classic"  # the movers' behaviour mix, a key of traffic.TRAFFIC
     moving_labels: bool = False  # predictions of correctly classified mover points carry moving raw ids
+    drift_heading: float = 0.0  # odometry's heading bias, degrees per 100 m (0 with drift_scale 0: no odometry.txt)
+    drift_scale: float = 0.0  # odometry's scale error, a fraction
+    loop_closure: int | None = None  # frame at which the SLAM closes the loop (None: after the first lap, or the last)
+    keyframe_every: int = 5  # scans between the keyframes a SLAM re-publishes at the closure
 
 
 @dataclass
@@ -210,6 +214,10 @@ class Simulator:
 
 def check_destination(config: DriveConfig) -> None:
     """Raise SynthError when the drive may not be written where ``config`` says (nothing is created)."""
+    if config.loop_closure is not None and not (config.drift_heading or config.drift_scale):
+        raise SynthError("--loop-closure needs --drift or --drift-scale: without drift there is nothing to close")
+    if config.loop_closure is not None and not 1 <= config.loop_closure < config.frames:
+        raise SynthError(f"--loop-closure {config.loop_closure} must be a frame of the drive, 1..{config.frames - 1}")
     try:
         writer.check_sequence(Path(config.out), config.sequence, config.force)
     except (FileExistsError, PermissionError, NotADirectoryError) as error:
@@ -293,6 +301,12 @@ def generate_drive(config: DriveConfig, progress: Callable[[int], None] | None =
     if config.movers:
         writer.write_text(seq / "movers.json", movers.sidecar(scene.movers, world_from_scene(config.seed),
                                                               config.frames))
+    if config.drift_heading or config.drift_scale:
+        odometry = drift.drifted_odometry(poses, config.drift_heading, config.drift_scale)
+        closure = config.loop_closure or drift.first_lap_frame(poses, scene.route.length) or config.frames - 1
+        writer.write_text(seq / "odometry.txt", writer.poses_text(odometry, tr))
+        writer.write_yaml(seq / "loop_closure.yaml", drift.record(closure, config.keyframe_every,
+                                                                  config.drift_heading, config.drift_scale))
     result = DriveResult(seq, config.frames, counts, elapsed / config.frames, strength,
                          config.noise_strength is None, sample_miou, matrix, class_points, dict(scene.info),
                          scene.movers, moving_counts)

@@ -95,6 +95,41 @@ def free_space_figure(dataset: SequenceDataset, scans: int, device: str = "cpu")
     return statistics.median(times[min(5, len(times) - 1):])
 
 
+def correction_figures(dataset: SequenceDataset, scans: int, device: str = "cpu", free_space: bool = False) -> dict:
+    """A loop closure's correction of ``scans`` scans (the first of the drive): every logged scan
+    moved (a turn of half a degree about the first sensor position and 0.3 m sideways), mapped
+    again in a map of its own (``ConvBKIMapper.corrected``): ms per moved scan with a window
+    already in memory (as the node's corrections after its first) and with a new one, against
+    integrating them (the mean of the same scans' whole integration: voxelise, window move,
+    update, free space, log), and the scan log's bytes and encoding time per scan."""
+    mapper = paper_mapper(device=device, free_space=free_space)
+    frames = progress(read_frames(dataset, range(scans)), total=scans,
+                      description=f"correction{', free space' if free_space else ''}")
+    timings = [result.timing_ms for _, result in integrate_frames(mapper, frames)]
+    logged = mapper.scan_log.scans()
+    first = logged[0][1].pose[:3, 3]
+    angle = np.radians(0.5)
+    turn = np.eye(4)
+    turn[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    change = np.eye(4)
+    change[:3, 3] = first + [0.0, 0.3, 0.0]
+    change = change @ turn
+    change[:3, 3] -= change[:3, :3] @ first
+    moves = {index: change @ scan.pose for index, scan in logged}
+    new, first_result = mapper.corrected(moves)
+    _, result = mapper.corrected(moves, reuse=new)
+    integrate = statistics.mean(t["total"] for t in timings[1:])
+    key = "correction_free" if free_space else "correction"
+    figures = {f"{key}_ms_per_scan": 1e3 * result.seconds / result.scans,
+               f"{key}_first_ms_per_scan": 1e3 * first_result.seconds / first_result.scans,
+               f"{key}_integrate_ms_per_scan": integrate, f"{key}_scans": result.scans}
+    figures[f"{key}_ratio"] = figures[f"{key}_ms_per_scan"] / integrate
+    if not free_space:
+        figures["scan_log_bytes_per_scan"] = sum(scan.nbytes for _, scan in logged) / len(logged)
+        figures["scan_log_encode_ms"] = statistics.median(t["log"] for t in timings[1:])
+    return figures
+
+
 def dense_reference_figure(frame, repeat: int, device: str = "cpu") -> float:
     """The paper's dense update as the reference code runs it: conv3d(groups=C), default layout."""
     mapper = paper_mapper(update_path="dense", device=device)

@@ -113,6 +113,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
                                           movable_classes=label_map.movable_classes,
                                           ground_classes=label_map.ground_classes)
     mapper = ConvBKIMapper(mapper_config, config)
+    if mapper.scan_log is not None:  # map_tool correct reads a poses file with the scans' calibration
+        mapper.scan_log.calibration = dataset.calibration
     warm_up(mapper)  # every kernel compiled (or loaded) before the first timed frame
     run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
                                                                              label_map.ignore_classes), mapper=mapper)
@@ -132,7 +134,8 @@ def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], ke
         input_labels = frame.input_labels if frame.input_labels is not None else frame.probabilities.argmax(axis=1)
         moving = frame.input_moving if moving_labels else None
         run_result.moving_labels_used |= moving is not None
-        result = mapper.integrate(frame.points, frame.input_values, frame.pose, moving)
+        result = mapper.integrate(frame.points, frame.input_values, frame.pose, moving,
+                                  stamp_ns=round(frame.stamp * 1e9))
         started = time.perf_counter()
         predicted = map_frame_labels(mapper, frame.points, frame.pose, input_labels)
         labelling_ms = 1e3 * (time.perf_counter() - started)
@@ -325,6 +328,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "own grid and a planning check; writes JSON and a picture beside it")
     p.add_argument("--costmap-profile", default="car", metavar="PROFILE",
                    help="traversability profile for --costmap-report: car, small_robot or a YAML file (default: car)")
+    p.add_argument("--no-scan-log", dest="scan_log", action="store_false",
+                   help="keep no scan log: the map of --save-map then holds no log, so map_tool correct cannot "
+                   "move its scans (default: the log is kept and saved)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -336,6 +342,26 @@ def check_writable_file(path: str | Path, flag: str) -> None:
         raise UserError(f"{path}: is a folder; {flag} names a file")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise UserError(f"{folder}: folder is not writable (for {flag} {path})")
+
+
+def _drift_study(dataset, positions, kernel_file, mapper_config: MapperConfig, quiet: bool):
+    """On a drift drive (``loop_closure.yaml``) whose frames cross the loop closure: the maps
+    without correction, corrected and from scratch (``correction_eval``); else None."""
+    from convbki_core.correction_eval import drift_study
+    from convbki_core.datasets.drift import read_loop_closure
+
+    closure = read_loop_closure(dataset)
+    if closure is None or not positions[0] < closure.closure_frame <= positions[-1]:
+        return None
+    label_map = dataset.label_map
+    config = mapper_config.replace(ignore_classes=label_map.ignore_classes, movable_classes=label_map.movable_classes,
+                                   ground_classes=label_map.ground_classes, scan_log=True)
+    kernel = load_kernel_file(kernel_file)
+
+    def show(frames, what):
+        return frames if quiet else progress(frames, total=len(positions), description=f"drift: {what}")
+
+    return drift_study(dataset, positions, closure, lambda: ConvBKIMapper(config, kernel), show)
 
 
 def _evaluate(args: argparse.Namespace) -> int:
@@ -361,7 +387,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     mapper_config = DEFAULTS.replace(local_bounds=window_bounds(args.local_bounds) or DEFAULTS.window.local_bounds,
                                      prior=args.prior, device=args.device, update_path=args.update_path,
                                      free_space=args.free_space, max_concentration=args.max_concentration,
-                                     forget_movers=args.forget_movers)
+                                     forget_movers=args.forget_movers, scan_log=args.scan_log)
     report_path = Path(args.report)
     output_folder(report_path, "report")
     if report_path.is_dir():
@@ -424,6 +450,9 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     movable = label_map.movable_classes
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,
                           input_calibration, tempered, movable)
+    drift = _drift_study(dataset, positions, kernels[0], mapper_config, args.quiet)
+    if drift is not None:
+        report["drift"] = drift.report()
 
     from convbki_core.tools.plots import save_map_picture, save_reliability_diagram
 
@@ -451,6 +480,20 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                                  title=f"sequence {dataset.sequence}, {len(positions)} frames, "
                                  f"{Path(run_result.kernel_file).stem}")
         pictures.append(reliability_path)
+    if drift is not None:
+        from convbki_core.tools.plots import save_maps_side_by_side
+
+        drift_picture = report_path.with_name(f"{report_path.stem}_drift.png")
+        before, after = drift.maps[0], drift.maps[1]
+        save_maps_side_by_side(
+            [(f"{before.name}: double surface {before.double_surface:.3f}, mIoU {before.miou:.3f}",
+              before.mapper.voxels()),
+             (f"{after.name}: double surface {after.double_surface:.3f}, mIoU {after.miou:.3f}",
+              after.mapper.voxels())],
+            label_map, before.mapper.resolution, outputs.file(drift_picture),
+            f"sequence {dataset.sequence}: the loop closes at frame {drift.closure_frame}, the odometry "
+            f"{drift.drift_m:.2f} m off")
+        pictures.append(drift_picture)
     costmap_lines = []
     if args.costmap_report:
         costmap_lines = write_costmap_report(runs[0].mapper, truth_voxels, costmap_profile, label_map,
@@ -492,6 +535,8 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
                          f"NLL {_number(scaled['nll'])}, Brier {_number(scaled['brier'])}")
         print(line)
     for line in costmap_lines:
+        print(line)
+    for line in drift.lines() if drift is not None else []:
         print(line)
     print(f"report: {report_path}; pictures: {', '.join(map(str, pictures))}")
     if args.write_labels:

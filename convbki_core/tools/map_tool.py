@@ -77,7 +77,7 @@ def map_info(path: str | Path) -> dict:
     from convbki_core.statistics import dirichlet_statistics
     from convbki_core.store import VoxelStore
 
-    metadata, indices, alpha = read_map(path)
+    metadata, indices, alpha = read_map(path, with_scan_log=True)
     resolution = float(metadata["resolution"])
     num_classes = metadata["num_classes"]
     bounds = None
@@ -106,7 +106,22 @@ def map_info(path: str | Path) -> dict:
                          for c in range(num_classes)],
         "bytes_per_voxel": round(memory / len(indices), 1) if len(indices) else 0.0, "memory_bytes": memory,
         "merged_from": metadata.get("merged_from"),
+        "scan_log": _log_info(metadata.get("scan_log")),
     }
+
+
+def _log_info(log) -> dict | None:
+    """What a map file's scan log holds (None: the file has none)."""
+    if log is None:
+        return None
+    scans = log.scans()
+    return {"scans": len(scans), "first_scan": scans[0][0] if scans else None,
+            "first_stamp_s": scans[0][1].stamp_ns / 1e9 if scans else None,
+            "last_stamp_s": scans[-1][1].stamp_ns / 1e9 if scans else None,
+            "points": int(sum(scan.count for _, scan in scans)), "bytes": int(log.nbytes),
+            "bytes_per_scan": round(log.nbytes / len(scans)) if scans else 0, "segments": len(log.segments()),
+            "frozen_scans": log.frozen, "frozen_why": log.frozen_why or None,
+            "calibration": log.calibration is not None}
 
 
 def format_info(info: dict) -> str:
@@ -126,6 +141,16 @@ def format_info(info: dict) -> str:
         lines.append(f"scans:       {info['scans_integrated']}")
     if info["merged_from"]:
         lines.append(f"merged from: {', '.join(map(str, info['merged_from']))}")
+    log = info["scan_log"]
+    if log is None:
+        lines.append("scan log:    none (no scan of this map can be moved by map_tool correct)")
+    elif log["scans"]:
+        frozen = f"; the {log['frozen_scans']} before are frozen ({log['frozen_why']})" if log["frozen_scans"] else ""
+        lines.append(f"scan log:    scans {log['first_scan']}..{log['first_scan'] + log['scans'] - 1} (stamped "
+                     f"{log['first_stamp_s']:.3f}..{log['last_stamp_s']:.3f} s), {_size(log['bytes'])}, "
+                     f"{_size(log['bytes_per_scan'])} a scan{frozen}")
+    else:
+        lines.append(f"scan log:    empty; the {log['frozen_scans']} scans are frozen ({log['frozen_why']})")
     lines.append(f"memory:      {info['bytes_per_voxel']:g} bytes per voxel in the mapper's store once loaded, "
                  f"{_size(info['memory_bytes'])} in all")
     lines.append(f"classes:     {info['num_classes']} (voxels per expected class; class 0: seen empty by free "
@@ -306,6 +331,60 @@ def _costmap(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- correct ------------------------------------------------------------------------------
+def _correct(args: argparse.Namespace) -> int:
+    """Map the logged scans of a map file again at the poses of a poses file."""
+    from convbki_core.config import MapperConfig
+    from convbki_core.datasets import DatasetError
+    from convbki_core.datasets.semantic_kitti import read_calibration, read_poses
+    from convbki_core.io.kernel_file import kernel_config_from_dict
+    from convbki_core.io.map_file import read_map
+    from convbki_core.mapper import ConvBKIMapper
+
+    out = _check_output(args.out, args.force)
+    metadata, indices, alpha = read_map(args.map, with_scan_log=True)
+    log = metadata["scan_log"]
+    if log is None:
+        raise UserError(f"{args.map}: holds no scan log (saved with scan_log off, or by a version before "
+                        "logs), so none of its scans can move")
+    scans = log.scans()
+    if not scans:
+        raise UserError(f"{args.map}: its scan log is empty; its {log.frozen} scans are frozen into the map "
+                        f"({log.frozen_why or 'they cannot move'})")
+    calibration = log.calibration
+    try:
+        if args.calib:
+            calibration = read_calibration(Path(args.calib))
+        if calibration is None:
+            raise UserError(f"{args.map}: its log keeps no calibration (the scans came from a node, in the sensor's "
+                            "frame): give --calib CALIB.txt, or an identity one for poses of the sensor")
+        poses = read_poses(Path(args.poses), calibration)
+    except DatasetError as error:
+        raise UserError(str(error)) from None
+    if len(poses) != len(scans):
+        raise UserError(f"{args.poses}: {len(poses)} poses for the {len(scans)} logged scans (scans "
+                        f"{scans[0][0]}..{scans[-1][0]} of the map); one pose per logged scan, in order"
+                        + (f"; the {log.frozen} scans before are frozen ({log.frozen_why})" if log.frozen else ""))
+    try:
+        config = MapperConfig.from_mapping_record(metadata.get("mapping"))
+        kernel = kernel_config_from_dict(metadata.get("kernel"))
+    except (ValueError, TypeError, KeyError) as error:
+        raise UserError(f"{args.map}: does not say how its scans were mapped ({error})") from None
+    # The log as the file holds it, unbounded; the device where no GPU is asked for.
+    config = config.replace(device="cpu", scan_log_scans=0, scan_log_megabytes=0.0)
+    mapper = ConvBKIMapper(config, kernel)
+    mapper.replace_with(metadata, indices, alpha)
+    wanted = {index: pose for (index, _), pose in zip(scans, poses)}
+    with _steps(1, args.quiet, "mapping the moved scans again") as bar:
+        corrected, result = mapper.corrected(wanted, tolerance=args.tolerance)
+        bar.update()
+    corrected.save(out)
+    print(f"corrected {args.map}: {result.scans} of {len(scans)} logged scans moved (largest move "
+          f"{result.largest_move:.2f} m; {result.skipped} moved less than {args.tolerance:g} m, left alone), "
+          f"{result.replayed} mapped again in {result.seconds:.2f} s: {out} ({len(corrected)} voxels)")
+    return 0
+
+
 def _info(args: argparse.Namespace) -> int:
     import json
 
@@ -327,6 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
         "  map_tool merge MAP MAP [MAP ...] --out MAP [--force]\n"
         "  map_tool export-ply MAP --out PLY [--max-variance V] [--force]\n"
         "  map_tool costmap MAP --out GRID.npz|GRID.png [--profile car|small_robot|FILE] [--force]\n"
+        "  map_tool correct MAP --poses POSES.txt --out FIXED [--calib CALIB.txt] [--tolerance M] [--force]\n"
         "  --json: one JSON object; --out: the file to write (atomically); --force: replace it if it exists;\n"
         "  --max-variance: only voxels whose expected class has at most this variance; --quiet: no progress bar.\n"
         "`map_tool COMMAND --help` explains each command.")
@@ -365,14 +445,30 @@ def build_parser() -> argparse.ArgumentParser:
     costmap.add_argument("--profile", default="car", metavar="PROFILE",
                          help="traversability profile: car or small_robot (shipped), or a YAML file (default: car)")
     costmap.add_argument("--force", action="store_true", help="replace --out if it exists")
-    for command in (info, merge, export, costmap):
+    correct = commands.add_parser("correct", help="move the map's logged scans to corrected poses (a SLAM's)",
+                                  description="Map the scans a map file's scan log keeps again, each at its pose "
+                                  "of POSES (one pose per logged scan, in order: poses.txt's format, read with the "
+                                  "calibration the scans were read with, kept in the log, or --calib): the map "
+                                  "built from scratch with those poses, for every rule of the mapper. `map_tool info` "
+                                  "says which scans the log keeps.")
+    correct.add_argument("map", metavar="MAP", help="map file with a scan log (node map_file, evaluate --save-map)")
+    correct.add_argument("--poses", required=True, metavar="POSES", help="corrected poses, one per logged scan")
+    correct.add_argument("--out", required=True, metavar="FIXED", help="corrected map file to write (atomically)")
+    correct.add_argument("--calib", default=None, metavar="CALIB",
+                         help="calib.txt whose Tr reads POSES (default: the one kept in the log)")
+    correct.add_argument("--tolerance", type=float, default=0.0, metavar="M",
+                         help="leave alone scans whose points within the local window move less than this "
+                         "(m; default: 0, every scan whose pose differs)")
+    correct.add_argument("--force", action="store_true", help="replace --out if it exists (it may be MAP)")
+    for command in (info, merge, export, costmap, correct):
         command.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    commands = {"info": _info, "merge": _merge, "export-ply": _export_ply, "costmap": _costmap}
+    commands = {"info": _info, "merge": _merge, "export-ply": _export_ply, "costmap": _costmap,
+                "correct": _correct}
     return run(PROG, lambda args: commands[args.command](args), build_parser(), argv)
 
 

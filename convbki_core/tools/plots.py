@@ -95,6 +95,34 @@ def save_map_picture(voxels: VoxelSet, label_map: LabelMap, resolution: float, p
     _save(figure, path)
 
 
+def save_maps_side_by_side(maps: Sequence[tuple[str, VoxelSet]], label_map: LabelMap, resolution: float,
+                           path: str | Path, title: str = "") -> None:
+    """Bird's-eye PNG of several maps of one place in class colours, side by side on the same
+    axes (``maps``: (caption, voxels)), e.g. a drift drive before and after its correction."""
+    plt = _pyplot()
+    from matplotlib.patches import Patch
+
+    rasters = [birds_eye_rasters(voxels, label_map.colors, resolution) for _, voxels in maps]
+    extents = np.array([extent for _, _, extent in rasters])
+    aspect = (extents[:, 3].max() - extents[:, 2].min()) / max(extents[:, 1].max() - extents[:, 0].min(), 1e-6)
+    figure, axes = plt.subplots(1, len(maps), figsize=(7.5 * len(maps), max(4.0, min(12.0, 7.0 * aspect)) + 1.0),
+                                sharex=True, sharey=True, squeeze=False)
+    present = set()
+    for axis, (caption, voxels), (rgb, _, extent) in zip(axes[0], maps, rasters):
+        axis.imshow(rgb, origin="lower", extent=extent, interpolation="nearest")
+        axis.set_title(caption)
+        axis.set_xlabel("x [m]")
+        axis.set_ylabel("y [m]")
+        present.update(int(c) for c in np.unique(voxels.label) if c != 0)
+    handles = [Patch(color=label_map.colors[c] / 255.0, label=label_map.class_names[c]) for c in sorted(present)]
+    if handles:
+        figure.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), fontsize=9, frameon=False,
+                      bbox_to_anchor=(0.5, -0.02))
+    if title:
+        figure.suptitle(title)
+    _save(figure, path)
+
+
 def save_reliability_diagram(diagrams: dict, path: str | Path, variance_curve: Sequence[dict] | None = None,
                              title: str = "") -> None:
     """Reliability diagram (accuracy against confidence per bin) and, when given, the variance-filter curve.

@@ -54,8 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG, description=__doc__.split("\n\n")[1].replace("\n", " ").replace("``", ""),
         epilog="Columns: voxels = stored voxels (store + window); RSS B/vx = RSS / voxels; dRSS B/vx = RSS growth "
         "since scan 1 / voxels added since; store B/vx = store bytes / voxels in the store; excess MB = RSS growth "
-        "minus store growth since scan 1; live exc = the same for bytes live in malloc (a leak raises it, freed "
-        "pages malloc keeps do not); free MB = freed bytes malloc holds; occupied = median voxels with points "
+        "minus store growth since scan 1; log MB = the scan log's bytes (its growth is subtracted from the "
+        "excess too); live exc = the same for bytes live in malloc (a leak raises it, freed pages malloc keeps do "
+        "not); free MB = freed bytes malloc holds; occupied = median voxels with points "
         "per scan; update ms = median voxelise + update; query ms = median window move; p10 = their 10th "
         "percentiles (the scans no other process slowed); others = CPU cores other processes kept busy "
         "during the row. "
@@ -81,6 +82,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bounds", nargs=6, type=float, default=[*PAPER_BOUNDS[0], *PAPER_BOUNDS[1]],
                    metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
                    help="local window around the sensor in m (default: the paper's -40 -40 -2.6 40 40 2.6)")
+    p.add_argument("--scan-log-megabytes", default=None, type=float, metavar="MB",
+                   help="bound of the scan log kept for SLAM corrections (default: the mapper's); a small bound "
+                   "shows the log filling, then staying flat while its oldest scans fall out")
+    p.add_argument("--scan-log-scans", default=None, type=int, metavar="N",
+                   help="the most scans the log keeps (default: the mapper's)")
     p.add_argument("--kernel", default=None, metavar="YAML",
                    help="kernel file (default: config/kernels/semantic_kitti_compound.yaml, the paper's lengths)")
     return p
@@ -104,11 +110,18 @@ def _soak(args: argparse.Namespace) -> int:
                                f"{args.drive_dir}; it is kept for later runs", file=sys.stderr))
     if len(dataset) < args.scans:
         raise UserError(f"{args.drive_dir} holds {len(dataset)} scans, fewer than --scans {args.scans}")
-    mapper = paper_mapper(kernel, local_bounds=bounds)
+    log_bounds = {name: value for name, value in (("scan_log_megabytes", args.scan_log_megabytes),
+                                                   ("scan_log_scans", args.scan_log_scans)) if value is not None}
+    if any(value < 0 for value in log_bounds.values()):
+        raise UserError(f"the scan log's bounds must be 0 (no bound) or more, got {log_bounds}")
+    mapper = paper_mapper(kernel, local_bounds=bounds, **log_bounds)
+    log_config = mapper.config.scan_log
     settings = {"scans": args.scans, "every": args.every, "seed": args.seed, "beams": args.beams,
                 "azimuth_steps": args.azimuth_steps, "bounds": [*bounds[0], *bounds[1]], "kernel": str(kernel),
                 "resolution": mapper.resolution, "window_dims": [int(d) for d in mapper.geometry.dims],
                 "window_mb": mapper.window.nbytes / MB, "drive": str(args.drive_dir),
+                "scan_log": {"enabled": log_config.enabled, "max_scans": log_config.max_scans,
+                             "max_megabytes": log_config.max_megabytes},
                 "machine": f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"}
     print(f"{PROG}: {args.scans} scans of {args.drive_dir} at full speed; window "
           f"{'x'.join(map(str, settings['window_dims']))} ({settings['window_mb']:.0f} MB, fixed)", file=sys.stderr)

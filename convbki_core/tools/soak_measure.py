@@ -112,7 +112,7 @@ class Checkpoint:
     rss_per_voxel_b: float  # rss / voxels: falls as the fixed window and runtime are spread thinner
     rss_growth_per_voxel_b: float  # (rss - rss at the baseline) / (voxels - voxels at the baseline)
     store_per_voxel_b: float  # store bytes / store voxels
-    excess_mb: float  # RSS growth since the baseline minus the store's growth: memory no voxel explains
+    excess_mb: float  # RSS growth since the baseline minus the store's and the scan log's: memory nothing explains
     live_excess_mb: float  # the same for the bytes live in malloc (glibc): what is still referenced
     malloc_free_mb: float  # freed bytes malloc keeps in its arenas instead of returning them
     occupied: int  # median voxels with points per scan (what the update's cost follows)
@@ -125,6 +125,8 @@ class Checkpoint:
     other_cores: float  # CPU cores other processes kept busy during the row (shared machines)
     elapsed_s: float  # wall time since the first scan, including reading the scans
     live_mb: float  # bytes live in malloc'd blocks (glibc's mallinfo2), NaN elsewhere
+    log_mb: float = 0.0  # the scan log's bytes (scans and segment copies; bounded by the mapper's scan_log settings)
+    log_scans: int = 0  # scans the log holds
 
 
 @dataclass
@@ -152,6 +154,7 @@ class SoakResult:
             "rss_mb": last.rss_mb,
             "rss_growth_mb": last.rss_mb - self.baseline.rss_mb,
             "store_growth_mb": last.store_mb - self.baseline.store_mb,
+            "log_mb": last.log_mb, "log_mb_max": max(r.log_mb for r in rows), "log_scans": last.log_scans,
             "excess_mb": last.excess_mb,
             "excess_mb_max": max(r.excess_mb for r in rows),
             "live_excess_mb": last.live_excess_mb,
@@ -179,10 +182,14 @@ def _sample(mapper: ConvBKIMapper, scans: int, baseline: Checkpoint | None, upda
     # collector simply has not reached yet.
     gc.collect()
     rss, store = resident_bytes(), mapper.store.resident_bytes
+    log = mapper.scan_log
+    log_bytes, log_scans = (log.nbytes, len(log)) if log is not None else (0, 0)
     live, held_free = malloc_bytes()
     voxels, store_voxels = len(mapper), len(mapper.store)
     rss_growth = rss - baseline.rss_mb * MB if baseline else 0.0
+    # What the map holds: the store's growth and the scan log's (bounded: flat once it is full).
     store_growth = store - baseline.store_mb * MB if baseline else 0.0
+    store_growth += log_bytes - baseline.log_mb * MB if baseline else 0.0
     new_voxels = voxels - baseline.voxels if baseline else 0
     return Checkpoint(
         scans=scans, voxels=voxels, store_voxels=store_voxels, rss_mb=rss / MB, store_mb=store / MB,
@@ -196,7 +203,8 @@ def _sample(mapper: ConvBKIMapper, scans: int, baseline: Checkpoint | None, upda
         query_ms=statistics.median(query) if query else math.nan,
         update_p10_ms=float(np.percentile(update, 10)) if update else math.nan,
         query_p10_ms=float(np.percentile(query, 10)) if query else math.nan,
-        other_cores=other_cores, elapsed_s=time.perf_counter() - started, live_mb=live / MB)
+        other_cores=other_cores, elapsed_s=time.perf_counter() - started, live_mb=live / MB,
+        log_mb=log_bytes / MB, log_scans=log_scans)
 
 
 def soak(mapper: ConvBKIMapper, frames: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], every: int,

@@ -17,7 +17,7 @@ from convbki_core.tools.soak_measure import Checkpoint, SoakResult
 
 # (field, header, width, format) of the printed table; the CSV and JSON hold every field.
 COLUMNS = [("scans", "scans", 6, "d"), ("voxels", "voxels", 10, ",d"), ("store_voxels", "in store", 10, ",d"),
-           ("rss_mb", "RSS MB", 7, ".0f"), ("store_mb", "store MB", 8, ".1f"),
+           ("rss_mb", "RSS MB", 7, ".0f"), ("store_mb", "store MB", 8, ".1f"), ("log_mb", "log MB", 7, ".1f"),
            ("rss_per_voxel_b", "RSS B/vx", 8, ".0f"),
            ("rss_growth_per_voxel_b", "dRSS B/vx", 9, ".1f"), ("store_per_voxel_b", "store B/vx", 10, ".1f"),
            ("excess_mb", "excess MB", 9, ".1f"), ("live_excess_mb", "live exc", 8, ".1f"),
@@ -71,7 +71,8 @@ def plot_png(result: SoakResult, title: str) -> bytes:
     figure, (memory, per_voxel, timing) = plt.subplots(1, 3, figsize=(17, 4.6), gridspec_kw={"wspace": 0.38})
     memory.plot(scans, [r.rss_mb - result.baseline.rss_mb for r in rows], "o-", label="RSS growth since scan 1")
     memory.plot(scans, [r.store_mb - result.baseline.store_mb for r in rows], "s-", label="store growth")
-    memory.plot(scans, [r.excess_mb for r in rows], "^-", label="excess (RSS growth - store growth)")
+    memory.plot(scans, [r.log_mb for r in rows], "d-", label="scan log (bounded)")
+    memory.plot(scans, [r.excess_mb for r in rows], "^-", label="excess (RSS growth - store and log growth)")
     memory.set_ylabel("MB")
     voxels = memory.twinx()
     voxels.plot(scans, [r.voxels / 1e6 for r in rows], "--", color="grey", label="stored voxels")

@@ -142,6 +142,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="predict moving objects as a multi-scan network does: a mover's point whose predicted "
                    "class is the mover's gets the moving raw id (252 moving-car instead of 10 car, ...); all "
                    "other predictions stay as without the option")
+    p.add_argument("--drift", default=0.0, type=_float_in("--drift", -90.0, 90.0), metavar="DEG",
+                   help="also write the odometry of a car whose heading drifts by DEG degrees per 100 m driven "
+                   "(odometry.txt, poses in poses.txt's convention), and what a SLAM publishes when it closes the "
+                   "loop (loop_closure.yaml: its frame, and the keyframes it then re-publishes, their corrected "
+                   "poses poses.txt's); evaluate and kitti_to_bag read them (docs/slam.md) (default: %(default)s: "
+                   "no drift, no odometry.txt)")
+    p.add_argument("--drift-scale", default=0.0, type=_float_in("--drift-scale", -0.5, 0.5), metavar="F",
+                   help="the odometry's scale error, a fraction of each step (e.g. 0.01: 1 %% too long) "
+                   "(default: %(default)s)")
+    p.add_argument("--loop-closure", default=None, type=_positive_int("--loop-closure", 1_000_000), metavar="K",
+                   help="with --drift or --drift-scale, the frame at which the SLAM closes the loop (default: "
+                   "the first frame after one lap of the route, else the last frame)")
     p.add_argument("--force", action="store_true",
                    help="write into an existing non-empty sequence folder, replacing its scans")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
@@ -187,7 +199,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                          input_miou=args.input_miou, noise_strength=args.noise_strength,
                          probabilities=args.probabilities, beams=args.beams, azimuth_steps=args.azimuth_steps,
                          speed=args.speed, max_range=args.max_range, range_noise=args.range_noise, force=args.force,
-                         movers=args.movers, traffic=args.traffic, moving_labels=args.moving_labels)
+                         movers=args.movers, traffic=args.traffic, moving_labels=args.moving_labels,
+                         drift_heading=args.drift, drift_scale=args.drift_scale, loop_closure=args.loop_closure)
     bar = None
     # The top-most folder of ROOT/sequences/SS that this run creates: removed again on failure.
     sequence_folder = Path(args.out) / "sequences" / args.sequence

@@ -8,6 +8,13 @@ transient local), /tf the vehicle's pose (camera_gray_left in map, poses.txt). P
 /tf and /kitti/odom are written just before the cloud, all at the cloud's stamp
 (EPOCH + times.txt). The bag is written into a hidden folder next to BAG and renamed into
 place at the end, so an interrupted run leaves nothing half-written.
+
+A drift drive (``synth --drift``: a sequence with ``loop_closure.yaml``) is written as a robot
+with a SLAM records it, unless ``--true-poses``: /kitti/odom is the drifting odometry in frame
+odom, /tf holds odom -> camera_gray_left from it and map -> odom, the identity until the SLAM
+closes the loop and its correction from then on, and /pose_corrections (nav_msgs/Path in map)
+the corrected keyframe poses of velo_link, once, just before the closure's cloud (when the
+frames written hold the closure and scans before it).
 """
 
 from __future__ import annotations
@@ -34,6 +41,8 @@ TF_TOPIC = "/tf"
 TF_STATIC_TOPIC = "/tf_static"
 VEHICLE_FRAME = "camera_gray_left"  # the frame poses.txt gives (KITTI's camera 0), as kitti2bag names it
 MAP_FRAME = "map"
+ODOM_FRAME = "odom"  # a drift drive's odometry frame: map -> odom is the SLAM's correction
+CORRECTIONS_TOPIC = "/pose_corrections"
 SENSOR_FRAME = "velo_link"
 DEFAULT_PREDICTIONS_DIR = "predictions"
 
@@ -64,6 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "float32 fields prob_0..prob_{C-1} instead of `label`")
     p.add_argument("--frames", default=None, metavar="A:B", type=frames_arg,
                    help="only frames A (inclusive) to B (exclusive); default: all")
+    p.add_argument("--true-poses", action="store_true",
+                   help="for a drift drive (loop_closure.yaml), write poses.txt's true poses as /kitti/odom in "
+                   "map, without the drift, map -> odom or /pose_corrections")
     p.add_argument("--storage", default="mcap", choices=("mcap", "sqlite3"),
                    help="rosbag2 storage plugin (default: %(default)s)")
     p.add_argument("--force", action="store_true",
@@ -95,18 +107,30 @@ def cloud_fields(frame, probabilities: bool) -> dict[str, np.ndarray]:
     return fields
 
 
-def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, probabilities: bool) -> dict[str, int]:
-    """Write the frames at ``positions`` of ``sequence`` into a new bag at ``path``; counts per topic."""
+def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, probabilities: bool,
+              closure=None) -> dict[str, int]:
+    """Write the frames at ``positions`` of ``sequence`` into a new bag at ``path``; counts per
+    topic. ``closure``: a drift drive's ``LoopClosure`` (odometry in odom, map -> odom and the
+    correction Path)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
     from convbki_ros.cloud_encoding import encode_cloud
-    from convbki_ros.transforms import message_types, pose_to_odometry, pose_to_transform_stamped, seconds_to_ns
+    from convbki_ros.transforms import (
+        message_types,
+        pose_to_odometry,
+        pose_to_transform_stamped,
+        poses_to_path,
+        seconds_to_ns,
+    )
 
     typestore = get_typestore(Stores.ROS2_JAZZY)
     types = message_types(typestore)
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     counts = {TF_STATIC_TOPIC: 0, TF_TOPIC: 0, ODOM_TOPIC: 0, CLOUD_TOPIC: 0}
+    closes = closure is not None and closure.closure_frame in positions[1:]  # the Path only with scans before it
+    if closes:
+        counts[CORRECTIONS_TOPIC] = 0
     previous = None
     mount = sequence.calibration  # camera_gray_left <- velo_link
     with Writer(path, version=9, storage_plugin=plugin) as writer:
@@ -119,6 +143,9 @@ def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, prob
                                           offered_qos_profiles=qos)
         cloud_conn = writer.add_connection(CLOUD_TOPIC, "sensor_msgs/msg/PointCloud2", typestore=typestore,
                                            offered_qos_profiles=qos)
+        if closes:
+            path_conn = writer.add_connection(CORRECTIONS_TOPIC, "nav_msgs/msg/Path", typestore=typestore,
+                                              offered_qos_profiles=qos)
         for position in progress(positions, total=len(positions), description=PROG):
             frame = sequence[position]
             stamp = EPOCH_NS + seconds_to_ns(frame.stamp)
@@ -131,10 +158,25 @@ def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, prob
                 writer.write(static_conn, stamp, typestore.serialize_cdr(static_msg, static_msg.__msgtype__))
                 counts[TF_STATIC_TOPIC] += 1
             previous = stamp
-            vehicle = frame.pose @ np.linalg.inv(mount)  # map <- camera_gray_left
-            transform = pose_to_transform_stamped(vehicle, stamp, MAP_FRAME, VEHICLE_FRAME, types)
-            tf_msg = types("tf2_msgs/msg/TFMessage")(transforms=[transform])
-            odom = pose_to_odometry(frame.pose, stamp, MAP_FRAME, SENSOR_FRAME, types)
+            if closure is None:
+                vehicle = frame.pose @ np.linalg.inv(mount)  # map <- camera_gray_left
+                transforms = [pose_to_transform_stamped(vehicle, stamp, MAP_FRAME, VEHICLE_FRAME, types)]
+                odom = pose_to_odometry(frame.pose, stamp, MAP_FRAME, SENSOR_FRAME, types)
+            else:
+                drifted = closure.odometry[position]  # odom <- velo_link, as the odometry says
+                if closes and position == closure.closure_frame:  # the SLAM publishes its optimised keyframes
+                    keyframes = closure.keyframes[np.isin(closure.keyframes, positions)]
+                    path = poses_to_path(closure.truth[keyframes],
+                                         [EPOCH_NS + seconds_to_ns(sequence.times[k]) for k in keyframes],
+                                         MAP_FRAME, stamp, types)
+                    writer.write(path_conn, stamp, typestore.serialize_cdr(path, path.__msgtype__))
+                    counts[CORRECTIONS_TOPIC] += 1
+                transforms = [pose_to_transform_stamped(closure.correction_at(position), stamp, MAP_FRAME,
+                                                        ODOM_FRAME, types),
+                              pose_to_transform_stamped(drifted @ np.linalg.inv(mount), stamp, ODOM_FRAME,
+                                                        VEHICLE_FRAME, types)]
+                odom = pose_to_odometry(drifted, stamp, ODOM_FRAME, SENSOR_FRAME, types)
+            tf_msg = types("tf2_msgs/msg/TFMessage")(transforms=transforms)
             cloud = encode_cloud(stamp, SENSOR_FRAME, cloud_fields(frame, probabilities), types=types)
             writer.write(tf_conn, stamp, typestore.serialize_cdr(tf_msg, tf_msg.__msgtype__))
             writer.write(odom_conn, stamp, typestore.serialize_cdr(odom, odom.__msgtype__))
@@ -164,6 +206,7 @@ def _replace(new: Path, out: Path, force: bool) -> None:
 def convert(args: argparse.Namespace) -> int:
     """The command's body: read the sequence, write the bag, print a summary."""
     from convbki_core.datasets import parse_frames
+    from convbki_core.datasets.drift import read_loop_closure
     from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 
     out = Path(args.out)
@@ -179,6 +222,7 @@ def convert(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise UserError(str(error)) from None
     sequence.check_files(positions)  # a broken scan found now, not after half the bag is written
+    closure = None if args.true_poses else read_loop_closure(sequence)
 
     if out.parent.exists() and not out.parent.is_dir():
         raise UserError(f"{out.parent}: not a folder (for {out})")
@@ -187,7 +231,7 @@ def convert(args: argparse.Namespace) -> int:
     remove_stale_staging_folders(out)  # a bag half-written by a killed run
     staging = Path(tempfile.mkdtemp(dir=out.parent, prefix=staging_prefix(out)))
     try:
-        counts = write_bag(sequence, positions, staging / out.name, args.storage, probabilities)
+        counts = write_bag(sequence, positions, staging / out.name, args.storage, probabilities, closure)
         _replace(staging / out.name, out, args.force)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -199,6 +243,10 @@ def convert(args: argparse.Namespace) -> int:
     size = _folder_size(out)
     print(f"{PROG}: wrote {out} ({args.storage}, {len(positions)} frames of sequence {sequence.sequence}, "
           f"{last - first:.3f} s, {size / 1e6:.1f} MB)")
+    if closure is not None:
+        closing = (f"map -> odom corrected and the keyframes on {CORRECTIONS_TOPIC} at frame {closure.closure_frame}"
+                   if CORRECTIONS_TOPIC in counts else f"the loop closes at frame {closure.closure_frame}, not written")
+        print(f"  a drift drive: odometry in '{ODOM_FRAME}' as it drifts; {closing}")
     for topic, count in counts.items():
         print(f"  {topic:<26} {count:6d} messages")
     return 0

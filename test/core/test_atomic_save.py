@@ -378,7 +378,7 @@ def _as_version_1(good: Path, out: Path, change, alpha_change=lambda alpha: None
     (lambda good, p: np.savez(p, voxels=np.zeros(3)), "missing class_count, class_id, metadata, value, voxel_index"),
     (lambda good, p: zipfile.ZipFile(p, "w").writestr("readme.txt", "hello"), "missing"),
     (lambda good, p: p.mkdir(), "is a folder"),
-    (lambda good, p: _rewrite(good, p, lambda m: m.update(version=MAP_VERSION + 1)), "version 3 is not supported"),
+    (lambda good, p: _rewrite(good, p, lambda m: m.update(version=MAP_VERSION + 1)), "version 4 is not supported"),
     (lambda good, p: _rewrite(good, p, lambda m: m.update(version=[2])), "version \\[2\\] is not supported"),
     (lambda good, p: _rewrite(good, p, lambda m: m.update(format="octomap")), "format is 'octomap'"),
     (lambda good, p: _rewrite(good, p, lambda m: m.update(num_classes="20")), "num_classes"),

@@ -46,8 +46,8 @@ def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys
     seen, clock = [], [0.0]
     integrate, label = ConvBKIMapper.integrate, evaluate.map_frame_labels
 
-    def watched_integrate(self, *args):
-        result = integrate(self, *args)
+    def watched_integrate(self, *args, **options):
+        result = integrate(self, *args, **options)
         if self.geometry.bounds_max[0] == 20:  # the evaluated mapper, not the warm-up's throwaway ones
             seen.append(dict(result.timing_ms))
         return result

@@ -354,7 +354,7 @@ def test_save_load_gives_identical_statistics(tmp_path):
     np.testing.assert_array_equal(a.variance[order_a], b.variance[order_b])
     with np.load(path) as archive:
         metadata = json.loads(archive["metadata"].tobytes())
-    assert metadata["format"] == "convbki_map" and metadata["version"] == 2
+    assert metadata["format"] == "convbki_map" and metadata["version"] == 3
     assert metadata["resolution"] == 0.2 and metadata["num_classes"] == NUM_CLASSES and metadata["frame_id"] == "map"
     assert metadata["kernel"]["kernel"] == "compound" and metadata["num_voxels"] == len(mapper)
 

@@ -214,7 +214,7 @@ def sample_map(seed: int, num_classes: int = 20, count: int = 3000) -> tuple[np.
 
 
 @pytest.mark.parametrize("num_classes", [1, 20])
-def test_version_2_round_trip_is_exact(tmp_path, num_classes):
+def test_a_map_without_a_log_round_trips_exactly(tmp_path, num_classes):
     indices, alpha = sample_map(1, num_classes)
     alpha = np.where(np.isnan(alpha), np.float32(2.0), np.abs(alpha))  # a file holds finite, non-negative values
     path = tmp_path / "map.npz"
@@ -222,12 +222,13 @@ def test_version_2_round_trip_is_exact(tmp_path, num_classes):
     with np.load(path) as archive:
         members = {name: archive[name] for name in archive.files}
     assert set(members) == {"metadata", "voxel_index", "class_count", "class_id", "value"}
-    assert json.loads(members["metadata"].tobytes())["version"] == MAP_VERSION == 2
+    assert json.loads(members["metadata"].tobytes())["version"] == MAP_VERSION == 3
     assert members["class_count"].dtype == np.uint8 and members["class_id"].dtype == np.uint8
     assert members["value"].dtype == np.float32 and members["voxel_index"].dtype == np.int32
     assert members["value"].size == (alpha.view(np.uint32) != PRIOR.view(np.uint32)).sum()
     metadata, got_indices, got_alpha = read_map(path)
-    assert metadata["version"] == 2 and metadata["prior"] == float(PRIOR)
+    assert metadata["version"] == 3 and metadata["prior"] == float(PRIOR) and "scan_log" not in metadata
+    assert read_map(path, with_scan_log=True)[0]["scan_log"] is None
     assert np.array_equal(got_indices, indices) and got_indices.dtype == np.int64
     assert got_alpha.dtype == np.float32 and got_alpha.tobytes() == alpha.tobytes()
 

@@ -49,7 +49,8 @@ def test_map_settings_at_start_shape_the_map_and_its_outputs(tmp_path):
     ply = tmp_path / "street.ply"
     rig = Rig(tmp_path, "-p", "update_path:=dense", "-p", "prior:=0.01", "-p", "max_concentration:=20.0",
               "-p", "forget_movers:=false", "-p", "max_variance:=0.05", "-p", "input_qos:=sensor_data",
-              "-p", "publish_local:=false", "-p", f"ply_file:={ply}", "-p", "costmap_max_cells:=10")
+              "-p", "publish_local:=false", "-p", f"ply_file:={ply}", "-p", "costmap_max_cells:=10",
+              "-p", "scan_log:=false")
     try:
         node = rig.probe.node
         for topic in ("/cloud_in", "/odom"):  # sensor_data: the node reads its inputs best effort
@@ -72,6 +73,7 @@ def test_map_settings_at_start_shape_the_map_and_its_outputs(tmp_path):
         order = np.lexsort(indices.T)
         got = (None, indices[order], alpha[order])
         assert metadata["prior"] == 0.01, metadata
+        assert read_map(rig.map_file, with_scan_log=True)[0]["scan_log"] is None  # scan_log false: none kept
         assert same_map(got, expected)
         for name, default in DEFAULT_OPTIONS.items():  # each setting made a difference
             assert not same_map(got, offline(**{**MAP_OPTIONS, name: default})), name

@@ -23,6 +23,8 @@ RESETS = "test_node_robustness.py::test_resets_on_request_no_odometry_warnings_a
 UNREADABLE = "test_node_robustness.py::test_bad_map_files_met_in_three_starts_are_each_set_aside_under_a_name_of_" \
     "their_own"
 OVERRIDES = "test_node_startup.py::test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_effect"
+CORRECTED = "test_node_corrections.py::test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scratch"
+RESTARTED = "test_node_corrections.py::test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing"
 FILES = "test_node_files.py::test_load_map_clear_box_and_a_run_time_map_file_show_in_the_published_map"
 
 # parameter: the test that sets it at start (-p name:=value, a params file, parameter_overrides)
@@ -79,6 +81,10 @@ SET_AT_START = {
     "refuse_bad_map_file": UNREADABLE,
     "map_file_mismatch": "test_node_robustness.py::test_a_map_of_another_set_up_stops_the_start_and_two_mistaken_" \
                          "restarts_lose_no_map",
+    "scan_log": MAP_SETTINGS,
+    "scan_log_scans": CORRECTED + " via start_node",
+    "scan_log_megabytes": CORRECTED + " via start_node",
+    "correction_tolerance": RESTARTED + " via start_node",
 }
 
 # parameter: the test that changes it while the node runs (set_parameters, ros2 param set)
@@ -110,6 +116,7 @@ CHANGED_AT_RUN_TIME = {
     "stamp_backwards_tolerance": RUN_TIME,
     "reset_on_stamp_backwards": RUN_TIME,
     "odometry_timeout": RUN_TIME,
+    "correction_tolerance": RESTARTED + " via set_parameters",
 }
 
 
