@@ -15,6 +15,11 @@ and the movers' rules on (the node can turn them on at run time), and
    planner's costmap, queries inside and outside the window, a forgotten box, a save to a
    temporary file, its load and a PLY export.
 
+With a cold cache the kernels of free space and the movers' rules (about half of the
+compilation, which numba does on one core) are compiled in a second process meanwhile, while
+this one compiles the rest on a mapper without them; then the whole run above loads them
+from the cache. With a warm cache nothing is started.
+
 The mapper itself is not touched; ``warm_up(config, kernel)`` takes the mapper's
 configuration instead, so that it can run while that mapper allocates its window (a third of
 a gigabyte at the paper's grid, which numpy fills without holding the GIL). On a GPU the same
@@ -23,6 +28,11 @@ run also loads the device's kernels, as nvblox warms CUDA up before it builds it
 
 from __future__ import annotations
 
+import os
+import pickle
+import signal
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Iterator
@@ -39,6 +49,7 @@ from convbki_core.free_space import FREE_CLASS
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
 from convbki_core.mapper import ConvBKIMapper
+from convbki_core.parts import Scratch
 from convbki_core.records import change_records, packed_palette, view_records
 from convbki_core.shown_map import ShownMap
 from convbki_core.window import EVIDENCE, classes_held
@@ -83,10 +94,10 @@ def _pose(x: float, y: float, yaw: float) -> np.ndarray:
     return pose
 
 
-def throwaway_mapper(config: MapperConfig, kernel) -> ConvBKIMapper:
+def throwaway_mapper(config: MapperConfig, kernel, rules: bool = True) -> ConvBKIMapper:
     """A mapper like one made from ``config`` and ``kernel`` (its kernel, grid, prior, device and
     update path) on a small window, with free space, clamping and the movers' rules on, so
-    that their kernels are compiled whatever the configuration says."""
+    that their kernels are compiled whatever the configuration says (``rules`` False: off)."""
     if kernel is None:
         kernel = config.kernel_path()
     if isinstance(kernel, (str, Path)):
@@ -96,8 +107,56 @@ def throwaway_mapper(config: MapperConfig, kernel) -> ConvBKIMapper:
     ignored = tuple(sorted({FREE_CLASS, *config.ignore_classes()}))
     movable = config.classes.movable_classes or (min(1, kernel.num_classes - 1),)
     small = config.replace(local_bounds=(tuple(-half), tuple(half)), ignore_classes=ignored, track_changes=True,
-                           free_space=True, max_concentration=1.0, forget_movers=True, movable_classes=movable)
+                           free_space=rules, max_concentration=1.0, forget_movers=rules, movable_classes=movable)
     return ConvBKIMapper(small, kernel)
+
+
+# The parts compiled aside when the cache is cold, by the module that holds their kernels.
+_ASIDE_MODULES = ("free_space", "forgetting")
+
+
+def _cached(folder: str, module: str) -> bool:
+    return any(Path(folder).rglob(f"{module}.*.nbi"))
+
+
+def _compile_aside(config: MapperConfig, kernel) -> subprocess.Popen | None:
+    """A process that compiles the free-space and movers' kernels into the cache
+    (``warm_parts_aside``), or None: the cache is off or already holds them, or the
+    configuration cannot be handed over."""
+    folder = kernel_cache().folder
+    if folder is None or all(_cached(folder, module) for module in _ASIDE_MODULES):
+        return None
+    try:
+        payload = pickle.dumps((config, kernel))
+    except Exception:  # a kernel object that does not pickle: this process compiles everything
+        return None
+    from numba.core import config as numba_config
+
+    environment = dict(os.environ)
+    if numba_config.CACHE_DIR:  # the folder this process chose, where numba's own order would not find it
+        environment["NUMBA_CACHE_DIR"] = numba_config.CACHE_DIR
+    try:
+        child = subprocess.Popen([sys.executable, "-c", "import convbki_core.warm_up as w; w.warm_parts_aside()"],
+                                 stdin=subprocess.PIPE, env=environment)
+        child.stdin.write(payload)
+        child.stdin.close()
+    except OSError:
+        return None
+    return child
+
+
+def warm_parts_aside() -> None:
+    """In the process ``_compile_aside`` starts: compile free space and the movers' rules of
+    the (configuration, kernel) pickled on standard input."""
+    # Ctrl-C in a terminal reaches the whole process group: the process that started this one
+    # stops it, and this one must not print a traceback of its own meanwhile.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    config, kernel = pickle.loads(sys.stdin.buffer.read())
+    mapper = throwaway_mapper(config, kernel)
+    scratch = Scratch(mapper.resolution, mapper.num_classes, mapper.prior, mapper.ignore_classes, mapper.window)
+    for part in (mapper.free, mapper.forgetting):
+        if part is not None:
+            part.warm_up(scratch)
 
 
 def _hidden_ground(classes: int, resolution: float, prior: float, profile: TraversabilityProfile) -> None:
@@ -164,10 +223,23 @@ def warm_up(mapper: ConvBKIMapper | MapperConfig | None = None, kernel=None) -> 
     else:
         config = mapper or DEFAULTS.replace(device="cpu")
         kernel = kernel if kernel is not None else config.kernel_path()
-    throwaway = throwaway_mapper(config, kernel)
-    throwaway.warm_up()
-    with _scratch_folder() as folder:
-        _exercise(throwaway, np.random.default_rng(0), folder)
+    aside = _compile_aside(config, kernel)
+    try:
+        if aside is not None:  # meanwhile the rest, on a mapper without free space and movers
+            plain = throwaway_mapper(config, kernel, rules=False)
+            plain.warm_up()
+            with _scratch_folder() as folder:
+                _exercise(plain, np.random.default_rng(0), folder)
+            del plain
+            aside.wait()  # whatever it did not finish, the run below compiles
+        throwaway = throwaway_mapper(config, kernel)
+        throwaway.warm_up()
+        with _scratch_folder() as folder:
+            _exercise(throwaway, np.random.default_rng(0), folder)
+    finally:
+        if aside is not None and aside.poll() is None:
+            aside.kill()
+            aside.wait()
     return WarmUpReport(time.perf_counter() - started, kernel_cache(), threading_layer())
 
 

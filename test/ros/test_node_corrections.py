@@ -5,6 +5,8 @@ semantic_map/updates then holds the map built from scratch with the corrected po
 with its log is corrected after a restart; a map file without one, and bad Paths, get one line
 and change nothing."""
 
+import functools
+
 import numpy as np
 import pytest
 from mapper_rig import WAIT, Stats
@@ -143,8 +145,15 @@ def test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scrat
     # are frozen by the end of the drive (scan 40). In megabytes (the scans and the map as it was
     # where each segment begins): the smallest bound that still holds every scan at the closure.
     if setup == "paper":  # (nothing frozen until 11 scans after the closure: the correction has begun by then)
-        megabytes = next(m for m in np.arange(2.0, 20.0, 0.25) if frozen_counts(dataset, closure, m)[CLOSURE + 10] == 0)
-        assert frozen_counts(dataset, closure, megabytes)[-1] >= 8
+        counts = functools.cache(lambda m: frozen_counts(dataset, closure, m))
+        grid = np.arange(2.0, 20.0, 0.25)  # bisected: more megabytes, fewer scans frozen
+        low, high = 0, len(grid) - 1
+        assert counts(grid[high])[CLOSURE + 10] == 0
+        while low < high:
+            middle = (low + high) // 2
+            low, high = (low, middle) if counts(grid[middle])[CLOSURE + 10] == 0 else (middle + 1, high)
+        megabytes = float(grid[low])
+        assert counts(megabytes)[-1] >= 8
         bound = ("-p", f"scan_log_megabytes:={megabytes}")
     else:
         bound = ("-p", "scan_log_scans:=32")
@@ -183,7 +192,7 @@ def test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scrat
         frozen = int(counters["scan_log_frozen"])
         assert int(counters["scan_log_scans"]) + frozen == FRAMES and frozen >= 8, counters
         if setup == "paper":
-            assert frozen == frozen_counts(dataset, closure, megabytes)[-1], counters
+            assert frozen == counts(megabytes)[-1], counters
             assert float(counters["scan_log_megabytes"]) <= megabytes, counters
         else:
             assert int(counters["scan_log_scans"]) <= 32, counters

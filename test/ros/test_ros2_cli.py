@@ -69,31 +69,40 @@ def test_ros2_param_service_and_topic_commands_work_against_the_node(tmp_path):
     try:
         rig.integrate_good_cloud()
 
-        # -- parameters: a float given as an integer is taken, a bad value refused with the reason
-        result = ros2(domain, f"param set --no-daemon --timeout 30 {node} publish_period 2")
-        assert result.returncode == 0 and "Set parameter successful" in result.stdout, result
-        result = ros2(domain, f"param get --no-daemon --timeout 30 {node} publish_period")
-        assert "Double value is: 2.0" in result.stdout, result
-        result = ros2(domain, f"param set --no-daemon --timeout 30 {node} on_pose_jump sometimes")
-        assert result.stderr.strip() == ("Setting parameter failed: parameter on_pose_jump: 'sometimes' is not one "
-                                         "of keep, reset, new_file"), result
-        result = ros2(domain, f"param describe --no-daemon --timeout 30 {node} transform_timeout")
-        assert "Type: double" in result.stdout and "Min value: 0.0" in result.stdout, result
+        # Each `ros2` command is a process of its own that mostly waits on discovery: the two
+        # sequences, which do not touch each other's state, run side by side.
+        def parameters() -> None:
+            # a float given as an integer is taken, a bad value refused with the reason
+            result = ros2(domain, f"param set --no-daemon --timeout 30 {node} publish_period 2")
+            assert result.returncode == 0 and "Set parameter successful" in result.stdout, result
+            result = ros2(domain, f"param get --no-daemon --timeout 30 {node} publish_period")
+            assert "Double value is: 2.0" in result.stdout, result
+            result = ros2(domain, f"param set --no-daemon --timeout 30 {node} on_pose_jump sometimes")
+            assert result.stderr.strip() == ("Setting parameter failed: parameter on_pose_jump: 'sometimes' is not "
+                                             "one of keep, reset, new_file"), result
+            result = ros2(domain, f"param describe --no-daemon --timeout 30 {node} transform_timeout")
+            assert "Type: double" in result.stdout and "Min value: 0.0" in result.stdout, result
 
-        # -- every service, as `ros2 service call` prints the answer
-        answers = {}
-        for service in ("save_map", "load_map", "export_ply", "clear_box", "reset"):
-            result = ros2(domain, f"service call {node}/{service} std_srvs/srv/Trigger")
-            assert result.returncode == 0, result
-            answers[service] = result.stdout
-        assert re.search(r"success=True, message=.saved \d+ voxels to ", answers["save_map"]), answers
-        assert re.search(r"success=True, message=.loaded \d+ voxels", answers["load_map"]), answers
-        assert re.search(r"success=True, message=.wrote \d+ voxels to .*\.ply.\)", answers["export_ply"]), answers
-        assert re.search(r"success=True, message=.forgot \d+ voxels in the box", answers["clear_box"]), answers
-        assert re.search(r"success=True, message=.map reset: forgot \d+ voxels", answers["reset"]), answers
-        result = ros2(domain, f"service call {node}/get_costmap nav_msgs/srv/GetMap")
-        assert result.returncode == 0 and "map=nav_msgs.msg.OccupancyGrid(" in result.stdout, result
-        assert re.search(r"frame_id='map'.*resolution=0\.2", result.stdout.replace("\n", " ")), result.stdout[:2000]
+        def services() -> None:
+            # every service, as `ros2 service call` prints the answer, in an order whose answers are known
+            result = ros2(domain, f"service call {node}/get_costmap nav_msgs/srv/GetMap")
+            assert result.returncode == 0 and "map=nav_msgs.msg.OccupancyGrid(" in result.stdout, result
+            assert re.search(r"frame_id='map'.*resolution=0\.2", result.stdout.replace("\n", " ")), \
+                result.stdout[:2000]
+            answers = {}
+            for service in ("save_map", "load_map", "export_ply", "clear_box", "reset"):
+                result = ros2(domain, f"service call {node}/{service} std_srvs/srv/Trigger")
+                assert result.returncode == 0, result
+                answers[service] = result.stdout
+            assert re.search(r"success=True, message=.saved \d+ voxels to ", answers["save_map"]), answers
+            assert re.search(r"success=True, message=.loaded \d+ voxels", answers["load_map"]), answers
+            assert re.search(r"success=True, message=.wrote \d+ voxels to .*\.ply.\)", answers["export_ply"]), answers
+            assert re.search(r"success=True, message=.forgot \d+ voxels in the box", answers["clear_box"]), answers
+            assert re.search(r"success=True, message=.map reset: forgot \d+ voxels", answers["reset"]), answers
+
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            for done in [pool.submit(check) for check in (parameters, services)]:
+                done.result()  # a failed assertion is raised here
 
         # -- the QoS of every topic, as docs/node.md's table says
         expected = {  # topic: (publishers, subscribers, node's endpoint: reliability, durability)
