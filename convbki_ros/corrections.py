@@ -178,6 +178,10 @@ class CorrectionRunner:
             self._refuse(self._outside_log(keyframes, log))
             return
         moved = correction.poses_for(scans)
+        frozen_note = ""
+        if log.frozen and scans and keyframes.stamps_ns[0] < scans[0][1].stamp_ns:
+            frozen_note = (f"; its keyframes reach back before the oldest logged scan: the {log.frozen} scans before "
+                           f"it stayed where they were ({log.frozen_why or 'frozen into the map'})")
         moves, skipped, _ = live.plan_correction(moved, tolerance, log=log)
         if not moves:
             with self._changed:
@@ -218,7 +222,7 @@ class CorrectionRunner:
         self.node.get_logger().info(
             f"pose_corrections applied: {result.scans} scans moved (largest move {result.largest_move:.2f} m, "
             f"{result.skipped} within correction_tolerance left alone), {result.replayed} mapped again, "
-            f"in {result.seconds:.2f} s")
+            f"in {result.seconds:.2f} s{frozen_note}")
 
     def _wait_for_queued_scans(self, stamp: int, longest: float = 5.0) -> None:
         """Let the update thread integrate the clouds queued that are stamped up to ``stamp`` (the
