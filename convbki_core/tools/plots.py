@@ -66,18 +66,12 @@ def save_map_picture(voxels: VoxelSet, label_map: LabelMap, resolution: float, p
                      title: str = "") -> None:
     """A bird's-eye PNG: the map in class colours next to its variance."""
     plt = _pyplot()
-    from matplotlib.patches import Patch
-
     rgb, variance, extent = birds_eye_rasters(voxels, label_map.colors, resolution)
     aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-6)
     figure, (left, right) = plt.subplots(1, 2, figsize=(15, max(4.0, min(12.0, 7.0 * aspect)) + 1.0))
     left.imshow(rgb, origin="lower", extent=extent, interpolation="nearest")
     left.set_title("expected class (most evident voxel per column)")
-    present = [c for c in np.unique(voxels.label) if c != 0] if len(voxels) else []
-    handles = [Patch(color=label_map.colors[c] / 255.0, label=label_map.class_names[c]) for c in present]
-    if handles:
-        figure.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), fontsize=9, frameon=False,
-                      bbox_to_anchor=(0.5, -0.02))
+    _class_legend(figure, label_map, [c for c in np.unique(voxels.label) if c != 0] if len(voxels) else [])
     from matplotlib.colors import LogNorm
 
     # Variances span orders of magnitude (well-observed voxels ~1e-4, fringes ~0.1): log colours.
@@ -100,8 +94,6 @@ def save_maps_side_by_side(maps: Sequence[tuple[str, VoxelSet]], label_map: Labe
     """Bird's-eye PNG of several maps of one place in class colours, side by side on the same
     axes (``maps``: (caption, voxels)), e.g. a drift drive before and after its correction."""
     plt = _pyplot()
-    from matplotlib.patches import Patch
-
     rasters = [birds_eye_rasters(voxels, label_map.colors, resolution) for _, voxels in maps]
     extents = np.array([extent for _, _, extent in rasters])
     aspect = (extents[:, 3].max() - extents[:, 2].min()) / max(extents[:, 1].max() - extents[:, 0].min(), 1e-6)
@@ -114,13 +106,20 @@ def save_maps_side_by_side(maps: Sequence[tuple[str, VoxelSet]], label_map: Labe
         axis.set_xlabel("x [m]")
         axis.set_ylabel("y [m]")
         present.update(int(c) for c in np.unique(voxels.label) if c != 0)
-    handles = [Patch(color=label_map.colors[c] / 255.0, label=label_map.class_names[c]) for c in sorted(present)]
-    if handles:
-        figure.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), fontsize=9, frameon=False,
-                      bbox_to_anchor=(0.5, -0.02))
+    _class_legend(figure, label_map, sorted(present))
     if title:
         figure.suptitle(title)
     _save(figure, path)
+
+
+def _class_legend(figure, label_map: LabelMap, classes) -> None:
+    """The colours of ``classes`` under the figure (nothing when there are none)."""
+    from matplotlib.patches import Patch
+
+    handles = [Patch(color=label_map.colors[c] / 255.0, label=label_map.class_names[c]) for c in classes]
+    if handles:
+        figure.legend(handles=handles, loc="lower center", ncol=min(len(handles), 10), fontsize=9, frameon=False,
+                      bbox_to_anchor=(0.5, -0.02))
 
 
 def save_reliability_diagram(diagrams: dict, path: str | Path, variance_curve: Sequence[dict] | None = None,
