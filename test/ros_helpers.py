@@ -107,15 +107,27 @@ class Probe:
         self.node = rclpy.create_node(name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
+        self.subscriptions: dict = {}
 
-    def subscribe(self, message_type, topic: str, latched: bool = False) -> list:
+    def subscribe(self, message_type, topic: str, latched: bool = False, depth: int = 10) -> list:
+        """The messages received on ``topic`` (appended while the probe spins); ``depth``: how many
+        the reader keeps between two spins."""
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
         received: list = []
-        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+        qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
-        self.node.create_subscription(message_type, topic, received.append, qos)
+        self.subscriptions[topic] = self.node.create_subscription(message_type, topic, received.append, qos)
         return received
+
+    def matched(self, *topics: str) -> bool:
+        """Whether every subscription on ``topics`` is matched to a publisher (DDS discovery done)."""
+        return all(self.subscriptions[topic].get_publisher_count() > 0 for topic in topics)
+
+    def spin_while(self, process, timeout: float) -> int | None:
+        """Spin (taking what arrives) until ``process`` ends; its exit code, None on timeout."""
+        self.spin_until(lambda: process.poll() is not None, timeout)
+        return process.poll()
 
     def spin_until(self, done, timeout: float) -> bool:
         deadline = time.monotonic() + timeout

@@ -163,8 +163,12 @@ def test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scrat
     probe = Probe(domain)
     try:
         maps = probe.subscribe(PointCloud2, "/semantic_map", latched=True)
-        updates = probe.subscribe(PointCloud2, "/semantic_map/updates")
+        updates = probe.subscribe(PointCloud2, "/semantic_map/updates", depth=1000)
         reports = probe.subscribe(DiagnosticArray, "/diagnostics")
+        # The node sends updates only to the listeners it has found: the probe must be matched to it
+        # before the first scan, and spin while the bag plays (a reader keeps `depth` messages).
+        assert probe.spin_until(lambda: probe.matched("/semantic_map", "/semantic_map/updates", "/diagnostics")
+                                and reports, 60), log.text()
         rebuilt: dict = {}
         applied = 0
 
@@ -178,8 +182,8 @@ def test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scrat
 
         # The bag plays at its own pace: the scans after the closure arrive while the correction runs.
         player = start("convbki_ros.tools.play_bag", domain, drive / "bag", "--wait-for-node")
-        assert player.wait(timeout=120) == 0, stop(player)
-        assert probe.spin_until(in_step, 60), (len(rebuilt), len(want), log.text()[-3000:])
+        assert probe.spin_while(player, 120) == 0, stop(player)
+        assert probe.spin_until(in_step, 60), (len(maps), len(updates), len(rebuilt), len(want), log.text()[-3000:])
         assert log.find(r"pose_corrections applied: (\d+) scans moved")
         seen = len(reports)
         assert probe.spin_until(lambda: len(reports) > seen, WAIT)
