@@ -275,9 +275,8 @@ def _contradicted_torch(alpha, physical, seen, movable, prior) -> int:
     has_evidence = _occupied_sum(occupied) > limit
     seen_t = torch.as_tensor(seen, device=alpha.device)
     reset = torch.as_tensor(movable, device=alpha.device)[held] & has_evidence & (seen_t != held)
-    if bool(reset.any()):
-        alpha[1:, x[reset], y[reset], z[reset]] = prior
-    return int(reset.sum())
+    alpha[1:, x, y, z] = torch.where(reset, float(prior), occupied)  # no read of the device before the end
+    return int(torch.count_nonzero(reset))
 
 
 def _occupied_sum(occupied):
@@ -332,33 +331,36 @@ def _unsupported_numpy(alpha, mask, origin, movable, columns, prior, min_empty) 
 
 
 def _unsupported_torch(alpha, mask, origin, movable, prior, near, min_empty) -> int:
-    """The rule of 2 over every column of a device window (a GPU does the whole window at once)."""
+    """The rule of 2 over every column of a device window at once (whole-window operations, no
+    loop over its layers). Each layer's decision reads only what the layers under it were
+    before the rule changed anything, so the walk up a column becomes two scans along z: the
+    empty voxels met since the last static one are a running count less its value where that
+    static voxel stands; a voxel stands on the ground where the one under it is static."""
     size_z = mask.shape[2]
-    movable_t = torch.as_tensor(movable, device=alpha.device)
-    empty_below = torch.zeros(mask.shape[:2], dtype=torch.int64, device=alpha.device)
-    on_ground = torch.zeros(mask.shape[:2], dtype=torch.bool, device=alpha.device)
-    rests = _occupied_sum(alpha[1:])  # the rule changes class 0 only: one sum for the whole window
-    # Counted on the device and read once at the end: a read per layer would wait for the GPU 26 times.
-    count = torch.zeros((), dtype=torch.int64, device=alpha.device)
-    for step in range(size_z):
-        z = int((origin[2] + step) % size_z)
-        marks = mask[:, :, z]
-        values = alpha[:, :, :, z]
-        evident = (marks & EVIDENCE) != 0
-        occupied = values[1:]
-        rest = rests[:, :, z]
-        empty = evident & (values[FREE_CLASS] > EMPTY_SHARE * (values[FREE_CLASS] + rest))
-        is_movable = evident & ~empty & movable_t[occupied.argmax(dim=0) + 1] & (occupied.amax(dim=0) > prior)
-        trail = is_movable & (empty_below >= min_empty) & ((marks & TOUCHED) == 0)
-        fringe = is_movable & ~trail & on_ground & ~near & ((marks & TOUCHED) != 0)
-        mask[:, :, z] &= ~(fringe.to(torch.uint8) * TOUCHED)
-        alpha[FREE_CLASS, :, :, z] = torch.where(trail, torch.maximum(values[FREE_CLASS], rest + 1.0),
-                                                 values[FREE_CLASS])
-        mask[:, :, z] |= trail.to(torch.uint8) * CHANGED
-        count += trail.sum()
-        empty_below = torch.where(evident & ~empty & ~is_movable, 0, empty_below + empty.to(torch.int64))
-        on_ground = evident & ~empty & ~is_movable
-    return int(count)
+    device = alpha.device
+    evident = (mask & EVIDENCE) != 0
+    rest = _occupied_sum(alpha[1:])
+    free = alpha[FREE_CLASS]
+    empty = evident & (free > EMPTY_SHARE * (free + rest))
+    best, held = alpha[1:].max(dim=0)
+    is_movable = evident & ~empty & torch.as_tensor(movable, device=device)[held + 1] & (best > prior)
+    static = evident & ~empty & ~is_movable
+    # Along each column from its bottom layer (the torus turned), then back.
+    layer = torch.arange(size_z, device=device)
+    up, down = (layer + int(origin[2])) % size_z, (layer - int(origin[2])) % size_z
+    static_up, empties = static[:, :, up], empty[:, :, up].to(torch.int64)
+    under = torch.cumsum(empties, dim=2) - empties  # empty voxels below each layer
+    last_static = torch.cummax(torch.where(static_up, layer, -1), dim=2).values
+    below = torch.nn.functional.pad(last_static[:, :, :-1], (1, 0), value=-1)  # the last static one under it
+    empty_below = (under - torch.gather(under, 2, below + 1))[:, :, down]
+    on_ground = torch.nn.functional.pad(static_up[:, :, :-1], (1, 0), value=False)[:, :, down]
+    touched = (mask & TOUCHED) != 0
+    trail = is_movable & (empty_below >= min_empty) & ~touched
+    fringe = is_movable & ~trail & on_ground & ~near[:, :, None] & touched
+    mask &= ~(fringe.to(torch.uint8) * TOUCHED)
+    mask |= trail.to(torch.uint8) * CHANGED
+    alpha[FREE_CLASS] = torch.where(trail, torch.maximum(free, rest + 1.0), free)
+    return int(torch.count_nonzero(trail))
 
 
 if HAVE_NUMBA:

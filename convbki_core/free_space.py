@@ -261,7 +261,10 @@ def scratch_counts(dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _walk_ray(start, end_voxel, visit, through=False) -> None:
-    """Amanatides-Woo: step into the neighbour whose boundary the ray meets first."""
+    """Amanatides-Woo: step into the neighbour whose boundary the ray meets first (on equal
+    times, x before y before z). The k-th boundary along an axis is met at t0 + k * delta, one
+    product and one sum in float64 (not a running sum), so that every crossing's time can be
+    computed on its own, as the device's walk (``device_rays``) does, with the same bits."""
     end = end_voxel + 0.5
     direction = end - start
     voxel = np.floor(start).astype(np.int64)
@@ -270,12 +273,14 @@ def _walk_ray(start, end_voxel, visit, through=False) -> None:
     with np.errstate(divide="ignore", invalid="ignore"):
         delta = np.where(direction != 0, np.abs(1.0 / direction), np.inf)
         boundary = np.where(direction > 0, voxel + 1.0, voxel.astype(np.float64))
-        t_max = np.where(direction != 0, (boundary - start) / direction, np.inf)
+        t_first = np.where(direction != 0, (boundary - start) / direction, np.inf)
+    t_max, crossed = t_first.copy(), np.zeros(3, np.int64)
     for _ in range(steps):
         visit((int(voxel[0]), int(voxel[1]), int(voxel[2])))
         axis = int(np.argmin(t_max))
         voxel[axis] += step[axis]
-        t_max[axis] += delta[axis]
+        crossed[axis] += 1
+        t_max[axis] = t_first[axis] + np.float64(crossed[axis]) * delta[axis]
 
 
 def _free_space_numpy(sensor, occupied, weights, through, offsets, tap_weights, origin, dims, alpha, mask,
@@ -323,7 +328,7 @@ if HAVE_NUMBA:
     @njit(nogil=True, inline="always")
     def _ray_start(sensor, end_voxel, through):  # pragma: no cover - compiled
         """The walk of ``_walk_ray`` at the sensor's voxel: (voxel x, y, z, steps, step x, y, z,
-        the times of the next boundary crossings x, y, z and their increments x, y, z)."""
+        the times of the first boundary crossings x, y, z and their increments x, y, z)."""
         vx = np.int64(np.floor(sensor[0]))
         vy = np.int64(np.floor(sensor[1]))
         vz = np.int64(np.floor(sensor[2]))
@@ -346,7 +351,9 @@ if HAVE_NUMBA:
         the end voxel too when ``through``); voxel v counts at ``counts[(v - corner) % dims]``,
         except those of the x plane ``shared_x`` (in that layout), which go to ``shared_plane``
         (Y, Z) (-1: none)."""
-        vx, vy, vz, steps, sx, sy, sz, tx, ty, tz, tdx, tdy, tdz = _ray_start(sensor, end_voxel, through)
+        vx, vy, vz, steps, sx, sy, sz, tx0, ty0, tz0, tdx, tdy, tdz = _ray_start(sensor, end_voxel, through)
+        tx, ty, tz = tx0, ty0, tz0
+        kx = ky = kz = 0  # boundaries crossed along each axis: the next is met at t0 + k * delta
         # Positions in the counts, advanced with the voxel: no modulo inside the loop.
         px = (vx - corner[0]) % dims[0]
         py = (vy - corner[1]) % dims[1]
@@ -358,21 +365,24 @@ if HAVE_NUMBA:
                 counts[px, py, pz] += weight
             # The same choice as numpy's argmin over (tx, ty, tz): the first smallest.
             if tx <= ty and tx <= tz:
-                tx += tdx
+                kx += 1
+                tx = tx0 + kx * tdx
                 px += sx
                 if px == dims[0]:
                     px = 0
                 elif px < 0:
                     px = dims[0] - 1
             elif ty <= tz:
-                ty += tdy
+                ky += 1
+                ty = ty0 + ky * tdy
                 py += sy
                 if py == dims[1]:
                     py = 0
                 elif py < 0:
                     py = dims[1] - 1
             else:
-                tz += tdz
+                kz += 1
+                tz = tz0 + kz * tdz
                 pz += sz
                 if pz == dims[2]:
                     pz = 0
@@ -380,13 +390,16 @@ if HAVE_NUMBA:
                     pz = dims[2] - 1
 
     @njit(nogil=True, inline="always")
-    def _step_inside(tx, ty, tz, tdx, tdy, tdz, index, pz, sz, stride_x, stride_y, size_z):  # pragma: no cover
-        """One step of ``_count_ray_inside``'s walk (the first smallest of tx, ty, tz, as
-        ``_walk_ray``): the new (tx, ty, tz, flat index, z on the torus, whether it stepped along x)."""
+    def _step_inside(t, k, t0, td, index, pz, sz, stride_x, stride_y, size_z):  # pragma: no cover
+        """One step of ``_count_ray_inside``'s walk (the first smallest of the times ``t`` (x, y, z),
+        as ``_walk_ray``; ``k`` the boundaries crossed, ``t0`` the first times, ``td`` their
+        increments): the new (t, k, flat index, z on the torus, whether it stepped along x)."""
+        tx, ty, tz = t
+        kx, ky, kz = k
         if tx <= ty and tx <= tz:
-            return tx + tdx, ty, tz, index + stride_x, pz, True
+            return (t0[0] + (kx + 1) * td[0], ty, tz), (kx + 1, ky, kz), index + stride_x, pz, True
         if ty <= tz:
-            return tx, ty + tdy, tz, index + stride_y, pz, False
+            return (tx, t0[1] + (ky + 1) * td[1], tz), (kx, ky + 1, kz), index + stride_y, pz, False
         pz += sz
         index += sz
         if pz == size_z:
@@ -395,7 +408,7 @@ if HAVE_NUMBA:
         elif pz < 0:
             pz = size_z - 1
             index += size_z
-        return tx, ty, tz + tdz, index, pz, False
+        return (tx, ty, t0[2] + (kz + 1) * td[2]), (kx, ky, kz + 1), index, pz, False
 
     @njit(nogil=True, inline="always")
     def _count_ray_inside(sensor, end_voxel, weight, through, corner, dims, counts, shared_plane,
@@ -405,7 +418,9 @@ if HAVE_NUMBA:
         the index moves by a fixed stride per step, and only a step along z can wrap.
         ``shared``: the ray ends below the sensor's x plane, so its visits of that plane, which
         go to ``shared_plane``, are its first ones."""
-        vx, vy, vz, steps, sx, sy, sz, tx, ty, tz, tdx, tdy, tdz = _ray_start(sensor, end_voxel, through)
+        vx, vy, vz, steps, sx, sy, sz, tx0, ty0, tz0, tdx, tdy, tdz = _ray_start(sensor, end_voxel, through)
+        t0, td = (tx0, ty0, tz0), (tdx, tdy, tdz)
+        t, k = t0, (0, 0, 0)
         size_y, size_z = dims[1], dims[2]
         plane = size_y * size_z
         pz = vz % size_z
@@ -416,14 +431,12 @@ if HAVE_NUMBA:
             while steps > 0:
                 shared_plane[index - base] += weight
                 steps -= 1
-                tx, ty, tz, index, pz, along_x = _step_inside(tx, ty, tz, tdx, tdy, tdz, index, pz, sz, stride_x,
-                                                              stride_y, size_z)
+                t, k, index, pz, along_x = _step_inside(t, k, t0, td, index, pz, sz, stride_x, stride_y, size_z)
                 if along_x:
                     break  # x only decreases along this ray: it has left the plane
         for _ in range(steps):
             counts[index] += weight
-            tx, ty, tz, index, pz, _along_x = _step_inside(tx, ty, tz, tdx, tdy, tdz, index, pz, sz, stride_x,
-                                                           stride_y, size_z)
+            t, k, index, pz, _along_x = _step_inside(t, k, t0, td, index, pz, sz, stride_x, stride_y, size_z)
 
     @njit(parallel=True, nogil=True)
     def _count_rays(sensor, occupied, weights, through, corner, dims, counts, shared_plane):  # pragma: no cover

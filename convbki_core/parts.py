@@ -25,7 +25,8 @@ import torch
 
 from convbki_core.clamping import clamp_torch
 from convbki_core.compiled import HAVE_NUMBA
-from convbki_core.free_space import FREE_CLASS, count_rays, free_space_update, free_taps, scan_rays, scratch_counts
+from convbki_core.device_rays import count_rays_on_device
+from convbki_core.free_space import FREE_CLASS, free_space_update, free_taps, scan_rays, scratch_counts
 from convbki_core.layer import ConvBKILayer
 from convbki_core.store import VoxelStore
 from convbki_core.torch_window import TorchFilters, TorchWindow, torch_free_space, torch_update
@@ -197,11 +198,14 @@ class _FreeSpace:
         self.filters, self.geometry, self.window = filters, geometry, window
         self.max_concentration, self.prior = max_concentration, prior
         self.ground_classes = tuple(ground_classes)  # their voxels take no free evidence
-        self.counts = scratch_counts(geometry.dims)
+        self.counts = self._scratch_counts()
         if self.ground_classes:
             # Which voxels are ground is derived from the held class runs only: the window
             # keeps its per-column class bits from now on, while it is empty.
             window.classes_by_column()
+
+    def _scratch_counts(self):
+        return scratch_counts(self.geometry.dims)
 
     def warm_up(self, scratch: Scratch) -> None:
         """The rays of the scratch scan, with this backend's clamping and ground classes."""
@@ -223,15 +227,21 @@ class HostFreeSpace(_FreeSpace):
 
 
 class DeviceFreeSpace(_FreeSpace):
-    """The rays counted on the host (the traversal is sequential), applied in the device window."""
+    """The rays walked, counted and applied in the device window: only the rays' end voxels
+    (those of the scan's returns, and where rays to returns beyond the window leave it) go there."""
+
+    def _scratch_counts(self) -> torch.Tensor:
+        return torch.zeros(tuple(int(d) for d in self.geometry.dims), dtype=torch.float32, device=self.window.device)
 
     def __call__(self, points: np.ndarray, pose: np.ndarray, volume: SparseVolume, origin: np.ndarray) -> int:
         ends, weights, through = scan_rays(points, pose, volume, self.geometry.resolution)
-        sensor = pose[:3, 3] / self.geometry.resolution
-        counts = count_rays(sensor, ends, weights, through, self.geometry.dims, self.counts)
+        device = self.window.device
+        rays = torch.as_tensor(ends, device=device), torch.as_tensor(weights, device=device), \
+            torch.as_tensor(through, device=device)
+        counts = count_rays_on_device(pose[:3, 3] / self.geometry.resolution, *rays, self.counts)
         before = self.window.alpha[FREE_CLASS].clone() if self.max_concentration else None
         freed = torch_free_space(counts, self.filters.refresh().free_filter, self.window, self.ground_classes)
-        counts.fill(0.0)
+        counts.zero_()
         if before is not None:
             clamp_torch(self.window.alpha, before, self.max_concentration, self.prior)
         return freed

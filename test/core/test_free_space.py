@@ -12,11 +12,13 @@ import math
 
 import numpy as np
 import pytest
+import torch
 from helpers import BUILDING, BUILDING_ACROSS, CAR, POLE, ROAD, cast, crossed_voxels
 from reference import sparse_kernel_np
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
+from convbki_core.device_rays import count_rays_on_device
 from convbki_core.free_space import (
     _free_space_numpy,
     count_rays,
@@ -171,6 +173,10 @@ def test_the_compiled_pass_is_exactly_the_numpy_pass_on_awkward_rays(sensor_kind
         counts = scratch_counts(dims)
         assert np.array_equal(count_rays(sensor, ends, weights, through, dims, counts), expected)
         counts[0].fill(0.0)
+        # The device's walk, every crossing on its own (torch on the CPU here): the same counts.
+        on_device = count_rays_on_device(sensor, torch.as_tensor(ends), torch.as_tensor(weights),
+                                         torch.as_tensor(through), torch.zeros(tuple(dims), dtype=torch.float32))
+        assert np.array_equal(on_device.numpy(), expected)
         free = np.zeros((3, 3, 3), np.float32)
         free[1, 1, 1] = 1
         if trial % 2:

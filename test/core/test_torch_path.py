@@ -15,7 +15,10 @@ import torch
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
+from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.paths import config_dir
 from convbki_core.statistics import dirichlet_statistics
+from convbki_core.tools import synth
 from convbki_core.torch_window import TorchWindow
 
 BOUNDS = ((-3.0, -3.0, -1.5), (3.0, 3.0, 1.5))
@@ -144,3 +147,48 @@ def test_cuda_asked_for_without_cuda_is_one_clear_error():
         pytest.skip("this machine has CUDA")
     with pytest.raises(ValueError, match="no CUDA device"):
         ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cuda", update_path="torch"), kernel("single", 3))
+
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU"))]
+
+
+@pytest.fixture(scope="module")
+def movers_drive(tmp_path_factory):
+    """A short synthetic drive with moving and parked traffic (and the node's defaults' classes)."""
+    root = tmp_path_factory.mktemp("movers")
+    assert synth.main(["--out", str(root), "--sequence", "00", "--frames", "10", "--seed", "31", "--speed", "12",
+                       "--beams", "16", "--azimuth-steps", "500", "--movers", "8", "--traffic", "varied",
+                       "--quiet"]) == 0
+    return SemanticKittiSequence(root, "00")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_defaults_on_a_torch_device_equal_the_compiled_path_over_a_drive_with_movers(movers_drive, device):
+    """The node's defaults (free space walked on the device, clamping, the ground rule, the
+    movers' rules) on the torch path give the compiled path's map: the same voxels, every label,
+    every concentration within 1e-5 relative, every costmap cell, the same rule counts."""
+    from convbki_core.costmap import grid_of_window, load_profile
+    from convbki_core.datasets.labels import load_label_map
+
+    labels = load_label_map("semantic_kitti")
+    config = MapperConfig.from_params_file(config_dir() / "mapper.yaml").replace(
+        device=device, local_bounds=((-20.0, -12.0, -3.0), (20.0, 12.0, 4.0)), scan_log=False)
+    profile = load_profile(config_dir() / "traversability" / "car.yaml", labels.class_names)
+    maps = {}
+    for path in ("fast", "torch"):
+        mapper = ConvBKIMapper(config.replace(device="cpu" if path == "fast" else device, update_path=path))
+        for frame in movers_drive:
+            raw = frame.raw_input_labels
+            moving = labels.is_moving(raw)
+            mapper.integrate(frame.points, labels.to_learning(raw), frame.pose, moving if moving.any() else None)
+        indices, alpha = sorted_items(mapper)
+        grid = grid_of_window(mapper.window, mapper.resolution, profile, mapper.prior)
+        rules = mapper.forgetting
+        maps[path] = indices, alpha, grid.values, (rules.reset_voxels, rules.emptied_voxels)
+    (fast_indices, fast_alpha, fast_grid, fast_rules), (indices, alpha, grid, rules) = maps["fast"], maps["torch"]
+    assert np.array_equal(indices, fast_indices)
+    np.testing.assert_allclose(alpha, fast_alpha, rtol=1e-5)
+    assert np.array_equal(dirichlet_statistics(alpha).label, dirichlet_statistics(fast_alpha).label)
+    assert (dirichlet_statistics(fast_alpha).label == 0).sum() > 1000  # rays emptied voxels
+    assert rules == fast_rules and fast_rules[1] > 0, (rules, fast_rules)  # the movers' rules emptied voxels
+    assert np.array_equal(grid, fast_grid) and (fast_grid >= 0).sum() > 1000
