@@ -395,13 +395,14 @@ def grid_of_window(window, resolution: float, profile: TraversabilityProfile, pr
     """``window_grid`` of a mapper's window (``RollingWindow`` or ``TorchWindow``) over its
     footprint, or over ``region`` (origin cell (2,), (width, height) cells) only: read in place
     where its arrays are in host memory (numpy, or torch on the CPU), skipping the class runs
-    its ``classes_by_column`` says hold the prior; from its voxels gathered where they are on a
-    GPU."""
+    its ``classes_by_column`` says hold the prior; computed on the device where they are on a
+    GPU (``device_costmap``: the same cells, only the grid comes back)."""
     alpha, mask = window.alpha, window.mask
     if not isinstance(alpha, np.ndarray):
         if alpha.device.type != "cpu":
-            return _cropped(_gathered_grid(*window.items(), window.origin, window.dims, resolution, profile,
-                                           prior), region)
+            from convbki_core.device_costmap import device_window_grid  # it builds on this module
+
+            return device_window_grid(alpha, mask, window.origin, resolution, profile, prior, region)
         alpha, mask = alpha.numpy(), mask.numpy()
     return window_grid(alpha, mask, window.origin, window.dims, resolution, profile, prior,
                        window.classes_by_column(), region)

@@ -31,6 +31,7 @@ import torch
 
 from convbki_core.costmap import grid_of_window, load_profile, rolling_geometry
 from convbki_core.datasets.labels import load_label_map
+from convbki_core.device_costmap import device_window_grid
 from convbki_core.offline import paper_mapper
 from convbki_core.paths import config_dir
 from convbki_core.records import packed_palette
@@ -45,6 +46,16 @@ CONFIGURATIONS = {
 STAGES = ("voxelise", "window move", "update", "free space", "movers' rules", "costmap refresh", "publish gather",
           "scan (all)")
 COSTMAP_SIZE = 40.0  # m, the node's default costmap
+
+
+def costmap(mapper, profile, region=None):
+    """The costmap as the mapper's path computes it: the compiled column pass, or the device's
+    (also for the torch path on the CPU device, which the node would read in place)."""
+    window = mapper.window
+    if mapper.update_path == "torch":
+        return device_window_grid(window.alpha, window.mask, window.origin, mapper.resolution, profile, mapper.prior,
+                                  region)
+    return grid_of_window(window, mapper.resolution, profile, mapper.prior, region)
 
 
 def map_drive(frames, device: str, update_path: str, options: dict, profile, palette) -> dict:
@@ -69,7 +80,7 @@ def map_drive(frames, device: str, update_path: str, options: dict, profile, pal
             times[stage].append(value)
         begun = time.perf_counter()
         origin, cells = rolling_geometry(frame.pose[:3, 3], mapper.resolution, COSTMAP_SIZE, extent)
-        grid = grid_of_window(mapper.window, mapper.resolution, profile, mapper.prior, (origin, (cells, cells)))
+        grid = costmap(mapper, profile, (origin, (cells, cells)))
         synchronize()
         gathered = time.perf_counter()
         mapper.window_records(palette)
@@ -80,7 +91,7 @@ def map_drive(frames, device: str, update_path: str, options: dict, profile, pal
     wall = time.perf_counter() - started
     indices, alpha = mapper.items()
     order = np.lexsort(indices.T)
-    whole = grid_of_window(mapper.window, mapper.resolution, profile, mapper.prior)
+    whole = costmap(mapper, profile)
     skip = min(5, len(frames) - 1)  # the first scans compile and allocate
     return {"mapper": mapper, "indices": indices[order], "alpha": alpha[order], "wall": wall, "grid": whole.values,
             "last_grid": grid.values, "medians": {stage: statistics.median(values[skip:]) if values[skip:] else 0.0

@@ -169,6 +169,7 @@ def test_the_defaults_on_a_torch_device_equal_the_compiled_path_over_a_drive_wit
     every concentration within 1e-5 relative, every costmap cell, the same rule counts."""
     from convbki_core.costmap import grid_of_window, load_profile
     from convbki_core.datasets.labels import load_label_map
+    from convbki_core.device_costmap import device_window_grid
 
     labels = load_label_map("semantic_kitti")
     config = MapperConfig.from_params_file(config_dir() / "mapper.yaml").replace(
@@ -182,7 +183,16 @@ def test_the_defaults_on_a_torch_device_equal_the_compiled_path_over_a_drive_wit
             moving = labels.is_moving(raw)
             mapper.integrate(frame.points, labels.to_learning(raw), frame.pose, moving if moving.any() else None)
         indices, alpha = sorted_items(mapper)
-        grid = grid_of_window(mapper.window, mapper.resolution, profile, mapper.prior)
+        window = mapper.window
+        if path == "fast":
+            grid = grid_of_window(window, mapper.resolution, profile, mapper.prior)
+        else:  # the costmap as it is computed where the window lives (a GPU), here on the torch device given
+            grid = device_window_grid(window.alpha, window.mask, window.origin, mapper.resolution, profile,
+                                      mapper.prior)
+            region = (window.origin[:2] + [37, -5], (120, 90))  # a rolling grid's part, over the window's edge
+            assert np.array_equal(device_window_grid(window.alpha, window.mask, window.origin, mapper.resolution,
+                                                     profile, mapper.prior, region).values,
+                                  grid_of_window(window, mapper.resolution, profile, mapper.prior, region).values)
         rules = mapper.forgetting
         maps[path] = indices, alpha, grid.values, (rules.reset_voxels, rules.emptied_voxels)
     (fast_indices, fast_alpha, fast_grid, fast_rules), (indices, alpha, grid, rules) = maps["fast"], maps["torch"]
