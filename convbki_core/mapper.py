@@ -52,7 +52,7 @@ from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
 from convbki_core.parts import KernelFilters, Scratch, Voxelizer, make_free_space, make_update
 from convbki_core.present_movers import PresentMovers, labels_now, present_movers, whole_movers
-from convbki_core.records import RECORD, records_from_alpha, window_records
+from convbki_core.records import RECORD, window_records
 from convbki_core.scan_log import LoggedScan, ScanLog, Segment
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
@@ -493,9 +493,8 @@ class ConvBKIMapper:
         window = self.window
         if window.origin is None:
             return np.empty(0, RECORD) if out is None else out
-        if isinstance(window, TorchWindow):
-            indices, alpha = window.items()
-            return records_from_alpha(indices, alpha, self.resolution, palette, out)
+        if isinstance(window, TorchWindow):  # made on the device: one copy of the records
+            return window.records(self.resolution, palette, out)
         count = window.count() if out is None else len(out)
         return window_records(window.alpha, window.mask, window.origin, window.dims, count, self.resolution,
                               palette, out)

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from convbki_core.free_space import FREE_CLASS, ground_marks
+from convbki_core.records import RECORD
 from convbki_core.store import VoxelStore
 from convbki_core.update import FilterPlan
 from convbki_core.volume import SparseVolume, unravel_linear
@@ -103,6 +104,37 @@ class TorchWindow(RollingWindow):
             self.mask[x, y, z] &= 0xFF ^ clear
         physical = physical.cpu().numpy()
         return self.origin + (physical - self.origin) % self.dims, rows
+
+    def records(self, resolution: float, palette: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``records.window_records`` made on the device (the statistics in the compiled
+        outputs' arithmetic: float32, classes summed in order, the first largest class), in the
+        same torus order; one copy of the records, not of the concentrations, to the host."""
+        physical = torch.nonzero(self.mask)
+        count = physical.shape[0]
+        if out is not None and len(out) != count:
+            raise ValueError(f"output has {len(out)} records, the window {count} voxels")
+        x, y, z = physical[:, 0], physical[:, 1], physical[:, 2]
+        values = self.alpha[:, x, y, z]
+        total, top = values[0].clone(), values[0].clone()
+        best = torch.zeros(count, dtype=torch.int64, device=self.device)
+        for c in range(1, values.shape[0]):
+            total += values[c]
+            larger = values[c] > top
+            top = torch.where(larger, values[c], top)
+            best = torch.where(larger, c, best)
+        expected = torch.where(total > 0, top / total, 0.0)
+        variance = expected * (1.0 - expected) / (1.0 + total)
+        origin = torch.as_tensor(self.origin, device=self.device)
+        dims = torch.as_tensor(self.dims, device=self.device)
+        centres = ((origin + torch.remainder(physical - origin, dims)).to(torch.float64) + 0.5) * float(resolution)
+        colours = torch.as_tensor(np.asarray(palette, np.uint32).astype(np.int64), device=self.device)[best]
+        words = torch.stack([*centres.to(torch.float32).view(torch.int32).T, colours.to(torch.int32),
+                             best.to(torch.int32), variance.view(torch.int32), expected.view(torch.int32)], dim=1)
+        records = words.cpu().numpy().view(RECORD).reshape(count)
+        if out is None:
+            return records
+        out[:] = records
+        return out
 
     def take_changes(self) -> tuple[np.ndarray, np.ndarray]:
         if not self.track_changes:

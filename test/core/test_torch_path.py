@@ -17,6 +17,7 @@ from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.paths import config_dir
+from convbki_core.records import packed_palette
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.tools import synth
 from convbki_core.torch_window import TorchWindow
@@ -166,7 +167,8 @@ def movers_drive(tmp_path_factory):
 def test_the_defaults_on_a_torch_device_equal_the_compiled_path_over_a_drive_with_movers(movers_drive, device):
     """The node's defaults (free space walked on the device, clamping, the ground rule, the
     movers' rules) on the torch path give the compiled path's map: the same voxels, every label,
-    every concentration within 1e-5 relative, every costmap cell, the same rule counts."""
+    every concentration within 1e-5 relative, every costmap cell, the same rule counts, and the
+    window's records (the view) made where the window lives equal to the compiled ones."""
     from convbki_core.costmap import grid_of_window, load_profile
     from convbki_core.datasets.labels import load_label_map
     from convbki_core.device_costmap import device_window_grid
@@ -194,8 +196,11 @@ def test_the_defaults_on_a_torch_device_equal_the_compiled_path_over_a_drive_wit
                                                      profile, mapper.prior, region).values,
                                   grid_of_window(window, mapper.resolution, profile, mapper.prior, region).values)
         rules = mapper.forgetting
-        maps[path] = indices, alpha, grid.values, (rules.reset_voxels, rules.emptied_voxels)
-    (fast_indices, fast_alpha, fast_grid, fast_rules), (indices, alpha, grid, rules) = maps["fast"], maps["torch"]
+        records = mapper.window_records(packed_palette(labels.colors))  # what the view publishes
+        maps[path] = indices, alpha, grid.values, (rules.reset_voxels, rules.emptied_voxels), records
+    (fast_indices, fast_alpha, fast_grid, fast_rules, fast_records), (indices, alpha, grid, rules, records) = \
+        maps["fast"], maps["torch"]
+    assert len(records) > 10_000 and records.tobytes() == fast_records.tobytes()  # made on the device, bit for bit
     assert np.array_equal(indices, fast_indices)
     np.testing.assert_allclose(alpha, fast_alpha, rtol=1e-5)
     assert np.array_equal(dirichlet_statistics(alpha).label, dirichlet_statistics(fast_alpha).label)
