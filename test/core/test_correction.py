@@ -208,7 +208,8 @@ def test_map_tool_correct_moves_a_saved_maps_scans_and_evaluate_measures_the_dri
     dataset = SemanticKittiSequence(drift_drive, "00")
     closure = read_loop_closure(dataset)
     robot, corrected = closure.robot_poses(), closure.corrected_poses()
-    config = MapperConfig().replace(device="cpu")
+    # A window of the drive's street (the map file keeps its bounds, which the correction reads).
+    config = MapperConfig().replace(device="cpu", local_bounds=((-20.0, -20.0, -3.0), (20.0, 20.0, 3.0)))
     saved = map_drive(config, dataset, robot, CLOSURE, closure.stamps_ns)
     saved.scan_log.calibration = dataset.calibration
     saved.save(tmp_path / "robot.npz")

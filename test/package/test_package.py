@@ -8,6 +8,7 @@ next to this interpreter (the venv's), so the repo's own build/ and install/ are
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -250,18 +251,40 @@ def test_installed_executable_names_missing_input_in_one_line(
     assert not (tmp_path / "r.json").exists() and not (tmp_path / "k.yaml").exists() and not (tmp_path / "bag").exists()
 
 
-@pytest.mark.parametrize("exe", sorted(EXECUTABLES))
-def test_module_help(exe: str, tmp_path: Path) -> None:
-    module, flags = EXECUTABLES[exe]
+# Each module run as `python -m <module> --help` runs it (runpy, the machinery of -m), one
+# module after another in one interpreter: a process per module would import torch ten times.
+_MODULE_HELP = """
+import contextlib, io, json, runpy, sys
+helps = {}
+for module in sys.argv[1:]:
+    sys.argv = [module, "--help"]
+    out = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out):
+            runpy.run_module(module, run_name="__main__", alter_sys=True)
+        code = None
+    except SystemExit as stop:
+        code = stop.code
+    helps[module] = (code, out.getvalue())
+print(json.dumps(helps))
+"""
+
+
+def test_module_help(tmp_path: Path) -> None:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in [env.get("PYTHONPATH")] if p])
+    modules = [module for module, _ in EXECUTABLES.values()]
     result = subprocess.run(
-        [sys.executable, "-m", module, "--help"], cwd=tmp_path, env=env,
+        [sys.executable, "-c", _MODULE_HELP, *modules], cwd=tmp_path, env=env,
         stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=TIMEOUT,
     )
     assert result.returncode == 0, result.stderr
-    for flag in flags:
-        assert flag in result.stdout, f"python -m {module} --help does not mention {flag}"
+    helps = json.loads(result.stdout.strip().splitlines()[-1])
+    for module, flags in EXECUTABLES.values():
+        code, text = helps[module]
+        assert code in (0, None), f"python -m {module} --help exited {code}"
+        for flag in flags:
+            assert flag in text, f"python -m {module} --help does not mention {flag}"
 
 
 def test_venv_runs_modules_from_any_directory(tmp_path: Path) -> None:

@@ -15,7 +15,7 @@ from ros_helpers import REPO, NodeLog, Probe, domain_id, start
 from convbki_core.tools.synth import main as synth
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
 
-FRAMES = 60  # 6 s at 10 Hz
+FRAMES = 40  # 4 s at 10 Hz
 DIAGNOSTICS_PERIOD = 0.5
 # "Current within a couple of seconds of the bag's end": this many diagnostics reports after it.
 REPORTS_AFTER_THE_END = 5
@@ -24,7 +24,7 @@ COLD_START_LIMIT = 600  # seconds a cold node may take to compile before it says
 
 @pytest.fixture(scope="module")
 def bag(tmp_path_factory):
-    """A 60-scan drive with movers (32 beams, about 25,000 points a scan) and its bag."""
+    """A 40-scan drive with movers (32 beams, about 25,000 points a scan) and its bag."""
     root = tmp_path_factory.mktemp("first_contact")
     assert synth(["--out", str(root / "data"), "--sequence", "00", "--frames", str(FRAMES), "--seed", "4",
                   "--beams", "32", "--azimuth-steps", "900", "--movers", "6", "--noise-strength", "0.35",
