@@ -52,7 +52,7 @@ from convbki_core.kernels import ConvBKIKernel
 from convbki_core.layer import ConvBKILayer
 from convbki_core.parts import KernelFilters, Scratch, Voxelizer, make_free_space, make_update
 from convbki_core.present_movers import PresentMovers, labels_now, present_movers, whole_movers
-from convbki_core.records import RECORD, window_records
+from convbki_core.records import RECORD, records_from_alpha, window_records
 from convbki_core.scan_log import LoggedScan, ScanLog, Segment
 from convbki_core.statistics import dirichlet_statistics
 from convbki_core.store import VoxelStore
@@ -565,6 +565,20 @@ class ConvBKIMapper:
                 removed = np.concatenate([removed, voxels_of_keys(gone)])
                 self._replaced_keys = None
         return MapChanges(removed, indices, alpha)
+
+    def take_change_records(self, palette: np.ndarray, everything: bool = False) -> tuple[np.ndarray, np.ndarray,
+                                                                                          np.ndarray]:
+        """``take_changes`` as (removed (R, 3), changed voxels' indices (N, 3), their records
+        (``records.RECORD``)): for a window on a torch device the records are made there, so
+        the changes come to the host as records, not as concentrations."""
+        if isinstance(self.window, TorchWindow) and not (everything or self._everything_changed):
+            removed = np.concatenate(self._removed) if self._removed else np.zeros((0, 3), np.int64)
+            self._removed = []
+            indices, records = self.window.take_change_records(self.resolution, palette)
+            return removed, indices, records
+        changes = self.take_changes(everything)
+        return changes.removed, changes.indices, records_from_alpha(changes.indices, changes.alpha, self.resolution,
+                                                                    palette)
 
     def announce_replacement(self, previous_indices: np.ndarray) -> None:
         """This map took the place of another (a correction's): the next changes are every voxel,

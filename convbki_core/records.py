@@ -126,7 +126,14 @@ def change_records(removed: np.ndarray, indices: np.ndarray, alpha: np.ndarray, 
     record counts). A changed voxel whose variance exceeds ``max_variance`` (when > 0) is not
     in the shown map, so it is sent as a removal too. A receiver that starts from an empty
     map and applies every message in order holds exactly the shown map (``apply_records``)."""
-    changed = records_from_alpha(indices, alpha, resolution, palette)
+    return updates_records(removed, records_from_alpha(indices, alpha, resolution, palette), resolution,
+                           max_variance)
+
+
+def updates_records(removed: np.ndarray, changed: np.ndarray, resolution: float,
+                    max_variance: float = 0.0) -> np.ndarray:
+    """``change_records`` from the changed voxels' records ``changed`` (made where the map
+    lives); ``changed`` is written in place."""
     if max_variance > 0:
         hidden = changed["variance"] > max_variance
         for name in ("rgb", "label", "variance", "confidence"):

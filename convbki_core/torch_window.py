@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from convbki_core.free_space import FREE_CLASS, ground_marks
-from convbki_core.records import RECORD
+from convbki_core.records import RECORD, records_from_alpha
 from convbki_core.store import VoxelStore
 from convbki_core.update import FilterPlan
 from convbki_core.volume import SparseVolume, unravel_linear
@@ -110,9 +110,35 @@ class TorchWindow(RollingWindow):
         outputs' arithmetic: float32, classes summed in order, the first largest class), in the
         same torus order; one copy of the records, not of the concentrations, to the host."""
         physical = torch.nonzero(self.mask)
+        if out is not None and len(out) != physical.shape[0]:
+            raise ValueError(f"output has {len(out)} records, the window {physical.shape[0]} voxels")
+        records = self._records_at(physical, resolution, palette)
+        if out is None:
+            return records
+        out[:] = records
+        return out
+
+    def take_change_records(self, resolution: float, palette: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``take_changes`` as (global indices, records): the window's changed voxels become
+        records on the device (records and indices come to the host, not concentrations); those
+        that left the window with changes are already on the host."""
+        if not self.track_changes:
+            raise RuntimeError("this window does not track changes (track_changes=False)")
+        parts = [(indices, records_from_alpha(indices, rows, resolution, palette))
+                 for indices, rows in self._evicted_changes]
+        self._evicted_changes = []
+        if self.origin is not None:
+            physical = torch.nonzero(self.mask & CHANGED)
+            records = self._records_at(physical, resolution, palette)
+            self.mask[physical[:, 0], physical[:, 1], physical[:, 2]] &= 0xFF ^ CHANGED
+            parts.append((self.origin + (physical.cpu().numpy() - self.origin) % self.dims, records))
+        if not parts:
+            return np.zeros((0, 3), np.int64), np.zeros(0, RECORD)
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+    def _records_at(self, physical: torch.Tensor, resolution: float, palette: np.ndarray) -> np.ndarray:
+        """The records of the window's voxels at ``physical`` (N, 3) on the device."""
         count = physical.shape[0]
-        if out is not None and len(out) != count:
-            raise ValueError(f"output has {len(out)} records, the window {count} voxels")
         x, y, z = physical[:, 0], physical[:, 1], physical[:, 2]
         values = self.alpha[:, x, y, z]
         total, top = values[0].clone(), values[0].clone()
@@ -130,11 +156,7 @@ class TorchWindow(RollingWindow):
         colours = torch.as_tensor(np.asarray(palette, np.uint32).astype(np.int64), device=self.device)[best]
         words = torch.stack([*centres.to(torch.float32).view(torch.int32).T, colours.to(torch.int32),
                              best.to(torch.int32), variance.view(torch.int32), expected.view(torch.int32)], dim=1)
-        records = words.cpu().numpy().view(RECORD).reshape(count)
-        if out is None:
-            return records
-        out[:] = records
-        return out
+        return words.cpu().numpy().view(RECORD).reshape(count)
 
     def take_changes(self) -> tuple[np.ndarray, np.ndarray]:
         if not self.track_changes:

@@ -437,6 +437,12 @@ class MappingCore:
         with self.map_lock:
             return self.mapper.take_changes(everything)
 
+    def take_change_records(self, palette: np.ndarray, everything: bool = False):
+        """(removed, changed voxels' indices, their records) since the last take (``everything``:
+        every voxel of the map); the records made where the map lives."""
+        with self.map_lock:
+            return self.mapper.take_change_records(palette, everything)
+
     def map_copy(self):
         """(indices, alpha, map_version) of the whole map."""
         with self.map_lock:

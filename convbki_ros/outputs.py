@@ -32,7 +32,7 @@ from nav_msgs.msg import OccupancyGrid
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from convbki_core.records import RECORD, change_records, view_records
+from convbki_core.records import RECORD, change_records, updates_records, view_records
 from convbki_core.shown_map import ShownMap
 from convbki_ros.cloud_encoding import encode_cloud, records_cloud
 from convbki_ros.costmap_output import occupancy_grid
@@ -138,15 +138,19 @@ class MapOutputs:
         started = time.perf_counter()
         with self.changed:
             everything, self.refresh_updates = self.refresh_updates, False
-        changes = self.core.take_changes(everything)  # always taken: the changes must not pile up
         frame, stamp = self.core.frame, self.node.get_clock().now().nanoseconds
         sent = False
         listeners = self.updates.get_subscription_count()
-        if (listeners or self.shown is not None) and (len(changes.removed) or len(changes.indices)):
-            records = change_records(changes.removed, changes.indices, changes.alpha, self.core.mapper.resolution,
-                                     self.node.palette, self.node.param("max_variance"))
+        # Always taken, so that the changes do not pile up; as records only where they are sent or kept.
+        if listeners or self.shown is not None:
+            removed, indices, changed = self.core.take_change_records(self.node.palette, everything)
+        else:
+            self.core.take_changes(everything)
+            removed = indices = ()
+        if len(removed) or len(indices):
+            records = updates_records(removed, changed, self.core.mapper.resolution, self.node.param("max_variance"))
             if self.shown is not None:
-                self.shown.apply(np.concatenate([changes.removed, changes.indices]), records)
+                self.shown.apply(np.concatenate([removed, indices]), records)
                 self.shown_changed = True
             if listeners:
                 self.updates.publish(records_cloud(stamp, frame, RECORD, len(records), _copy_into(records)))
