@@ -176,7 +176,8 @@ def _hidden_ground(classes: int, resolution: float, prior: float, profile: Trave
 
 def _exercise(mapper: ConvBKIMapper, rng: np.random.Generator, folder: Path | None) -> None:
     """What a node's outputs and files call on a mapper, once (files in ``folder``; none: no
-    temporary folder can be written, so saving and loading compile at their first use)."""
+    temporary folder can be written, and the file steps are left out: they run only kernels the
+    other steps bring, so nothing compiles at the first save or load either)."""
     resolution, classes = mapper.resolution, mapper.num_classes
     palette = packed_palette(np.zeros((classes, 3), np.uint8))
     step = 6 * resolution  # a window move of six slabs

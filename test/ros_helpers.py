@@ -27,6 +27,30 @@ _domains = itertools.count()
 use_large_data_profile()
 
 
+ROS2_TOOLS = ("ros2cli", "ros2interface", "ros2pkg", "launch", "launch_ros", "ros2launch")
+
+
+def ros2_tools_missing() -> list[str]:
+    """The ros2 tools' packages that are not installed, found without importing them (launch_ros
+    needs install/ on the path to import). A namespace package does not count: the repo's own
+    launch/ folder would."""
+    import importlib.util
+
+    def installed(package: str) -> bool:
+        spec = importlib.util.find_spec(package)
+        return spec is not None and spec.origin is not None
+
+    return [name for name in ROS2_TOOLS if not installed(name)]
+
+
+def ros2_tools_expected() -> str | None:
+    """Where set-up was to install the ros2 tools from (their sources' tarball, as
+    scripts/setup.sh finds it), or None where it had none to install."""
+    tarball = Path(os.environ.get("CONVBKI_ROS2_TOOLS") or REPO.parent / "shared" / "vendor" /
+                   "ros2-jazzy-python-tools.tar.gz")
+    return str(tarball) if tarball.is_file() else None
+
+
 def domain_id() -> int:
     """A ROS_DOMAIN_ID in 1..100, different per test and per pytest process."""
     return 1 + (os.getpid() * 13 + next(_domains)) % 100

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from convbki_core.config import MapperConfig
-from convbki_core.costmap import ProfileError, column_costs, load_profile, rasterise
+from convbki_core.costmap import LETHAL_MIN, ProfileError, column_costs, load_profile, rasterise
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.paths import config_dir
 
@@ -281,7 +281,8 @@ def test_both_shipped_profiles_load():
 def test_a_car_that_drove_off_leaves_no_lethal_cells_behind_it():
     """One scan sees a car on the road; then the road is seen with the car gone, the rays to it
     and to a wall behind crossing where the car was. Free space empties its voxels: its cells,
-    all lethal at first, are lethal no more."""
+    all lethal at first, are lethal no more (not yet free: the voxel just above the road keeps
+    the car's own points' evidence beside the road's spread, which the margin charges)."""
     from convbki_core.mapper import ConvBKIMapper
     from convbki_core.paths import kernel_path
 
@@ -308,9 +309,15 @@ def test_a_car_that_drove_off_leaves_no_lethal_cells_behind_it():
     assert seen > 50 and (car_cells() == 100).all()
     later = np.concatenate([ground, wall]).astype(np.float32)
     raw = np.concatenate([np.full(len(ground), 40), np.full(len(wall), 50)]).astype(np.uint32)
-    for _ in range(20):
+    # What a planner needs: the spot passable. A cell of LETHAL_MIN (90) or more is an obstacle
+    # to it (the planning check blocks it), so every cell the car stood on must read less, in
+    # every scan once the road has been seen clear a few times, and stay observed.
+    for scan in range(20):
         mapper.integrate(later, label_map.to_learning(raw), np.eye(4))
-    assert len(car_cells()) == seen and car_cells().max() < 100, car_cells()
+        cells = car_cells()
+        assert len(cells) == seen and (cells >= 0).all(), (scan, cells)
+        if scan >= 4:
+            assert (cells < LETHAL_MIN).all(), (scan, cells)
 
 
 def held_classes(window) -> np.ndarray:

@@ -345,6 +345,42 @@ def test_the_compiled_pass_keeps_the_ground_bits_as_the_numpy_pass_derives_them(
         assert (unguarded[0] != before[0])[is_surface].sum() > 10
 
 
+@pytest.mark.parametrize("origin_z", [0, 4, -3])
+@pytest.mark.parametrize("kind", ["numpy", "torch"])
+def test_ground_marks_of_hand_built_columns(origin_z, kind):
+    """The surface rule on columns whose answer is worked out by hand (the reference of the two
+    tests above, which take ``ground_marks`` as their expectation): a voxel holds the surface
+    when its most likely occupied class is a ground class and its ground evidence is not below
+    its neighbours' under and over it (nothing beyond the window); on a torus window whose z
+    origin puts the column's bottom anywhere."""
+    prior = np.float32(1e-3)
+    ground = class_bits((2, 4))
+    # Per column, bottom to top: {class: concentration above the prior}, and the surface by hand.
+    columns = [
+        ([{2: 3.0}, {2: 5.0, 1: 1.0}, {4: 2.0, 3: 2.5}, {2: 1.0}, {1: 4.0}, {4: 0.5}],
+         # z0 under z1's 5; z1 the surface; z2 a class-3 voxel; z3 (1.0) under z2's ground
+         # evidence 2.0; z4 no ground; z5 over z4's 0 and the window's end.
+         [False, True, False, False, False, True]),
+        ([{2: 2.0}, {2: 2.0}, {}, {1: 1.0, 4: 0.9}, {4: 3.0}, {3: 7.0, 2: 6.9}],
+         # equal neighbours both hold it; z3's class 1 leads; z4 (3.0) is under z5's ground
+         # evidence 6.9, though z5's leading class is 3.
+         [True, True, False, False, False, False]),
+        ([{}] * 6, [False] * 6),  # nothing but the prior: no class leads, no surface
+    ]
+    size_z = 6
+    alpha = np.full((5, len(columns), 1, size_z), prior, np.float32)
+    expected = np.zeros((len(columns), 1, size_z), bool)
+    for x, (voxels, surface) in enumerate(columns):
+        for step, held in enumerate(voxels):
+            physical = (origin_z + step) % size_z  # the torus: the column's bottom at its origin
+            for c, above in held.items():
+                alpha[c, x, 0, physical] = prior + np.float32(above)
+            expected[x, 0, physical] = surface[step]
+    got = ground_marks(torch.as_tensor(alpha) if kind == "torch" else alpha, ground, origin_z, prior)
+    got = got.numpy() if kind == "torch" else got
+    assert np.array_equal(got, expected), (got[:, 0], expected[:, 0])
+
+
 def crossing_car_map(**config) -> ConvBKIMapper:
     """The street of ``test_a_car_crossing_the_street...``, mapped with ``config``, its road
     0.1 m higher in the map frame: the middle of a voxel layer, as a surface usually lies."""

@@ -460,28 +460,48 @@ def test_a_paced_replay_and_a_paused_player_lose_nothing(dataset, tmp_path: Path
 
 def test_the_pacer_gives_up_clouds_the_node_never_received_and_says_how_many(monkeypatch):
     """--wait-for-node: clouds that DDS lost are not waited for forever; after LOST_AFTER_S of
-    no progress they count as missing (and play_bag exits 1 on them)."""
-    class Clock:
+    no progress they count as missing (and play_bag exits 1 on them). The pacer as play_bag
+    builds it, on a node of its own, hears a stand-in mapper's /diagnostics over DDS; only the
+    clock is the test's, so that LOST_AFTER_S passes in a few spins."""
+    import threading
+
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    class Clock:  # each reading a quarter of a second after the one before
         now = 100.0
 
         def monotonic(self):
+            self.now += 0.25
             return self.now
 
-    clock = Clock()
-    monkeypatch.setattr(play_bag, "time", clock)
-    pacer = play_bag.NodePacer.__new__(play_bag.NodePacer)
-    pacer.target, pacer.published, pacer.lost, pacer.received_seen = "/convbki_mapper", 0, 0, 0
-    pacer.dropped = pacer.missing = 0
-    pacer.first_sent, pacer.heard, pacer.progress_at = None, clock.now, clock.now
-    pacer.baseline = play_bag.NodeProgress(10, 10, 0, 0, 100, {}, {})
-    pacer.latest = play_bag.NodeProgress(11, 11, 0, 0, 100, {}, {})  # the node got 1 of the 4
+    domain = domain_id()
+    player, mapper = Probe(domain, "play_bag"), Probe(domain, "convbki_mapper")
+    reports = mapper.node.create_publisher(DiagnosticArray, "/diagnostics", 10)
 
-    def spin(seconds):  # time passes while the node keeps reporting the same counts
-        clock.now += max(seconds, 0.5)
-        pacer.heard = clock.now
+    def report(scans: int) -> None:  # what the mapper's counters say: it received and integrated ``scans``
+        values = {"scans_in": scans, "integrated": scans, "dropped": 0, "queue": 0, "queue_limit": 100}
+        reports.publish(DiagnosticArray(status=[DiagnosticStatus(
+            name="/convbki_mapper: mapping", values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]))
 
-    pacer._spin = spin
-    pacer.sent(4)
-    line = pacer.finish(lambda: True)
-    assert pacer.lost == 3 and pacer.missing == 3 and clock.now - 100.0 >= play_bag.LOST_AFTER_S
+    stop = threading.Event()
+    # Once the pacer waits for the rest: the node got 1 of the 4, and keeps reporting the same counts.
+    keep_reporting = threading.Thread(target=lambda: [report(11) for _ in iter(lambda: stop.wait(0.05), True)])
+    try:
+        pacer = play_bag.NodePacer(player.node, "/convbki_mapper")
+        assert player.spin_until(lambda: reports.get_subscription_count() > 0, 20)
+        report(10)
+        assert pacer.wait_for_node(20.0, lambda: True) and pacer.baseline.scans_in == 10
+        clock = Clock()
+        monkeypatch.setattr(play_bag, "time", clock)
+        pacer.sent(4)
+        keep_reporting.start()
+        started = clock.now
+        line = pacer.finish(lambda: True)
+    finally:
+        stop.set()
+        if keep_reporting.is_alive():
+            keep_reporting.join()
+        player.close()
+        mapper.close()
+    assert pacer.lost == 3 and pacer.missing == 3 and clock.now - started >= play_bag.LOST_AFTER_S
     assert line.startswith("/convbki_mapper received 1 of 4 clouds, integrated 1, dropped 0")

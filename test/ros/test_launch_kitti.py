@@ -18,7 +18,15 @@ import pytest
 import yaml
 from kitti_fixture import pose_about_z, write_sequence
 from mapper_rig import node_default_mapper
-from ros_helpers import REPO, Probe, domain_id, require_current_install, ros_env
+from ros_helpers import (
+    REPO,
+    Probe,
+    domain_id,
+    require_current_install,
+    ros2_tools_expected,
+    ros2_tools_missing,
+    ros_env,
+)
 from test_node_frames import assert_same_voxels, shown_voxels
 
 from convbki_core.datasets.labels import load_label_map
@@ -30,21 +38,24 @@ WAIT = 90.0
 
 
 def _ros2_launch_available() -> str | None:
-    """Why `ros2 launch` cannot run here, or None."""
+    """Why `ros2 launch` cannot run here, or None (decided by finding the modules, as the ros2
+    tools' tests do: importing launch_ros needs install/ on the path)."""
     if not (REPO / "install" / "setup.bash").is_file():
         return "no install/setup.bash (run make setup)"
+    missing = ros2_tools_missing()
+    if missing:
+        return f"the ros2 tools are not installed ({', '.join(missing)} not found)"
     if shutil.which("ros2", path=os.path.dirname(sys.executable)) is None and shutil.which("ros2") is None:
-        return "the ros2 command (ros2cli) is not installed"
-    try:
-        import launch_ros  # noqa: F401
-    except ImportError:
-        return "launch_ros is not installed"
+        return "the ros2 command (ros2cli) is not on the path"
     return None
 
 
 def test_a_kitti_bag_through_ros2_launch_and_play_bag_maps_from_tf(tmp_path):
     missing = _ros2_launch_available()
     if missing:
+        tarball = ros2_tools_expected()
+        if tarball:  # set-up had the tools' sources to install them from: their absence is a failure
+            pytest.fail(f"{missing}, although set-up had their sources at {tarball}: run `make setup`")
         pytest.skip(missing)
     require_current_install()
     rng = np.random.default_rng(23)

@@ -227,7 +227,9 @@ def small_disk(tmp_path):
     mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mount_point)],
                              capture_output=True, text=True)
     if mounted.returncode != 0:
-        pytest.skip(f"cannot mount a small tmpfs here: {mounted.stderr.strip()}")
+        pytest.skip(f"cannot mount a small tmpfs here (mounting needs root and CAP_SYS_ADMIN: "
+                    f"{mounted.stderr.strip()}); the errors while mapping and at shutdown are still checked "
+                    "without a mount, by a folder that refuses writes after the start")
     yield mount_point
     subprocess.run(["umount", "-l", str(mount_point)], check=False)
 
@@ -242,6 +244,35 @@ def fill(disk: Path, leave: int) -> None:
             os.fsync(filler.fileno())
         except OSError:
             pass
+
+
+@NEEDS_READ_ONLY
+def test_a_folder_that_refuses_writes_after_the_start_fails_every_save_and_keeps_the_file(tmp_path):
+    """The full disk's errors while mapping and at shutdown, with no mount: the folder passes the
+    check at start, then refuses writes (made read-only under the running node): every save
+    fails and says why, shutdown exits 1, and the file and the folder stay as they were."""
+    map_file = tmp_path / "maps" / "map.npz"
+    map_file.parent.mkdir()
+    offline_map(1).save(map_file)
+    before = map_file.read_bytes()
+    rig = Rig(tmp_path, map_file=map_file, prefix=WITHOUT_PERMISSION_OVERRIDE)
+    try:
+        rig.integrate_good_cloud(translation=TRANSLATION + [6.0, 0.0, 0.0])
+        map_file.parent.chmod(0o555)
+        failed = rig.call("save_map")
+        assert not failed.success and failed.message == f"could not save {map_file}: Permission denied", \
+            failed.message
+        unsaved = rig.wait_stats(lambda s: s.level == 2)
+        assert failed.message in unsaved.message, unsaved
+        rig.process.send_signal(signal.SIGINT)
+        code = rig.process.wait(timeout=WAIT)
+    finally:
+        map_file.parent.chmod(0o755)
+        output = rig.close()
+    assert code == 1, output  # a supervisor learns that this session's map was not saved
+    assert f"[convbki_mapper] error on shutdown: could not save {map_file}: Permission denied" in output, output
+    assert map_file.read_bytes() == before
+    assert sorted(p.name for p in map_file.parent.iterdir()) == ["map.npz"]
 
 
 def test_a_map_file_on_a_full_disk_is_refused_at_start_and_an_error_while_mapping_and_at_shutdown(tmp_path,

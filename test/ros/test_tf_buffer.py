@@ -384,82 +384,103 @@ def test_importing_the_module_does_not_import_rclpy():
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
 
 
-class FakeNode:
-    def __init__(self):
-        self.subscriptions = {}
-        self.destroyed = []
-        self.warnings = []
+def ros_transform(parent, child, stamp_ns, translation=(0.0, 0.0, 0.0), quaternion=(0.0, 0.0, 0.0, 1.0)):
+    """A geometry_msgs/TransformStamped, as tf2 broadcasters send them."""
+    from geometry_msgs.msg import TransformStamped
 
-    def create_subscription(self, msg_type, topic, callback, qos, callback_group=None):
-        self.subscriptions[topic] = SimpleNamespace(msg_type=msg_type, callback=callback, qos=qos,
-                                                    group=callback_group)
-        return topic
-
-    def destroy_subscription(self, subscription):
-        self.destroyed.append(subscription)
-
-    def get_logger(self):
-        return SimpleNamespace(warning=lambda text, **kwargs: self.warnings.append((text, kwargs)))
+    msg = TransformStamped()
+    msg.header.frame_id, msg.child_frame_id = parent, child
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, NS_PER_S)
+    msg.transform.translation.x, msg.transform.translation.y, msg.transform.translation.z = translation
+    rotation = msg.transform.rotation
+    rotation.x, rotation.y, rotation.z, rotation.w = quaternion
+    return msg
 
 
 @pytest.fixture
-def fake_tf2_msgs(monkeypatch):
-    """A tf2_msgs.msg with a TFMessage class, where the real one is not installed (or to not depend on it)."""
-    package, module = types.ModuleType("tf2_msgs"), types.ModuleType("tf2_msgs.msg")
-    module.TFMessage = type("TFMessage", (), {})
-    package.msg = module
-    monkeypatch.setitem(sys.modules, "tf2_msgs", package)
-    monkeypatch.setitem(sys.modules, "tf2_msgs.msg", module)
-    return module.TFMessage
+def tf_sender():
+    """A second participant on a domain of its own: it sends TF, and its graph shows the
+    readers another participant offers, as DDS reports them."""
+    from ros_helpers import Probe, domain_id
+
+    sender = Probe(domain_id(), "tf_sender")
+    yield sender
+    sender.close()
 
 
-def test_listener_subscribes_with_tf2_qos_and_fills_the_buffer(fake_tf2_msgs):
-    qos = pytest.importorskip("rclpy.qos")
-    node, buffer = FakeNode(), TransformBuffer()
-    listener = TransformListener(node, buffer)
-    assert set(node.subscriptions) == {"/tf", "/tf_static"}
-    for topic, durability in (("/tf", qos.DurabilityPolicy.VOLATILE),
-                              ("/tf_static", qos.DurabilityPolicy.TRANSIENT_LOCAL)):
-        subscription = node.subscriptions[topic]
-        assert subscription.msg_type is fake_tf2_msgs and subscription.group is not None
-        assert subscription.qos.depth == 100 and subscription.qos.durability == durability
-        assert subscription.qos.reliability == qos.ReliabilityPolicy.RELIABLE
-        assert subscription.qos.history == qos.HistoryPolicy.KEEP_LAST
-    node.subscriptions["/tf_static"].callback(SimpleNamespace(transforms=[
-        transform_msg("base_link", "velo", 0, (0.0, 0.0, 1.0))]))
-    node.subscriptions["/tf"].callback(SimpleNamespace(transforms=[
-        transform_msg("odom", "base_link", NS_PER_S, (1.0, 0.0, 0.0)),
-        transform_msg("odom", "broken", NS_PER_S, quaternion=(0.0, 0.0, 0.0, 0.0))]))
-    np.testing.assert_allclose(buffer.lookup("odom", "velo")[:3, 3], [1.0, 0.0, 1.0])
-    assert listener.skipped == 1 and len(node.warnings) == 1
-    text, kwargs = node.warnings[0]
-    assert text.startswith("/tf: skipped transform 'odom' -> 'broken'") and kwargs["throttle_duration_sec"] > 0
-    assert buffer.can_transform("odom", "velo", 2 * NS_PER_S)[0] is False  # /tf records are not static
-    listener.destroy()
-    assert node.destroyed == ["/tf", "/tf_static"]
+def _send(sender, topic: str, transforms: list, static: bool = False):
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from tf2_msgs.msg import TFMessage
+
+    durability = DurabilityPolicy.TRANSIENT_LOCAL if static else DurabilityPolicy.VOLATILE
+    publisher = sender.node.create_publisher(TFMessage, topic, QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=durability))
+    if not static:  # a volatile sample reaches only the readers matched when it goes out
+        assert sender.spin_until(lambda: publisher.get_subscription_count() > 0, 20), f"no reader on {topic}"
+    publisher.publish(TFMessage(transforms=transforms))
+    return publisher
 
 
-def test_listener_without_tf2_msgs_says_what_is_missing(monkeypatch):
+def test_listener_offers_tf2s_qos_over_dds_and_fills_the_buffer(tf_sender):
+    """A real node's listener: its readers, as DDS shows them to another participant, are
+    reliable, /tf volatile and /tf_static transient local (tf2_ros's QoS): a mount sent once
+    before the listener existed still arrives, the odometry after it, and a broken transform
+    is skipped and counted."""
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+    from ros_helpers import Probe
+
+    _send(tf_sender, "/tf_static", [ros_transform("base_link", "velo", 0, (0.0, 0.0, 1.0))], static=True)
+    listening = Probe(int(tf_sender.context.get_domain_id()), "tf_listener")
+    buffer = TransformBuffer()
+    listener = TransformListener(listening.node, buffer)
+    try:
+        def offered(topic: str):
+            return [info.qos_profile for info in tf_sender.node.get_subscriptions_info_by_topic(topic)
+                    if info.node_name == "tf_listener"]
+
+        assert tf_sender.spin_until(lambda: offered("/tf") and offered("/tf_static"), 20)
+        for topic, durability in (("/tf", DurabilityPolicy.VOLATILE), ("/tf_static", DurabilityPolicy.TRANSIENT_LOCAL)):
+            [qos] = offered(topic)
+            assert qos.reliability == ReliabilityPolicy.RELIABLE and qos.durability == durability, (topic, qos)
+        _send(tf_sender, "/tf", [ros_transform("odom", "base_link", NS_PER_S, (1.0, 0.0, 0.0)),
+                                 ros_transform("odom", "broken", NS_PER_S, quaternion=(0.0, 0.0, 0.0, 0.0))])
+        assert listening.spin_until(lambda: buffer.can_transform("odom", "velo", NS_PER_S)[0] and listener.skipped, 20)
+        np.testing.assert_allclose(buffer.lookup("odom", "velo")[:3, 3], [1.0, 0.0, 1.0])
+        assert listener.skipped == 1
+        assert buffer.can_transform("odom", "velo", 2 * NS_PER_S)[0] is False  # /tf records are not static
+    finally:
+        listener.destroy()
+        listening.close()
+
+
+def test_listener_without_tf2_msgs_says_what_is_missing(monkeypatch, tf_sender):
     monkeypatch.setitem(sys.modules, "tf2_msgs", None)
     monkeypatch.setitem(sys.modules, "tf2_msgs.msg", None)
     with pytest.raises(ImportError, match=r"needs tf2_msgs \(TFMessage\) for rclpy, which is not importable"):
-        TransformListener(FakeNode(), TransformBuffer())
+        TransformListener(tf_sender.node, TransformBuffer())
 
 
-def test_make_tf_lookup_falls_back_to_the_numpy_buffer_and_then_to_none(monkeypatch, fake_tf2_msgs):
-    pytest.importorskip("rclpy.qos")
+def test_make_tf_lookup_falls_back_to_the_numpy_buffer_and_then_to_none(monkeypatch, tf_sender):
+    """Without tf2_ros (as here, and where a user's install lacks it): the numpy buffer with a
+    real listener, which TF sent over DDS fills; without tf2_msgs too: none, and why."""
+    from ros_helpers import Probe
+
     monkeypatch.setitem(sys.modules, "tf2_ros", None)
-    node = FakeNode()
-    lookup, backend = make_tf_lookup(node, cache_seconds=2.0)
-    assert isinstance(lookup, BufferLookup) and "TransformBuffer" in backend
-    assert lookup.buffer.cache_ns == 2 * NS_PER_S
-    node.subscriptions["/tf"].callback(SimpleNamespace(transforms=[transform_msg("odom", "base_link", 5)]))
-    np.testing.assert_array_equal(lookup.lookup("odom", "base_link", 5), np.eye(4))
-    assert lookup.can_transform("odom", "base_link", 6)[0] is False
-    monkeypatch.setitem(sys.modules, "tf2_msgs", None)
-    monkeypatch.setitem(sys.modules, "tf2_msgs.msg", None)
-    nothing, why = make_tf_lookup(FakeNode())
-    assert nothing is None and "tf2_ros is not installed" in why and "tf2_msgs" in why
+    listening = Probe(int(tf_sender.context.get_domain_id()), "tf_listener")
+    try:
+        lookup, backend = make_tf_lookup(listening.node, cache_seconds=2.0)
+        assert isinstance(lookup, BufferLookup) and "TransformBuffer" in backend
+        assert lookup.buffer.cache_ns == 2 * NS_PER_S
+        _send(tf_sender, "/tf", [ros_transform("odom", "base_link", 5)])
+        assert listening.spin_until(lambda: lookup.can_transform("odom", "base_link", 5)[0], 20)
+        np.testing.assert_array_equal(lookup.lookup("odom", "base_link", 5), np.eye(4))
+        assert lookup.can_transform("odom", "base_link", 6)[0] is False
+        monkeypatch.setitem(sys.modules, "tf2_msgs", None)
+        monkeypatch.setitem(sys.modules, "tf2_msgs.msg", None)
+        nothing, why = make_tf_lookup(listening.node)
+        assert nothing is None and "tf2_ros is not installed" in why and "tf2_msgs" in why
+    finally:
+        listening.close()
 
 
 def test_make_tf_lookup_adapts_tf2_ros(monkeypatch):
