@@ -104,9 +104,7 @@ def scan_rays(points: np.ndarray, pose: np.ndarray, volume: SparseVolume,
     holding returns (weighted by their evidence), and one per window voxel where the rays to
     returns beyond the window leave it (``through``: that voxel is crossed too)."""
     weights = ray_weights(volume.features)
-    dropped = points[volume.point_linear < 0]
-    with np.errstate(invalid="ignore", over="ignore"):  # non-finite points are skipped by the exits
-        beyond = (dropped @ pose[:3, :3].T + pose[:3, 3]) / resolution
+    beyond = beyond_window(points, pose, volume, resolution)
     origin = np.ascontiguousarray(volume.origin, np.int64)
     dims = np.ascontiguousarray(volume.dims, np.int64)
     exit_linear, rays = _unique_exits(pose[:3, 3] / resolution, beyond, origin, dims)
@@ -115,6 +113,14 @@ def scan_rays(points: np.ndarray, pose: np.ndarray, volume: SparseVolume,
     through[len(volume.linear):] = True
     ends = _unravel_numba(linear, origin, dims) if HAVE_NUMBA else unravel_linear(linear, dims) + origin
     return ends, np.concatenate([weights, rays]), through
+
+
+def beyond_window(points: np.ndarray, pose: np.ndarray, volume: SparseVolume, resolution: float) -> np.ndarray:
+    """The scan's returns the volume dropped (beyond the window, or not finite), in voxel units
+    of the map frame: ``window_exits`` finds where their rays leave the window."""
+    dropped = points[volume.point_linear < 0]
+    with np.errstate(invalid="ignore", over="ignore"):  # non-finite points are skipped by the exits
+        return (dropped @ pose[:3, :3].T + pose[:3, 3]) / resolution
 
 
 def ray_weights(features: np.ndarray) -> np.ndarray:

@@ -26,7 +26,15 @@ import torch
 from convbki_core.clamping import clamp_torch
 from convbki_core.compiled import HAVE_NUMBA
 from convbki_core.device_rays import count_rays_on_device
-from convbki_core.free_space import FREE_CLASS, free_space_update, free_taps, scan_rays, scratch_counts
+from convbki_core.free_space import (
+    FREE_CLASS,
+    beyond_window,
+    free_space_update,
+    free_taps,
+    scan_rays,
+    scratch_counts,
+    window_exits,
+)
 from convbki_core.layer import ConvBKILayer
 from convbki_core.store import VoxelStore
 from convbki_core.torch_window import TorchFilters, TorchWindow, torch_free_space, torch_update
@@ -227,18 +235,26 @@ class HostFreeSpace(_FreeSpace):
 
 
 class DeviceFreeSpace(_FreeSpace):
-    """The rays walked, counted and applied in the device window: only the rays' end voxels
-    (those of the scan's returns, and where rays to returns beyond the window leave it) go there."""
+    """The rays walked, counted and applied in the device window. The rays to the scan's
+    returns start from the occupied voxels the update already sent there; only the voxels where
+    rays to returns beyond the window leave it (a few thousand a scan) are sent."""
 
     def _scratch_counts(self) -> torch.Tensor:
         return torch.zeros(tuple(int(d) for d in self.geometry.dims), dtype=torch.float32, device=self.window.device)
 
     def __call__(self, points: np.ndarray, pose: np.ndarray, volume: SparseVolume, origin: np.ndarray) -> int:
-        ends, weights, through = scan_rays(points, pose, volume, self.geometry.resolution)
         device = self.window.device
-        rays = torch.as_tensor(ends, device=device), torch.as_tensor(weights, device=device), \
-            torch.as_tensor(through, device=device)
-        counts = count_rays_on_device(pose[:3, 3] / self.geometry.resolution, *rays, self.counts)
+        resolution = self.geometry.resolution
+        if volume.on_device is None:  # not through the torch update (a warm-up's scratch scan)
+            volume.on_device = (torch.as_tensor(unravel_linear(volume.linear, volume.dims) + volume.origin,
+                                                device=device), torch.as_tensor(volume.features, device=device))
+        occupied, features = volume.on_device
+        exits, rays = window_exits(pose[:3, 3] / resolution, beyond_window(points, pose, volume, resolution),
+                                   volume.origin, volume.dims)
+        ends = torch.cat([occupied, torch.as_tensor(exits, device=device)])
+        weights = torch.cat([features.sum(dim=1), torch.as_tensor(rays, device=device)])
+        through = torch.arange(len(ends), device=device) >= len(occupied)  # the rays that go on beyond it
+        counts = count_rays_on_device(pose[:3, 3] / resolution, ends, weights, through, self.counts)
         before = self.window.alpha[FREE_CLASS].clone() if self.max_concentration else None
         freed = torch_free_space(counts, self.filters.refresh().free_filter, self.window, self.ground_classes)
         counts.zero_()

@@ -212,6 +212,7 @@ def torch_update(volume: SparseVolume, filters: TorchFilters, window: TorchWindo
     origin = torch.as_tensor(volume.origin, device=device)
     occupied = torch.as_tensor(unravel_linear(volume.linear, volume.dims) + volume.origin, device=device)
     features = torch.as_tensor(volume.features, device=device)
+    volume.on_device = occupied, features
     voxel, cls = torch.nonzero(features, as_tuple=True)  # the (voxel, class) pairs with evidence
     # Every tap of every pair: for pair p with class c, the taps starts[c] .. starts[c + 1].
     starts = torch.as_tensor(filters.starts, device=device)

@@ -174,6 +174,9 @@ class SparseVolume:
     features: np.ndarray
     point_linear: np.ndarray
     stats: VoxelizeStats = field(default_factory=VoxelizeStats)
+    # The occupied voxels' global indices (M, 3) and features (M, C) where the torch update sent
+    # them (a GPU), for the free-space pass to walk its rays from without sending them again.
+    on_device: tuple | None = None
 
     @property
     def num_voxels(self) -> int:
