@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from convbki_core.poses import interpolate_pose
 from convbki_core.scan_log import LoggedScan, ScanLog
 
 
@@ -67,40 +68,6 @@ def pose_displacement(old: np.ndarray, new: np.ndarray, reach: float) -> float:
 
 
 # -- corrected poses from a SLAM's keyframes ---------------------------------------------------
-def _rotation_log(rotation: np.ndarray) -> np.ndarray:
-    """The rotation vector (axis times angle, rad) of a 3 x 3 rotation matrix."""
-    cosine = min(1.0, max(-1.0, (np.trace(rotation) - 1.0) / 2.0))
-    angle = math.acos(cosine)
-    axis = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
-                     rotation[1, 0] - rotation[0, 1]])
-    if angle < 1e-9:
-        return axis / 2.0
-    if math.pi - angle < 1e-6:  # half a turn: the axis from the symmetric part
-        column = int(np.argmax(np.diag(rotation)))
-        vector = (rotation[:, column] + np.eye(3)[column]) / math.sqrt(2.0 * (1.0 + rotation[column, column]))
-        return vector * angle
-    return axis * (angle / (2.0 * math.sin(angle)))
-
-
-def _rotation_exp(vector: np.ndarray) -> np.ndarray:
-    """The rotation matrix of a rotation vector (Rodrigues)."""
-    angle = float(np.linalg.norm(vector))
-    if angle < 1e-12:
-        return np.eye(3)
-    axis = vector / angle
-    cross = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * cross @ cross
-
-
-def interpolate_transform(first: np.ndarray, second: np.ndarray, fraction: float) -> np.ndarray:
-    """The transform ``fraction`` of the way from ``first`` (0) to ``second`` (1): the translation
-    along the line between them, the rotation along the shortest arc."""
-    result = np.eye(4)
-    result[:3, :3] = first[:3, :3] @ _rotation_exp(fraction * _rotation_log(first[:3, :3].T @ second[:3, :3]))
-    result[:3, 3] = (1.0 - fraction) * first[:3, 3] + fraction * second[:3, 3]
-    return result
-
-
 def _pose_at(stamps: np.ndarray, poses: np.ndarray, stamp: int) -> np.ndarray | None:
     """The pose at ``stamp`` interpolated between the two of ``poses`` (by ``stamps``, ascending)
     around it; None outside them."""
@@ -111,7 +78,7 @@ def _pose_at(stamps: np.ndarray, poses: np.ndarray, stamp: int) -> np.ndarray | 
         return poses[after]
     before = after - 1
     fraction = (stamp - stamps[before]) / (stamps[after] - stamps[before])
-    return interpolate_transform(poses[before], poses[after], float(fraction))
+    return interpolate_pose(poses[before], poses[after], float(fraction))
 
 
 @dataclass

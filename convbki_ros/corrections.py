@@ -30,9 +30,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from convbki_core.correction import CorrectionResult, continue_correction, keyframe_correction
+from convbki_core.poses import pose_from_translation_quaternion
 from convbki_ros.pose_buffer import pose_problem
 from convbki_ros.status import problem_key
-from convbki_ros.transforms import pose_from_translation_quaternion, stamp_to_ns
+from convbki_ros.transforms import stamp_to_ns
 
 
 @dataclass

@@ -17,6 +17,7 @@ import numpy as np
 
 from convbki_core.io.map_file import MapSetupError, SetupDifference, read_map
 from convbki_core.mapper import ConvBKIMapper
+from convbki_core.poses import pose_from_translation_quaternion
 from convbki_core.warm_up import WarmUpReport, warm_up
 from convbki_ros.cloud_decoding import CloudError, decode_cloud
 from convbki_ros.costmap_output import rolling_grid
@@ -26,7 +27,7 @@ from convbki_ros.settings import StartSettings
 from convbki_ros.status import problem_key
 from convbki_ros.sync import NO_MAP_TRANSFORM, CloudQueue, Decision, Missing, PendingCloud, SensorFrames, Verdict
 from convbki_ros.tf_buffer import make_tf_lookup
-from convbki_ros.transforms import pose_from_translation_quaternion, seconds_to_ns, stamp_to_ns
+from convbki_ros.transforms import seconds_to_ns, stamp_to_ns
 
 NO_POSE_REASONS = {
     PoseStatus.EMPTY: "no odometry received yet",

@@ -28,7 +28,7 @@ from enum import Enum
 
 import numpy as np
 
-from convbki_ros.transforms import interpolate_pose
+from convbki_core.poses import interpolate_pose
 
 # How far |q| may be from 1. Odometry sources normalise in float32 or float64 (errors near
 # 1e-7) and bag conversions keep that; a norm off by a per cent is a broken message (a

@@ -50,8 +50,9 @@ from typing import Any
 
 import numpy as np
 
+from convbki_core.poses import interpolate_pose, pose_from_translation_quaternion
 from convbki_ros.pose_buffer import pose_problem
-from convbki_ros.transforms import interpolate_pose, pose_from_translation_quaternion, stamp_to_ns, transform_to_pose
+from convbki_ros.transforms import stamp_to_ns, transform_to_pose
 
 MAX_GRAPH_DEPTH = 100  # parents walked above a frame before giving up (tf2 uses the same bound)
 RIGID_TOLERANCE = 1e-6  # how far R^T R may be from I in a pose passed to add()

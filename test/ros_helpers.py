@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from convbki_core.poses import pose_from_translation_quaternion
 from convbki_ros.dds import use_large_data_profile
-from convbki_ros.transforms import pose_from_translation_quaternion
 
 REPO = Path(__file__).resolve().parents[1]
 _domains = itertools.count()

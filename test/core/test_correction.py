@@ -10,10 +10,11 @@ from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
-from convbki_core.correction import interpolate_transform, keyframe_corrections
+from convbki_core.correction import keyframe_corrections
 from convbki_core.datasets.drift import read_loop_closure
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.map_file import MapSnapshot, read_map
+from convbki_core.poses import interpolate_pose
 from convbki_core.scan_log import LoggedScan
 from convbki_core.tools import evaluate, map_tool, synth
 
@@ -93,7 +94,7 @@ def test_a_scan_between_two_keyframes_takes_their_correction_interpolated_by_tim
     np.testing.assert_allclose(moved[0], straight[0][1].pose, atol=1e-12)
     np.testing.assert_allclose(moved[10], new_last, atol=1e-12)
     change = new_last @ np.linalg.inv(straight[10][1].pose)
-    np.testing.assert_allclose(moved[5], interpolate_transform(np.eye(4), change, 0.5) @ straight[5][1].pose,
+    np.testing.assert_allclose(moved[5], interpolate_pose(np.eye(4), change, 0.5) @ straight[5][1].pose,
                                atol=1e-12)
     half_turn = np.arctan2(moved[5][1, 0], moved[5][0, 0])
     assert half_turn == pytest.approx(np.pi / 4)

@@ -20,12 +20,13 @@ from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.map_file import MapSnapshot, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import config_dir
+from convbki_core.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
 from convbki_core.records import RECORD, apply_records, packed_palette, records_from_alpha
 from convbki_core.scan_log import LoggedScan
 from convbki_core.tools import synth
 from convbki_ros.tools.kitti_to_bag import EPOCH_NS
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
-from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_translation_quaternion, poses_to_path
+from convbki_ros.transforms import poses_to_path
 
 FRAMES, CLOSURE = 40, 25
 BOUNDS = [-20.0, -20.0, -3.0, 20.0, 20.0, 3.0]

@@ -10,8 +10,8 @@ from mapper_rig import BOUNDS, LABELS, POINTS, Rig, cloud, expect_file_holds, no
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
+from convbki_core.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
 from convbki_ros.cloud_decoding import decode_cloud
-from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_translation_quaternion
 
 # The LiDAR 1.8 m above base_link, 0.4 m ahead, yawed by 0.2 rad and pitched a little.
 MOUNT_TRANSLATION = [0.4, 0.0, 1.8]

@@ -11,8 +11,8 @@ from mapper_rig import BOUNDS, LABELS, POINTS, QUATERNION, SECOND, TRANSLATION, 
 from ros_helpers import IMPORT_LOG, domain_id, split_import_log, start
 
 from convbki_core.datasets.labels import load_label_map
+from convbki_core.poses import pose_from_translation_quaternion
 from convbki_ros.cloud_decoding import FLOAT32, UINT32, decode_cloud
-from convbki_ros.transforms import pose_from_translation_quaternion
 
 MIXED_LIST = "/**:\n  ros__parameters:\n    local_bounds: [1.0, 2, 3.0, 4.0, 5.0, 6.0]\n"
 BROKEN_YAML = "/**:\n  ros__parameters:\n    resolution: [0.2\n"

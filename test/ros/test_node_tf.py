@@ -13,7 +13,8 @@ from test_node_frames import BOUNDS, MOUNT, assert_same_voxels, shown_voxels
 
 from convbki_core.datasets.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_odometry, pose_to_transform_stamped
+from convbki_core.poses import pose_from_translation_quaternion
+from convbki_ros.transforms import pose_to_odometry, pose_to_transform_stamped
 
 
 def yawed(x: float, y: float, yaw: float) -> np.ndarray:

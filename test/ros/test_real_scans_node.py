@@ -12,10 +12,10 @@ from convbki_core.config import MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import config_dir
+from convbki_core.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
 from convbki_core.tools import label_noise
 from convbki_ros.cloud_decoding import decode_cloud
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
-from convbki_ros.transforms import pose_from_translation_quaternion, pose_to_translation_quaternion
 
 SEQUENCE = "05"
 

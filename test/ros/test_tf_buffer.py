@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from convbki_core.poses import interpolate_pose, pose_from_translation_quaternion, pose_to_translation_quaternion
 from convbki_ros.tf_buffer import (
     MAX_GRAPH_DEPTH,
     BufferLookup,
@@ -22,12 +23,7 @@ from convbki_ros.tf_buffer import (
     UnknownFrameError,
     make_tf_lookup,
 )
-from convbki_ros.transforms import (
-    NS_PER_S,
-    interpolate_pose,
-    pose_from_translation_quaternion,
-    pose_to_translation_quaternion,
-)
+from convbki_ros.transforms import NS_PER_S
 
 
 def rotation_pose(translation, axis, angle):
