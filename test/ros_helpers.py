@@ -237,16 +237,6 @@ class NodeLog:
         return self.text()
 
 
-def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` of (x, y, z, w) quaternions (rotation b, then a)."""
-    ax, ay, az, aw = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
-    bx, by, bz, bw = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
-    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw,
-                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
-
-
 def odometry_to_pose(msg: Any) -> np.ndarray:
     """nav_msgs/Odometry (or a Pose, PoseStamped, PoseWithCovariance) -> 4x4 pose."""
     pose = msg

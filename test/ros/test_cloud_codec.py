@@ -8,10 +8,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import given
 from hypothesis import strategies as st
-from ros_helpers import odometry_to_pose, quaternion_multiply, unpack_rgb
+from ros_helpers import odometry_to_pose, unpack_rgb
 
+from convbki_core.poses import pose_from_translation_quaternion
 from convbki_core.records import RECORD
 from convbki_ros import cloud_decoding as pc
 from convbki_ros import cloud_encoding as enc
@@ -379,65 +380,6 @@ def test_map_cloud_fields_round_trip() -> None:
 
 # ----------------------------------------------------------------------------- transforms
 
-unit_quaternions = st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(
-    lambda q: np.linalg.norm(q) > 0.1).map(lambda q: np.array(q) / np.linalg.norm(q))
-
-
-@given(unit_quaternions)
-def test_quaternion_matrix_round_trip(q) -> None:
-    rotation = tf.quaternion_to_matrix(q)
-    assert np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
-    assert np.isclose(np.linalg.det(rotation), 1.0)
-    back = tf.matrix_to_quaternion(rotation)
-    assert back[3] >= 0
-    # q and -q are the same rotation: back is one of them, the one with w >= 0 unless w is ~0
-    # (then round-off decides the sign, and either is right).
-    assert np.allclose(back, q, atol=1e-9) or np.allclose(back, -q, atol=1e-9), (back, q)
-    if abs(q[3]) > 1e-9:
-        assert np.allclose(back, np.sign(q[3]) * q, atol=1e-9), (back, q)
-    assert np.allclose(tf.quaternion_to_matrix(back), rotation, atol=1e-12)
-
-
-def test_quaternion_known_values_and_batches() -> None:
-    quarter = tf.matrix_to_quaternion(np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]], float))
-    assert np.allclose(quarter, [0, 0, np.sqrt(0.5), np.sqrt(0.5)])
-    half_x = tf.matrix_to_quaternion(np.diag([1.0, -1.0, -1.0]))  # trace -1: a non-w pivot
-    assert np.allclose(np.abs(half_x), [1, 0, 0, 0])
-    rng = np.random.default_rng(0)
-    qs = rng.normal(size=(7, 5, 4))
-    qs /= np.linalg.norm(qs, axis=-1, keepdims=True)
-    assert np.allclose(tf.quaternion_to_matrix(tf.matrix_to_quaternion(tf.quaternion_to_matrix(qs))),
-                       tf.quaternion_to_matrix(qs), atol=1e-12)
-    a, b = qs[0, 0], qs[0, 1]
-    assert np.allclose(tf.quaternion_to_matrix(quaternion_multiply(a, b)),
-                       tf.quaternion_to_matrix(a) @ tf.quaternion_to_matrix(b), atol=1e-12)
-
-
-def _angle(a, b) -> float:
-    return 2 * np.arccos(np.clip(abs(np.dot(a, b)), -1, 1))
-
-
-@given(unit_quaternions, unit_quaternions, st.floats(0, 1))
-def test_slerp_properties(q0, q1, t) -> None:
-    assert np.allclose(tf.quaternion_to_matrix(tf.slerp(q0, q1, 0.0)), tf.quaternion_to_matrix(q0), atol=1e-9)
-    assert np.allclose(tf.quaternion_to_matrix(tf.slerp(q0, q1, 1.0)), tf.quaternion_to_matrix(q1), atol=1e-9)
-    q = tf.slerp(q0, q1, t)
-    assert np.isclose(np.linalg.norm(q), 1.0)
-    total = _angle(q0, q1)
-    assume(total > 1e-4)
-    assert total <= np.pi + 1e-9  # the shortest way round
-    assert np.isclose(_angle(q0, q), t * total, atol=1e-6)  # constant angular speed
-    assert np.isclose(_angle(q, q1), (1 - t) * total, atol=1e-6)
-
-
-def test_interpolate_pose_midway() -> None:
-    p0 = tf.pose_from_translation_quaternion([0, 0, 0], [0, 0, 0, 1])
-    p1 = tf.pose_from_translation_quaternion([2, 4, 6], [0, 0, 1, 0])  # 180 deg about z
-    mid = tf.interpolate_pose(p0, p1, 0.5)
-    assert np.allclose(mid[:3, 3], [1, 2, 3])
-    assert np.allclose(mid[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12) or np.allclose(
-        mid[:3, :3], [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-12)
-
 
 @pytest.mark.parametrize("backend", ["rclpy", "rosbags"])
 def test_odometry_and_transform_round_trip(backend: str) -> None:
@@ -449,7 +391,7 @@ def test_odometry_and_transform_round_trip(backend: str) -> None:
         types = tf.message_types()
     rng = np.random.default_rng(1)
     q = rng.normal(size=4)
-    pose = tf.pose_from_translation_quaternion(rng.normal(size=3) * 100, q / np.linalg.norm(q))
+    pose = pose_from_translation_quaternion(rng.normal(size=3) * 100, q / np.linalg.norm(q))
     odom = tf.pose_to_odometry(pose, 1_700_000_000_250_000_001, "map", "velo_link", types)
     assert odom.header.frame_id == "map" and odom.child_frame_id == "velo_link"
     assert (odom.header.stamp.sec, odom.header.stamp.nanosec) == (1_700_000_000, 250_000_001)
