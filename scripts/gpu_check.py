@@ -10,8 +10,8 @@ median milliseconds per scan, stage by stage, side by side: voxelise, the window
 ConvBKI update, free space, the movers' rules, one costmap refresh (the car's profile, the
 node's 40 m grid) and the gather of the window's records that the node publishes; then the
 maps' differences: voxels, labels, the largest relative difference of the concentrations,
-costmap cells. Then it runs ``bench --device`` on the same drive into OUT (not with
-``--device cpu``, a dry run of the torch path on the CPU device).
+costmap cells; the same as JSON in OUT/stages.json. Then it runs ``bench --device`` on the same
+drive into OUT (not with ``--device cpu``, a dry run of the torch path on the CPU device).
 
 Needs numpy, numba, torch and pyyaml only, so it runs from a checkout on ``PYTHONPATH``.
 Exits 2 when the device is not there, 1 when the two paths' maps differ.
@@ -20,6 +20,7 @@ Exits 2 when the device is not there, 1 when the two paths' maps differ.
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import subprocess
 import sys
@@ -98,7 +99,7 @@ def map_drive(frames, device: str, update_path: str, options: dict, profile, pal
                                                   for stage, values in times.items()}}
 
 
-def compare(frames, name: str, options: dict, device: str, profile, palette) -> bool:
+def compare(frames, name: str, options: dict, device: str, profile, palette, report: dict) -> bool:
     host = map_drive(frames, "cpu", "fast", options, profile, palette)
     other = map_drive(frames, device, "torch", options, profile, palette)
     print(f"\n{name}: {len(frames)} scans, {len(host['indices']):,} voxels "
@@ -122,6 +123,9 @@ def compare(frames, name: str, options: dict, device: str, profile, palette) -> 
     print(f"  maps: the same voxels; labels differ in {differing} of {len(labels[0]):,}; largest relative "
           f"difference of the concentrations {worst:.2e}; costmap cells differing {cells} of {host['grid'].size:,}",
           flush=True)
+    report[name] = {"scans": len(frames), "voxels": len(host["indices"]), "compiled_cpu_ms": host["medians"],
+                    "torch_device_ms": other["medians"], "labels_differing": differing,
+                    "largest_relative_difference": worst, "costmap_cells_differing": cells}
     return differing == 0 and worst <= 1e-5 and cells == 0
 
 
@@ -148,13 +152,15 @@ def main(argv: list[str] | None = None) -> int:
     palette = packed_palette(label_map.colors)
     frames = [dataset[i] for i in range(min(args.scans, len(dataset)))]
     same = True
-    for name, options in CONFIGURATIONS.items():
+    report = {"device": name, "torch": torch.__version__, "cuda": torch.version.cuda}
+    for setup, options in CONFIGURATIONS.items():
         if options.get("free_space"):
             options = {**options, "ignore_classes": label_map.ignore_classes}
-        same &= compare(frames, name, options, args.device, profile, palette)
+        same &= compare(frames, setup, options, args.device, profile, palette, report)
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    (Path(args.out) / "stages.json").write_text(json.dumps(report, indent=1))  # the table, for the note
     if args.skip_bench or device.type == "cpu":
         return 0 if same else 1
-    Path(args.out).mkdir(parents=True, exist_ok=True)
     code = subprocess.call([sys.executable, "-m", "convbki_core.tools.bench", "--device", args.device,
                             "--drive-dir", args.drive, "--scans", str(args.scans), "--repeat", str(args.repeat),
                             "--skip-start", "--json", str(Path(args.out) / "bench.json"),
