@@ -436,6 +436,20 @@ def crop(grid: CostGrid, origin: np.ndarray, size: tuple[int, int]) -> CostGrid:
     return CostGrid(origin, values, grid.resolution)
 
 
+def columns_to_read(origin: np.ndarray, footprint: tuple[int, int], region: tuple | None) -> tuple:
+    """(inner low, inner high, low, high): in the grid's global order (x, y from the window's
+    origin, ``footprint`` columns), the columns whose cells ``region`` asks for (all: None) and
+    those to read, with the margin a hidden ground's estimate depends on."""
+    footprint = np.asarray(footprint, np.int64)
+    if region is None:
+        zero = np.zeros(2, np.int64)
+        return zero, footprint, zero, footprint
+    start = np.asarray(region[0], np.int64) - np.asarray(origin, np.int64)[:2]
+    end = start + np.asarray(region[1], np.int64)
+    return (np.clip(start, 0, footprint), np.clip(end, 0, footprint),
+            np.clip(start - NEIGHBOUR_PASSES, 0, footprint), np.clip(end + NEIGHBOUR_PASSES, 0, footprint))
+
+
 def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray, resolution: float,
                 profile: TraversabilityProfile, prior: float, classes: np.ndarray | None = None,
                 region: tuple | None = None) -> CostGrid:
@@ -457,18 +471,8 @@ def window_grid(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: n
         return _cropped(_gathered_grid(*gather_window(alpha, mask.copy(), origin, dims), origin, dims, resolution,
                                        profile, prior), region)
     size_x, size_y = mask.shape[:2]
-    # In the grid's global order (x, y from the window's origin): the columns whose cells are
-    # asked for (inner) and those read, with the margin a hidden ground's estimate depends on.
-    footprint = np.array([size_x, size_y], np.int64)
     partial = region is not None
-    if partial:
-        start = np.asarray(region[0], np.int64) - origin[:2]
-        end = start + np.asarray(region[1], np.int64)
-        inner_low, inner_high = np.clip(start, 0, footprint), np.clip(end, 0, footprint)
-        low, high = np.clip(start - NEIGHBOUR_PASSES, 0, footprint), np.clip(end + NEIGHBOUR_PASSES, 0, footprint)
-    else:
-        inner_low = low = np.zeros(2, np.int64)
-        inner_high = high = footprint
+    inner_low, inner_high, low, high = columns_to_read(origin, (size_x, size_y), region)
     dims = np.asarray(dims, np.int64)
     read_all = classes is None
     if read_all:

@@ -35,6 +35,7 @@ from convbki_core.costmap import (
     _lethal_prior,
     _moment_weights,
     _prior_moments,
+    columns_to_read,
 )
 from convbki_core.window import EVIDENCE
 
@@ -48,15 +49,7 @@ def device_window_grid(alpha: torch.Tensor, mask: torch.Tensor, origin: np.ndarr
     (width, height) cells) only; one copy of the grid to the host."""
     size_x, size_y = mask.shape[:2]
     origin = np.asarray(origin, np.int64)
-    footprint = np.array([size_x, size_y], np.int64)
-    if region is not None:
-        start = np.asarray(region[0], np.int64) - origin[:2]
-        end = start + np.asarray(region[1], np.int64)
-        inner_low, inner_high = np.clip(start, 0, footprint), np.clip(end, 0, footprint)
-        low, high = np.clip(start - NEIGHBOUR_PASSES, 0, footprint), np.clip(end + NEIGHBOUR_PASSES, 0, footprint)
-    else:
-        inner_low = low = np.zeros(2, np.int64)
-        inner_high = high = footprint
+    inner_low, inner_high, low, high = columns_to_read(origin, (size_x, size_y), region)
     values = np.full((size_y, size_x), UNKNOWN, np.int8)
     if (high > low).all():
         read = _column_cells(alpha, mask, origin, low, high, resolution, profile, prior)

@@ -237,7 +237,7 @@ class HostFreeSpace(_FreeSpace):
 class DeviceFreeSpace(_FreeSpace):
     """The rays walked, counted and applied in the device window. The rays to the scan's
     returns start from the occupied voxels the update already sent there; only the voxels where
-    rays to returns beyond the window leave it (a few thousand a scan) are sent."""
+    rays to returns beyond the window leave it are sent."""
 
     def _scratch_counts(self) -> torch.Tensor:
         return torch.zeros(tuple(int(d) for d in self.geometry.dims), dtype=torch.float32, device=self.window.device)
