@@ -177,7 +177,7 @@ class MapperConfig:
     def ignore_classes(self) -> tuple[int, ...]:
         if self.classes.ignore_classes is not None:
             return self.classes.ignore_classes
-        from convbki_core.datasets.labels import load_label_map
+        from convbki_core.io.labels import load_label_map
 
         return load_label_map(self.classes.label_map).ignore_classes
 
@@ -186,7 +186,7 @@ class MapperConfig:
         grown through them (``present_movers.whole_movers``)."""
         if self.classes.movable_classes is not None:
             return self.classes.movable_classes
-        from convbki_core.datasets.labels import load_label_map
+        from convbki_core.io.labels import load_label_map
 
         return load_label_map(self.classes.label_map).movable_classes
 
@@ -195,7 +195,7 @@ class MapperConfig:
         voxels whose most likely occupied class is one of them (``free_space``)."""
         if self.classes.ground_classes is not None:
             return self.classes.ground_classes
-        from convbki_core.datasets.labels import load_label_map
+        from convbki_core.io.labels import load_label_map
 
         return load_label_map(self.classes.label_map).ground_classes
 

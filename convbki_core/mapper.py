@@ -30,34 +30,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.clamping import check_limit
 from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
-from convbki_core.correction import CorrectionResult, continue_correction, pose_displacement
+from convbki_core.correction.replay import CorrectionResult, continue_correction, pose_displacement
+from convbki_core.correction.scan_log import LoggedScan, ScanLog, Segment
 from convbki_core.devices import resolve_device
-from convbki_core.forgetting import MoverForgetting
-from convbki_core.free_space import (
+from convbki_core.free_space.clamping import check_limit
+from convbki_core.free_space.forgetting import MoverForgetting
+from convbki_core.free_space.present_movers import PresentMovers, labels_now, present_movers, whole_movers
+from convbki_core.free_space.rays import (
     FREE_CLASS,
 )
-from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
-from convbki_core.io.map_file import (
-    MAP_FORMAT,
-    MAP_VERSION,
-    MapSetupError,
-    MapSnapshot,
-    read_map,
-    setup_differences,
-)
-from convbki_core.io.ply import write_voxels_ply
-from convbki_core.kernels import ConvBKIKernel
-from convbki_core.layer import ConvBKILayer
-from convbki_core.parts import KernelFilters, Scratch, Voxelizer, make_free_space, make_update
-from convbki_core.present_movers import PresentMovers, labels_now, present_movers, whole_movers
-from convbki_core.records import RECORD, records_from_alpha, window_records
-from convbki_core.scan_log import LoggedScan, ScanLog, Segment
-from convbki_core.statistics import dirichlet_statistics
-from convbki_core.store import VoxelStore
-from convbki_core.torch_window import TorchWindow
-from convbki_core.volume import (
+from convbki_core.geometry.volume import (
     VoxelizeStats,
     WindowGeometry,
     check_pose,
@@ -68,7 +51,24 @@ from convbki_core.volume import (
     voxel_keys,
     voxels_of_keys,
 )
-from convbki_core.window import CHANGED, EVIDENCE, MAX_CLASS_BITS, RECLASSED, TOUCHED, RollingWindow
+from convbki_core.inference.kernels import ConvBKIKernel
+from convbki_core.inference.layer import ConvBKILayer
+from convbki_core.inference.statistics import dirichlet_statistics
+from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
+from convbki_core.io.map_file import (
+    MAP_FORMAT,
+    MAP_VERSION,
+    MapSetupError,
+    MapSnapshot,
+    read_map,
+    setup_differences,
+)
+from convbki_core.io.ply import write_voxels_ply
+from convbki_core.memory.store import VoxelStore
+from convbki_core.memory.window import CHANGED, EVIDENCE, MAX_CLASS_BITS, RECLASSED, TOUCHED, RollingWindow
+from convbki_core.outputs.records import RECORD, records_from_alpha, window_records
+from convbki_core.parts import KernelFilters, Scratch, Voxelizer, make_free_space, make_update
+from convbki_core.torch_path.window import TorchWindow
 
 
 @dataclass

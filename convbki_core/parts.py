@@ -23,10 +23,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from convbki_core.clamping import clamp_torch
 from convbki_core.compiled import HAVE_NUMBA
-from convbki_core.device_rays import count_rays_on_device
-from convbki_core.free_space import (
+from convbki_core.free_space.clamping import clamp_torch
+from convbki_core.free_space.device_rays import count_rays_on_device
+from convbki_core.free_space.rays import (
     FREE_CLASS,
     beyond_window,
     free_space_update,
@@ -35,12 +35,19 @@ from convbki_core.free_space import (
     scratch_counts,
     window_exits,
 )
-from convbki_core.layer import ConvBKILayer
-from convbki_core.store import VoxelStore
-from convbki_core.torch_window import TorchFilters, TorchWindow, torch_free_space, torch_update
-from convbki_core.update import FilterPlan, dense_volume, scatter_volume
-from convbki_core.volume import SparseVolume, WindowGeometry, transform_points, unravel_linear, voxelize, voxelize_scan
-from convbki_core.window import CHANGED, EVIDENCE, RECLASSED, TOUCHED, RollingWindow
+from convbki_core.geometry.volume import (
+    SparseVolume,
+    WindowGeometry,
+    transform_points,
+    unravel_linear,
+    voxelize,
+    voxelize_scan,
+)
+from convbki_core.inference.layer import ConvBKILayer
+from convbki_core.inference.update import FilterPlan, dense_volume, scatter_volume
+from convbki_core.memory.store import VoxelStore
+from convbki_core.memory.window import CHANGED, EVIDENCE, RECLASSED, TOUCHED, RollingWindow
+from convbki_core.torch_path.window import TorchFilters, TorchWindow, torch_free_space, torch_update
 
 # Every mark an update sets (with free space, TOUCHED and RECLASSED too): the warm-ups update with all of them.
 ALL_MARKS = EVIDENCE | CHANGED | TOUCHED | RECLASSED

@@ -39,13 +39,14 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from convbki_core.compiled import kernel_cache
-from convbki_core.datasets.labels import load_label_map
-from convbki_core.records import packed_palette
-from convbki_ros.cloud_decoding import decode_cloud
-from convbki_ros.cloud_encoding import encode_cloud
-from convbki_ros.corrections import CorrectionRunner
-from convbki_ros.map_files import MapFiles, check_map_file_at_start, read_map_file_at_start
-from convbki_ros.outputs import MapOutputs
+from convbki_core.io.labels import load_label_map
+from convbki_core.outputs.records import packed_palette
+from convbki_ros.files.map_files import MapFiles, check_map_file_at_start, read_map_file_at_start
+from convbki_ros.inputs.cloud_decoding import decode_cloud
+from convbki_ros.mapping.corrections import CorrectionRunner
+from convbki_ros.outputs.cloud_encoding import encode_cloud
+from convbki_ros.outputs.publisher import MapOutputs
+from convbki_ros.outputs.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
 from convbki_ros.params import (
     NODE_NAME,
     PARAMETERS,
@@ -58,7 +59,6 @@ from convbki_ros.params import (
     optional,
 )
 from convbki_ros.settings import read_start_settings
-from convbki_ros.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
 
 LEVELS = {OK: DiagnosticStatus.OK, WARN: DiagnosticStatus.WARN, ERROR: DiagnosticStatus.ERROR}
 # Odometry is small and may arrive in bursts (a reliable reader delivers in order, so one
@@ -87,7 +87,7 @@ class MapperNode(Node):
         start_map = read_map_file_at_start(self)
         # The mapper (torch, compiled kernels) is loaded only once every parameter has passed: a
         # bad one is said at once, not after seconds of loading.
-        from convbki_ros.mapping import MappingCore
+        from convbki_ros.mapping.mapping_thread import MappingCore
 
         self.core = MappingCore(self, settings, self.status, self.warnings, self.label_map)
         self.files = MapFiles(self)
@@ -267,7 +267,7 @@ class MapperNode(Node):
         return response
 
     def _whole_costmap(self):
-        from convbki_ros.costmap_output import occupancy_grid, whole_grid
+        from convbki_ros.outputs.costmap import occupancy_grid, whole_grid
 
         indices, alpha, _ = self.core.map_copy()
         mapper, frame = self.core.mapper, self.core.frame

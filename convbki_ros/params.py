@@ -377,8 +377,8 @@ def check_mount(values) -> np.ndarray | None:
     """``base_to_sensor`` as a 4x4 pose (child frame <- cloud frame), None when unset."""
     if values is None:
         return None
-    from convbki_core.poses import pose_from_translation_quaternion
-    from convbki_ros.pose_buffer import pose_problem
+    from convbki_core.geometry.poses import pose_from_translation_quaternion
+    from convbki_ros.inputs.pose_buffer import pose_problem
 
     values = [float(v) for v in values]
     if len(values) != 7:

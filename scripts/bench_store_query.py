@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 
-from convbki_core.store import VoxelStore
-from convbki_core.volume import WindowGeometry, linear_index
+from convbki_core.geometry.volume import WindowGeometry, linear_index
+from convbki_core.memory.store import VoxelStore
 
 NUM_CLASSES = 20
 PRIOR = np.float32(1e-3)

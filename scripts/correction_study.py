@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from convbki_core.config import MapperConfig
-from convbki_core.correction_eval import drift_study
 from convbki_core.datasets.drift import read_loop_closure
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.mapper import ConvBKIMapper
+from convbki_core.measures.correction_eval import drift_study
 from convbki_core.tools import synth
 from convbki_core.tools.plots import save_maps_side_by_side
 

@@ -23,9 +23,16 @@ import collections
 import numpy as np
 
 from convbki_core.config import DEFAULTS
-from convbki_core.costmap import LETHAL, load_profile
-from convbki_core.costmap_eval import GroundTruthVoxels, grids_for, group_of, planning_check, road_cells, score_grid
+from convbki_core.costmap.columns import LETHAL, load_profile
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.measures.costmap_eval import (
+    GroundTruthVoxels,
+    grids_for,
+    group_of,
+    planning_check,
+    road_cells,
+    score_grid,
+)
 from convbki_core.paths import kernel_path, traversability_profile
 from convbki_core.tools.evaluate import evaluate_kernel
 

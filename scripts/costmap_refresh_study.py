@@ -20,11 +20,11 @@ import time
 
 import numpy as np
 
-from convbki_core.costmap import grid_of_window, load_profile
+from convbki_core.costmap.columns import grid_of_window, load_profile
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.memory.window import CHANGED, EVIDENCE
 from convbki_core.offline import paper_mapper
 from convbki_core.paths import traversability_profile
-from convbki_core.window import CHANGED, EVIDENCE
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -33,7 +33,7 @@ from convbki_core.datasets import parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.io.kernel_file import load_kernel_file
-from convbki_core.metrics import ConfusionMatrix
+from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.paths import kernel_path
 from convbki_core.tools.evaluate import evaluate_kernel
 from convbki_core.tools.synth import main as synth_main
@@ -75,7 +75,7 @@ def parse_variant(text: str) -> tuple[str, dict]:
 
 
 def costmap_scores(mapper, truth_voxels, input_voxels, profile, label_map) -> dict:
-    from convbki_core.costmap_eval import grids_for, planning_check, road_cells, score_grid
+    from convbki_core.measures.costmap_eval import grids_for, planning_check, road_cells, score_grid
 
     indices, alpha = mapper.items()
     grids = grids_for(indices, alpha, truth_voxels, mapper.resolution, mapper.prior, profile, input_voxels)
@@ -99,7 +99,7 @@ def study(root: Path, sequence: str, frames: str | None, variants: dict[str, dic
     cpu = DEFAULTS.replace(device="cpu")
     profile = None
     if with_costmap:
-        from convbki_core.costmap import load_profile
+        from convbki_core.costmap.columns import load_profile
         from convbki_core.paths import traversability_profile
 
         profile = load_profile(traversability_profile("car"), names)
@@ -109,7 +109,7 @@ def study(root: Path, sequence: str, frames: str | None, variants: dict[str, dic
     for number, (name, config) in enumerate(configs.items()):
         truth_voxels = input_voxels = None
         if profile is not None:
-            from convbki_core.costmap_eval import GroundTruthVoxels
+            from convbki_core.measures.costmap_eval import GroundTruthVoxels
 
             truth_voxels = GroundTruthVoxels(label_map.num_classes, load_kernel_file(kernel).resolution)
             input_voxels = GroundTruthVoxels(label_map.num_classes, truth_voxels.resolution) if number == 0 else None

@@ -20,11 +20,11 @@ import numpy as np
 
 from convbki_core.config import DEFAULTS
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.geometry.volume import transform_points
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.paths import kernel_path
 from convbki_core.tools.evaluate import evaluate_kernel
 from convbki_core.tools.plots import _pyplot
-from convbki_core.volume import transform_points
 
 
 def busiest_place(dataset: SemanticKittiSequence, positions: range, half_width: float) -> np.ndarray:

@@ -30,13 +30,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.costmap import grid_of_window, load_profile, rolling_geometry
-from convbki_core.datasets.labels import load_label_map
-from convbki_core.device_costmap import device_window_grid
+from convbki_core.costmap.columns import grid_of_window, load_profile, rolling_geometry
+from convbki_core.costmap.device import device_window_grid
+from convbki_core.inference.statistics import dirichlet_statistics
+from convbki_core.io.labels import load_label_map
 from convbki_core.offline import paper_mapper
+from convbki_core.outputs.records import packed_palette
 from convbki_core.paths import config_dir
-from convbki_core.records import packed_palette
-from convbki_core.statistics import dirichlet_statistics
 from convbki_core.synth.cached_drive import ensure_drive
 
 BENCH_SEED = 5  # bench's default drive, so that bench reuses the drive written here

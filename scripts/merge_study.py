@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-import convbki_core.free_space as free_space
-from convbki_core.clamping import DEFAULT_LIMIT, clamp_numpy
-from convbki_core.datasets.labels import load_label_map
+import convbki_core.free_space.rays as free_space
+from convbki_core.free_space.clamping import DEFAULT_LIMIT, clamp_numpy
+from convbki_core.io.labels import load_label_map
 from convbki_core.io.map_file import read_map
+from convbki_core.memory.window import EVIDENCE
 from convbki_core.tools import evaluate, map_tool
-from convbki_core.window import EVIDENCE
 
 
 class MissedEvidence:

@@ -25,13 +25,13 @@ from pathlib import Path
 import numpy as np
 
 from convbki_core.config import MapperConfig
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
+from convbki_core.outputs.records import RECORD, change_records, packed_palette, records_from_alpha, view_records
 from convbki_core.paths import kernel_path
-from convbki_core.records import RECORD, change_records, packed_palette, records_from_alpha, view_records
-from convbki_ros.cloud_encoding import records_cloud
 from convbki_ros.dds import publish_asynchronously, use_large_data_profile
+from convbki_ros.outputs.cloud_encoding import records_cloud
 
 
 def timed(function, repeat: int) -> tuple[float, object]:

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.free_space import _walk_ray
+from convbki_core.free_space.rays import _walk_ray
+from convbki_core.inference.kernels import ConvBKIKernel
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
 from convbki_core.io.ply import PLY_DTYPE
-from convbki_core.kernels import ConvBKIKernel
 
 # Real labelled SemanticKITTI scans (the first 10 scans of sequences 00, 01 and 05 in the
 # dataset's layout), where this machine has them: CONVBKI_REAL_SCANS, else the project's shared

@@ -10,12 +10,12 @@ import numpy as np
 from ros_helpers import NodeLog, Probe, domain_id, start
 
 from convbki_core.config import MapperConfig
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.geometry.poses import pose_from_translation_quaternion
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import config_dir
-from convbki_core.poses import pose_from_translation_quaternion
-from convbki_ros.cloud_encoding import encode_cloud
-from convbki_ros.transforms import pose_to_odometry
+from convbki_ros.inputs.transforms import pose_to_odometry
+from convbki_ros.outputs.cloud_encoding import encode_cloud
 
 BOUNDS = [-20.0, -12.0, -3.0, 20.0, 12.0, 4.0]
 FRAME = "velo_link"

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from convbki_core.poses import pose_from_translation_quaternion
+from convbki_core.geometry.poses import pose_from_translation_quaternion
 from convbki_ros.dds import use_large_data_profile
 
 REPO = Path(__file__).resolve().parents[1]

@@ -14,7 +14,7 @@ from typing import Protocol
 
 import numpy as np
 
-from convbki_core.datasets.labels import LabelMap
+from convbki_core.io.labels import LabelMap
 
 
 class DatasetError(Exception):

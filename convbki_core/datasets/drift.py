@@ -54,8 +54,8 @@ class LoopClosure:
     def corrected_poses(self) -> np.ndarray:
         """(F, 4, 4): every scan where a correction at the closure puts it (the scans before the
         closure moved by the keyframes' corrections; those after as the robot mapped them)."""
-        from convbki_core.correction import keyframe_corrections
-        from convbki_core.scan_log import LoggedScan
+        from convbki_core.correction.replay import keyframe_corrections
+        from convbki_core.correction.scan_log import LoggedScan
 
         robot = self.robot_poses()
         empty = np.zeros((0, 3), np.float32)

@@ -67,7 +67,7 @@ per-scan mechanisms and 0-6 % from object confusions (few points, but whole obje
 flicker a map must fuse).
 
 One knob, ``strength``, scales every rate; ``calibrate`` finds by bisection the strength whose
-input mIoU over all the written scans (as ``convbki_core.metrics`` computes it: class 0
+input mIoU over all the written scans (as ``convbki_core.measures.metrics`` computes it: class 0
 ignored, mean over the classes in the ground truth) is the target, within ``TOLERANCE``
 (0.002; a target the model cannot meet within 0.01 is reported as out of reach).
 """
@@ -84,8 +84,8 @@ import numpy as np
 
 from convbki_core.compiled import njit, parallel_region, prange
 from convbki_core.datasets import Frame
-from convbki_core.datasets.labels import LabelMap
-from convbki_core.metrics import ConfusionMatrix
+from convbki_core.io.labels import LabelMap
+from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.synth import lidar
 from convbki_core.synth.noise import CONFUSIONS, DIFFICULTY, range_factor
 

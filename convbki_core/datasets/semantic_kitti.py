@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from convbki_core.datasets import DatasetError, Frame
-from convbki_core.datasets.labels import LabelMap, load_label_map
+from convbki_core.io.labels import LabelMap, load_label_map
 
 
 def _first_line(error: BaseException) -> str:

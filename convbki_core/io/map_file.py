@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.compact_rows import compress_rows, expand_rows
 from convbki_core.io.atomic import atomic_write_with
+from convbki_core.memory.compact_rows import compress_rows, expand_rows
 
 MAP_FORMAT = "convbki_map"
 MAP_VERSION = 3
@@ -189,7 +189,7 @@ def read_map(path: str | Path, with_scan_log: bool = False) -> tuple[dict, np.nd
 
 def _scan_log(path: Path, arrays: dict, metadata: dict):
     """The scan log of a version 3 file (a ``ScanLog`` without bounds), checked."""
-    from convbki_core.scan_log import ScanLog
+    from convbki_core.correction.scan_log import ScanLog
 
     try:
         meta = json.loads(arrays[f"{SCAN_LOG_PREFIX}meta"].tobytes().decode())

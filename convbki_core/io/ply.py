@@ -12,8 +12,8 @@ from typing import Protocol
 
 import numpy as np
 
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.io.atomic import atomic_write_with
+from convbki_core.io.labels import load_label_map
 
 
 class VoxelArrays(Protocol):

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.datasets.labels import load_label_map
-from convbki_core.metrics import ConfusionMatrix
+from convbki_core.io.labels import load_label_map
+from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.synth import drift, lidar, movers, traffic, writer
 from convbki_core.synth.noise import BLUR_WIDTH, CalibrationSample, NoiseModel, PointNoise, calibrate
 from convbki_core.synth.primitives import OUTLIER

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.datasets.labels import LabelMap
+from convbki_core.io.labels import LabelMap
 from convbki_core.synth import lidar
 
 BLUR_WIDTH = 0.45  # m

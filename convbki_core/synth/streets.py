@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.io.labels import load_label_map
 from convbki_core.synth.primitives import OTHER_GROUND, ROAD, SIDEWALK, TERRAIN, SceneBuilder
 from convbki_core.synth.route import Route
 

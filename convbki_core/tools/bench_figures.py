@@ -16,13 +16,13 @@ import numpy as np
 import torch
 
 from convbki_core.datasets import SequenceDataset
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.geometry.volume import WindowGeometry, transform_points, voxelize
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.offline import integrate_frames, paper_mapper, query_ms, read_frames, update_ms
-from convbki_core.records import change_records, packed_palette, view_records
-from convbki_core.shown_map import ShownMap
+from convbki_core.outputs.records import change_records, packed_palette, view_records
+from convbki_core.outputs.shown_map import ShownMap
 from convbki_core.tools.cli import progress
-from convbki_core.volume import WindowGeometry, transform_points, voxelize
 
 
 def median_ms(function: Callable[[], object], repeat: int) -> float:
@@ -213,7 +213,7 @@ def costmap_figures(frames: list, repeat: int, device: str = "cpu") -> dict:
     window, read from the window in place, as the node does) after each scan, free space on,
     with 1 M and with 10 M voxels stored elsewhere in the map; and, with 1 M, a refresh of a
     40 m grid centred on the sensor (``costmap_size`` 40), which reads only its own columns."""
-    from convbki_core.costmap import grid_of_window, load_profile, rolling_geometry
+    from convbki_core.costmap.columns import grid_of_window, load_profile, rolling_geometry
     from convbki_core.paths import traversability_profile
 
     label_map = load_label_map("semantic_kitti")

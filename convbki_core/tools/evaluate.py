@@ -24,14 +24,22 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.clamping import check_limit
 from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.free_space.clamping import check_limit
+from convbki_core.geometry.volume import tempers, transform_points
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.metrics import ConfusionMatrix
+from convbki_core.measures.metrics import ConfusionMatrix
+from convbki_core.measures.trails import StaticCoverage, SweptSpace
+from convbki_core.measures.uncertainty import (
+    CalibrationStats,
+    MapCalibration,
+    input_distribution,
+    tempered_distribution,
+)
 from convbki_core.offline import map_frame_labels
 from convbki_core.tools.cli import (
     NewOutputs,
@@ -45,9 +53,6 @@ from convbki_core.tools.cli import (
     sequence_arg,
     window_bounds,
 )
-from convbki_core.trails import StaticCoverage, SweptSpace
-from convbki_core.uncertainty_metrics import CalibrationStats, MapCalibration, input_distribution, tempered_distribution
-from convbki_core.volume import tempers, transform_points
 from convbki_core.warm_up import warm_up
 
 PROG = "evaluate"
@@ -347,8 +352,8 @@ def check_writable_file(path: str | Path, flag: str) -> None:
 def _drift_study(dataset, positions, kernel_file, mapper_config: MapperConfig, quiet: bool):
     """On a drift drive (``loop_closure.yaml``) whose frames cross the loop closure: the maps
     without correction, corrected and from scratch (``correction_eval``); else None."""
-    from convbki_core.correction_eval import drift_study
     from convbki_core.datasets.drift import read_loop_closure
+    from convbki_core.measures.correction_eval import drift_study
 
     closure = read_loop_closure(dataset)
     if closure is None or not positions[0] < closure.closure_frame <= positions[-1]:
@@ -415,8 +420,8 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     label_map = dataset.label_map
     costmap_profile = truth_voxels = input_voxels = None
     if args.costmap_report:
-        from convbki_core.costmap import ProfileError, load_profile
-        from convbki_core.costmap_eval import GroundTruthVoxels
+        from convbki_core.costmap.columns import ProfileError, load_profile
+        from convbki_core.measures.costmap_eval import GroundTruthVoxels
         from convbki_core.paths import traversability_profile
 
         output_folder(args.costmap_report, "costmap report")
@@ -551,7 +556,7 @@ def write_costmap_report(mapper, truth_voxels, profile, label_map, path: Path, o
     """Score the map's costmap, the projected-occupancy baseline and (``input_voxels`` given) the
     input segmentation's grid against the ground truth's (``costmap_eval``); write the JSON and a
     picture (map, baseline, truth; one planned path); return the lines to print."""
-    from convbki_core.costmap_eval import grids_for, planning_check, road_cells, score_grid
+    from convbki_core.measures.costmap_eval import grids_for, planning_check, road_cells, score_grid
     from convbki_core.tools.plots import save_costmap_pictures
 
     indices, alpha = mapper.items()

@@ -144,10 +144,10 @@ def _label_noise(args: argparse.Namespace) -> int:
 
     from convbki_core.datasets import DatasetError, parse_frames
     from convbki_core.datasets import label_noise as model_module
-    from convbki_core.datasets.labels import load_label_map
     from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
     from convbki_core.io.atomic import atomic_write_bytes, remove_stale_staging_folders, staging_prefix
-    from convbki_core.metrics import ConfusionMatrix
+    from convbki_core.io.labels import load_label_map
+    from convbki_core.measures.metrics import ConfusionMatrix
     from convbki_core.synth.lidar import MissingDependency, require_numba
     from convbki_core.tools.cli import NewOutputs, say_notices
 

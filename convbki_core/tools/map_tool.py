@@ -8,7 +8,7 @@
   sum of the maps' evidence, not quite one mapper's: a map's rays emptied only the voxels
   that map held, and clamping (which keeps the prior) is not a sum;
 * ``export-ply``: the voxel centres in class colours, for CloudCompare, Open3D or MeshLab;
-* ``costmap``: the map's traversability grid for a robot profile (``convbki_core.costmap``),
+* ``costmap``: the map's traversability grid for a robot profile (``convbki_core.costmap.columns``),
   as the node's ``~/get_costmap`` gives it, to a ``.npz`` or a ``.png``.
 """
 
@@ -62,7 +62,7 @@ def _check_output(path: str, force: bool) -> Path:
 # -- info ---------------------------------------------------------------------------------
 def class_names_for(metadata: dict) -> list[str] | None:
     """Class names for the map's classes: the metadata's, else SemanticKITTI's when the count matches."""
-    from convbki_core.datasets.labels import load_label_map
+    from convbki_core.io.labels import load_label_map
 
     names = metadata.get("class_names")
     if isinstance(names, list) and len(names) == metadata["num_classes"]:
@@ -73,9 +73,9 @@ def class_names_for(metadata: dict) -> list[str] | None:
 
 def map_info(path: str | Path) -> dict:
     """Everything ``info`` reports about one map file, as JSON-ready values (lengths in m)."""
+    from convbki_core.inference.statistics import dirichlet_statistics
     from convbki_core.io.map_file import read_map
-    from convbki_core.statistics import dirichlet_statistics
-    from convbki_core.store import VoxelStore
+    from convbki_core.memory.store import VoxelStore
 
     metadata, indices, alpha = read_map(path, with_scan_log=True)
     resolution = float(metadata["resolution"])
@@ -258,9 +258,9 @@ def _merge(args: argparse.Namespace) -> int:
 # -- export-ply ---------------------------------------------------------------------------
 def voxel_set(indices: np.ndarray, alpha: np.ndarray, resolution: float) -> VoxelSet:
     """A ``mapper.VoxelSet`` (centres in m, expected class, variance) of map-file arrays."""
+    from convbki_core.geometry.volume import voxel_centres
+    from convbki_core.inference.statistics import dirichlet_statistics
     from convbki_core.mapper import VoxelSet
-    from convbki_core.statistics import dirichlet_statistics
-    from convbki_core.volume import voxel_centres
 
     stats = dirichlet_statistics(alpha)
     return VoxelSet(indices, voxel_centres(indices, resolution).astype(np.float32), alpha, stats.label,
@@ -288,7 +288,7 @@ def _export_ply(args: argparse.Namespace) -> int:
 
 
 def _costmap(args: argparse.Namespace) -> int:
-    from convbki_core.costmap import ProfileError, column_costs, load_profile, rasterise
+    from convbki_core.costmap.columns import ProfileError, column_costs, load_profile, rasterise
     from convbki_core.io.atomic import atomic_write_with
     from convbki_core.io.map_file import read_map
     from convbki_core.paths import traversability_profile

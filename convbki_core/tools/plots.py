@@ -9,11 +9,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from convbki_core.datasets.labels import LabelMap
 from convbki_core.io.atomic import atomic_write_bytes
+from convbki_core.io.labels import LabelMap
 
 if TYPE_CHECKING:
-    from convbki_core.kernels import ConvBKIKernel
+    from convbki_core.inference.kernels import ConvBKIKernel
     from convbki_core.mapper import VoxelSet
 
 
@@ -237,7 +237,7 @@ def save_costmap_pictures(grids: dict, road: np.ndarray | None, path: str | Path
     """Costmaps side by side (``{name: costmap.CostGrid}``, one extent), north up, with one
     path planned on each (between the two road cells furthest apart that both grids' planner
     reaches)."""
-    from convbki_core.costmap_eval import _dijkstra, group_of
+    from convbki_core.measures.costmap_eval import _dijkstra, group_of
 
     plt = _pyplot()
     figure, axes = plt.subplots(1, len(grids), figsize=(6 * len(grids), 6), squeeze=False)

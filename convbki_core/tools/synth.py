@@ -189,7 +189,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         from tqdm import tqdm
 
-        from convbki_core.datasets.labels import load_label_map
+        from convbki_core.io.labels import load_label_map
         from convbki_core.synth.drive import DriveConfig, SynthError, check_destination, generate_drive
         from convbki_core.synth.lidar import MissingDependency, require_numba
     except ImportError as error:

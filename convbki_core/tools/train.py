@@ -31,8 +31,8 @@ from convbki_core.config import DEFAULTS
 from convbki_core.datasets import parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.devices import resolve_device
+from convbki_core.inference.kernels import ConvBKIKernel
 from convbki_core.io.kernel_file import load_kernel_file, save_kernel_file
-from convbki_core.kernels import ConvBKIKernel
 from convbki_core.tools.cli import (
     NewOutputs,
     UserError,

@@ -41,8 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from convbki_core.free_space import FREE_CLASS, count_rays, scan_rays, scratch_counts
-from convbki_core.volume import SparseVolume, unravel_linear, voxel_indices
+from convbki_core.free_space.rays import FREE_CLASS, count_rays, scan_rays, scratch_counts
+from convbki_core.geometry.volume import SparseVolume, unravel_linear, voxel_indices
 
 FREE_PER_RAY = 2  # free points drawn on each sampled ray
 FREE_RAYS = 20_000  # at most this many of scan t's returns give free points

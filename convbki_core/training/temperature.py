@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from convbki_core.uncertainty_metrics import PROBABILITY_FLOOR, tempered_distribution
+from convbki_core.measures.uncertainty import PROBABILITY_FLOOR, tempered_distribution
 
 # The searched range: wide enough for any network seen in practice (a softmax sharpened or
 # softened several times over), inside the kernel file's limits.

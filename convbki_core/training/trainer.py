@@ -67,10 +67,12 @@ import torch
 from convbki_core.config import DEFAULTS, MapperConfig
 from convbki_core.datasets import DatasetError, Frame
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
-from convbki_core.free_space import FREE_CLASS
-from convbki_core.kernels import ConvBKIKernel, KernelConfig
+from convbki_core.free_space.rays import FREE_CLASS
+from convbki_core.geometry.volume import WindowGeometry, transform_points, unravel_linear, voxel_indices, voxelize
+from convbki_core.inference.kernels import ConvBKIKernel, KernelConfig
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.metrics import ConfusionMatrix
+from convbki_core.measures.metrics import ConfusionMatrix
+from convbki_core.measures.uncertainty import MapCalibration
 from convbki_core.offline import map_frame_labels
 from convbki_core.training.free_samples import (
     FreeEvidence,
@@ -84,8 +86,6 @@ from convbki_core.training.free_samples import (
 )
 from convbki_core.training.sparse_plan import SparsePlan
 from convbki_core.training.temperature import TemperatureSearch, fit_input_temperature, input_nll, minimise_temperature
-from convbki_core.uncertainty_metrics import MapCalibration
-from convbki_core.volume import WindowGeometry, transform_points, unravel_linear, voxel_indices, voxelize
 
 # progress(items, total, description) -> the same items, shown as they are consumed.
 Progress = Callable[[Iterable, int, str], Iterable]

@@ -14,13 +14,13 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.offline import paper_mapper
 from convbki_core.tools.bench_figures import median_ms, steady
-from convbki_ros.cloud_decoding import decode_cloud
-from convbki_ros.cloud_encoding import map_cloud_fields, pack_fields
-from convbki_ros.pose_buffer import OdometryBuffer
+from convbki_ros.inputs.cloud_decoding import decode_cloud
+from convbki_ros.inputs.pose_buffer import OdometryBuffer
+from convbki_ros.outputs.cloud_encoding import map_cloud_fields, pack_fields
 
 # The keys the functions below add to bench's figures.
 ENCODE_KEYS = ("encode_ms_per_million", "encoded_voxels")
@@ -152,9 +152,9 @@ def _first_scans(domain: int, frames: list) -> list[float]:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
-    from convbki_ros.cloud_encoding import encode_cloud
     from convbki_ros.dds import use_large_data_profile
-    from convbki_ros.transforms import pose_to_odometry
+    from convbki_ros.inputs.transforms import pose_to_odometry
+    from convbki_ros.outputs.cloud_encoding import encode_cloud
 
     use_large_data_profile()
     label_map = load_label_map()

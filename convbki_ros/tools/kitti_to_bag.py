@@ -115,14 +115,14 @@ def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, prob
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from convbki_ros.cloud_encoding import encode_cloud
-    from convbki_ros.transforms import (
+    from convbki_ros.inputs.transforms import (
         message_types,
         pose_to_odometry,
         pose_to_transform_stamped,
         poses_to_path,
         seconds_to_ns,
     )
+    from convbki_ros.outputs.cloud_encoding import encode_cloud
 
     typestore = get_typestore(Stores.ROS2_JAZZY)
     types = message_types(typestore)

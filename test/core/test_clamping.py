@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from convbki_core.clamping import check_limit, clamp_numpy, clamp_torch, first_contradiction
 from convbki_core.compiled import HAVE_NUMBA
+from convbki_core.free_space.clamping import check_limit, clamp_numpy, clamp_torch, first_contradiction
 
 
 def _window(seed: int, classes: int = 6, dims=(5, 4, 3)):
@@ -82,7 +82,7 @@ def test_torch_equals_numpy():
 def test_compiled_equals_numpy():
     from numba import njit
 
-    from convbki_core.clamping import clamp_voxel
+    from convbki_core.free_space.clamping import clamp_voxel
 
     @njit
     def clamp_all(alpha, voxels, before, limit, prior):

@@ -10,7 +10,7 @@ import pytest
 
 from convbki_core import ConvBKIMapper
 from convbki_core.config import DEFAULTS, PAPER_BOUNDS, MapperConfig
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.io.labels import load_label_map
 
 REPO = Path(__file__).resolve().parents[2]
 SMALL = ((-2.0, -2.0, -1.0), (2.0, 2.0, 1.0))

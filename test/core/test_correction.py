@@ -10,12 +10,12 @@ from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
-from convbki_core.correction import keyframe_corrections
+from convbki_core.correction.replay import keyframe_corrections
+from convbki_core.correction.scan_log import LoggedScan
 from convbki_core.datasets.drift import read_loop_closure
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.geometry.poses import interpolate_pose
 from convbki_core.io.map_file import MapSnapshot, read_map
-from convbki_core.poses import interpolate_pose
-from convbki_core.scan_log import LoggedScan
 from convbki_core.tools import evaluate, map_tool, synth
 
 NUM_CLASSES = 6

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from convbki_core.config import MapperConfig
-from convbki_core.costmap import LETHAL_MIN, ProfileError, column_costs, load_profile, rasterise
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.costmap.columns import LETHAL_MIN, ProfileError, column_costs, load_profile, rasterise
+from convbki_core.io.labels import load_label_map
 from convbki_core.paths import config_dir
 
 NAMES = load_label_map("semantic_kitti").class_names
@@ -137,7 +137,7 @@ def test_the_grid_read_from_the_dense_window_equals_the_grid_of_its_voxels_gathe
     """The node computes its rolling grid from the window's dense torus arrays in place; the same
     voxels gathered (what a saved map holds) give the same grid, cell for cell, also after the
     window moved and wrapped around its torus, with hidden ground and empty space in it."""
-    from convbki_core.costmap import grid_of_window
+    from convbki_core.costmap.columns import grid_of_window
     from convbki_core.mapper import ConvBKIMapper
     from convbki_core.paths import kernel_path
 
@@ -173,7 +173,7 @@ def test_a_region_of_the_window_reads_its_columns_only_and_equals_the_crop_of_th
     them that a hidden ground's estimate depends on; its cells are those of the whole window's
     grid cropped, at the window's edges and corners too, for a region partly or wholly outside
     it, and where columns with hidden ground (a car on the road) lie at the region's edge."""
-    from convbki_core.costmap import NEIGHBOUR_PASSES, crop, grid_of_window, window_grid
+    from convbki_core.costmap.columns import NEIGHBOUR_PASSES, crop, grid_of_window, window_grid
     from convbki_core.mapper import ConvBKIMapper
     from convbki_core.paths import kernel_path
 
@@ -337,7 +337,7 @@ def test_the_classes_a_window_keeps_by_column_cover_every_class_it_holds(update_
     rules, the window driving off (slabs to the store) and back (slabs loaded), a box forgotten,
     a map loaded and a reset: every class above the prior in a column has its bit, the bits
     are not all set, and the grid read with them equals the grid read from every run."""
-    from convbki_core.costmap import grid_of_window, window_grid
+    from convbki_core.costmap.columns import grid_of_window, window_grid
     from convbki_core.mapper import ConvBKIMapper
     from convbki_core.paths import kernel_path
 
@@ -391,8 +391,8 @@ def test_the_classes_a_window_keeps_by_column_cover_every_class_it_holds(update_
 def test_the_compiled_class_bookkeeping_equals_its_numpy_twin(monkeypatch):
     """Per column, the classes held and the classes a scan reaches (its voxels' classes spread by
     the filter's half-width, clipped to the window, placed on the torus): compiled and numpy."""
-    import convbki_core.window as window_module
-    from convbki_core.window import _note_scan_classes, classes_held
+    import convbki_core.memory.window as window_module
+    from convbki_core.memory.window import _note_scan_classes, classes_held
 
     rng = np.random.default_rng(2)
     dims = np.array([15, 13, 5])
@@ -427,7 +427,7 @@ def test_a_hidden_columns_ground_from_its_patch_equals_the_spread_over_the_whole
     the estimate depends on; the gathered path spreads the known heights over the whole grid
     (with a margin beyond it) pass by pass. Both give the same height at every cell, the edges
     and corners of the grid included, where heights spread into the margin and back."""
-    from convbki_core.costmap import _NO_GROUND, NEIGHBOUR_PASSES, _ground_near, _spread_ground
+    from convbki_core.costmap.columns import _NO_GROUND, NEIGHBOUR_PASSES, _ground_near, _spread_ground
 
     rng = np.random.default_rng(4)
     margin = NEIGHBOUR_PASSES

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from convbki_core.costmap_eval import GroundTruthVoxels, _dijkstra, group_of, planning_check, score_grid
+from convbki_core.measures.costmap_eval import GroundTruthVoxels, _dijkstra, group_of, planning_check, score_grid
 
 
 def test_groups_free_up_to_25_lethal_from_90():

@@ -5,10 +5,10 @@ import pytest
 from kitti_fixture import pose_about_z, write_sequence
 
 from convbki_core.datasets import DatasetError, parse_frames
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.metrics import ConfusionMatrix
-from convbki_core.volume import voxel_indices
+from convbki_core.geometry.volume import voxel_indices
+from convbki_core.io.labels import load_label_map
+from convbki_core.measures.metrics import ConfusionMatrix
 
 
 def test_reader_round_trip(tmp_path):

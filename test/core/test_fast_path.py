@@ -8,9 +8,9 @@ from kitti_fixture import write_drive
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
-from convbki_core.store import VoxelStore
+from convbki_core.memory.store import VoxelStore
+from convbki_core.memory.window import RollingWindow, box_difference
 from convbki_core.tools import evaluate
-from convbki_core.window import RollingWindow, box_difference
 
 NUM_CLASSES = 6
 
@@ -129,7 +129,7 @@ def test_evaluate_writes_identical_labels_on_both_paths(tmp_path):
 
 @given(seed=st.integers(0, 2**31 - 1), probabilities=st.booleans(), temperature=st.sampled_from([None, 0.4, 2.5]))
 def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities, temperature):
-    from convbki_core.volume import transform_points, voxelize, voxelize_scan
+    from convbki_core.geometry.volume import transform_points, voxelize, voxelize_scan
 
     rng = np.random.default_rng(seed)
     count = int(rng.integers(0, 400))
@@ -176,7 +176,7 @@ def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities, temperat
 @given(seed=st.integers(0, 2**31 - 1), filter_size=st.sampled_from([1, 3, 5]), probabilities=st.booleans())
 def test_compiled_scatter_handles_any_zero_pattern_in_the_filters(seed, filter_size, probabilities):
     """Filters with holes (not a ball around the centre) give the numpy scatter's result exactly."""
-    from convbki_core import update as fast_update
+    from convbki_core.inference import update as fast_update
 
     rng = np.random.default_rng(seed)
     filters = rng.uniform(0.0, 1.0, (NUM_CLASSES, filter_size, filter_size, filter_size)).astype(np.float32)
@@ -205,7 +205,7 @@ def test_the_voxelisers_radix_sort_equals_numpy_sort(bound):
     from convbki_core.compiled import HAVE_NUMBA
     if not HAVE_NUMBA:
         pytest.skip("the radix sort is part of the compiled voxeliser")
-    from convbki_core.volume import _radix_sort
+    from convbki_core.geometry.volume import _radix_sort
 
     rng = np.random.default_rng(bound)
     values = rng.choice(bound, size=min(bound, 30_000), replace=False).astype(np.int64)

@@ -10,7 +10,7 @@ from helpers import BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
 
 from convbki_core import ConvBKIMapper
 from convbki_core.config import MapperConfig
-from convbki_core.forgetting import (
+from convbki_core.free_space.forgetting import (
     _EMPTIED,
     _FLAGGED,
     _contradicted_numba,
@@ -19,7 +19,7 @@ from convbki_core.forgetting import (
     _unsupported_numpy,
     _unsupported_torch,
 )
-from convbki_core.window import CHANGED, EVIDENCE, TOUCHED, classes_held
+from convbki_core.memory.window import CHANGED, EVIDENCE, TOUCHED, classes_held
 
 TRUCK, BICYCLIST = 4, 7
 MOVABLE = (1, 4, 5, 6, 7, 8)  # SemanticKITTI's: car, truck, other-vehicle, person, bicyclist, motorcyclist
@@ -234,8 +234,8 @@ def test_the_compiled_contradiction_pass_equals_the_numpy_one(seed, use_bits, ne
     (``near_radius`` 0.2 m: one column each way) and without it."""
     from types import SimpleNamespace
 
-    import convbki_core.forgetting as forgetting
-    from convbki_core.volume import voxelize
+    import convbki_core.free_space.forgetting as forgetting
+    from convbki_core.geometry.volume import voxelize
 
     alpha, _ = random_window(seed)
     dims = np.array(alpha.shape[1:], np.int64)

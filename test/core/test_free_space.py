@@ -18,8 +18,8 @@ from reference import sparse_kernel_np
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
-from convbki_core.device_rays import count_rays_on_device
-from convbki_core.free_space import (
+from convbki_core.free_space.device_rays import count_rays_on_device
+from convbki_core.free_space.rays import (
     _free_space_numpy,
     count_rays,
     free_space_update,
@@ -27,7 +27,7 @@ from convbki_core.free_space import (
     ground_marks,
     scratch_counts,
 )
-from convbki_core.window import CHANGED, EVIDENCE, GROUND, RECLASSED, TOUCHED, class_bits, classes_held
+from convbki_core.memory.window import CHANGED, EVIDENCE, GROUND, RECLASSED, TOUCHED, class_bits, classes_held
 
 BOUNDS = ((-12.0, -12.0, -3.0), (12.0, 12.0, 3.0))
 
@@ -599,7 +599,7 @@ def test_a_pole_seen_from_all_sides_stays_a_pole():
 
 
 def test_window_exits_compiled_equals_numpy_and_lie_on_the_boundary():
-    from convbki_core.free_space import _exit_linear_numba, _exit_linear_numpy, window_exits
+    from convbki_core.free_space.rays import _exit_linear_numba, _exit_linear_numpy, window_exits
 
     rng = np.random.default_rng(4)
     origin, dims, sensor = np.array([-10, -12, -5]), np.array([20, 24, 10]), np.array([0.3, -0.2, 0.1])

@@ -10,9 +10,9 @@ import torch
 from kitti_fixture import pose_about_z, write_sequence
 
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.kernels import ConvBKIKernel
+from convbki_core.geometry.volume import WindowGeometry
+from convbki_core.inference.kernels import ConvBKIKernel
 from convbki_core.training import trainer
-from convbki_core.volume import WindowGeometry
 
 CAR, POLE, BUILDING = 10, 80, 50  # raw ids
 
@@ -117,8 +117,8 @@ def test_the_ray_counts_a_sample_reads_are_those_of_a_walk_of_every_ray():
     ``free_space.crossed_voxels``, ray by ray)."""
     from helpers import crossed_voxels
 
+    from convbki_core.geometry.volume import voxelize
     from convbki_core.training.free_samples import free_evidence, past_rays, reached, support_offsets
-    from convbki_core.volume import voxelize
 
     rng = np.random.default_rng(2)
     geometry = WindowGeometry(0.2, (-2.0, -2.0, -1.0), (6.0, 2.0, 1.0))

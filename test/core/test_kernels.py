@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from reference import sparse_kernel_np
 
 from convbki_core import ConvBKIKernel, KernelConfig
+from convbki_core.inference.kernels import sparse_kernel
 from convbki_core.io.kernel_file import (
     KernelFileError,
     kernel_config_from_dict,
@@ -20,7 +21,6 @@ from convbki_core.io.kernel_file import (
     load_kernel_file,
     save_kernel_file,
 )
-from convbki_core.kernels import sparse_kernel
 from convbki_core.paths import kernel_path
 
 lengths = st.floats(min_value=0.01, max_value=5.0, allow_nan=False)

@@ -18,9 +18,9 @@ import pytest
 from helpers import REAL_SCANS
 
 from convbki_core.datasets import label_noise as noise
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
-from convbki_core.metrics import ConfusionMatrix
+from convbki_core.io.labels import load_label_map
+from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.tools import label_noise as tool
 
 REPO = Path(__file__).resolve().parents[2]

@@ -12,11 +12,11 @@ from hypothesis import strategies as st
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError, dirichlet_statistics
 from convbki_core.config import MapperConfig
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.devices import resolve_device
+from convbki_core.geometry.volume import WindowGeometry
+from convbki_core.io.labels import load_label_map
+from convbki_core.memory.store import VoxelStore
 from convbki_core.paths import kernel_path
-from convbki_core.store import VoxelStore
-from convbki_core.volume import WindowGeometry
 
 NUM_CLASSES = 6
 ROAD = 9  # SemanticKITTI learning id of road

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from convbki_core.config import MapperConfig
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
+from convbki_core.outputs.records import apply_records, change_records, packed_palette, records_from_alpha, view_records
+from convbki_core.outputs.shown_map import ShownMap
 from convbki_core.paths import kernel_path
-from convbki_core.records import apply_records, change_records, packed_palette, records_from_alpha, view_records
-from convbki_core.shown_map import ShownMap
 
 PALETTE = packed_palette(load_label_map("semantic_kitti").colors)
 BOUNDS = ((-4.0, -4.0, -1.0), (4.0, 4.0, 1.0))

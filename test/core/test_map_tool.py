@@ -13,13 +13,13 @@ import pytest
 from helpers import read_ply, sorted_map
 from kitti_fixture import write_drive
 
-from convbki_core.clamping import DEFAULT_LIMIT
 from convbki_core.config import DEFAULTS, MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.free_space.clamping import DEFAULT_LIMIT
 from convbki_core.io.map_file import MapSnapshot, read_map
 from convbki_core.mapper import ConvBKIMapper
+from convbki_core.memory.store import VoxelStore
 from convbki_core.paths import kernel_path
-from convbki_core.store import VoxelStore
 from convbki_core.tools import evaluate, map_tool
 from convbki_core.tools.synth import main as synth
 
@@ -305,8 +305,8 @@ def test_evaluate_save_map_refused_up_front_and_never_left_by_a_failed_run(tmp_p
 def test_costmap_writes_the_grid_of_every_observed_column(maps, tmp_path, capsys):
     """The .npz holds column_costs of the map's voxels, cell for cell; the drive's road is
     mostly free for the car and its buildings lethal; the .png is a picture."""
-    from convbki_core.costmap import column_costs, load_profile, rasterise
-    from convbki_core.datasets.labels import load_label_map
+    from convbki_core.costmap.columns import column_costs, load_profile, rasterise
+    from convbki_core.io.labels import load_label_map
     from convbki_core.paths import traversability_profile
 
     out = tmp_path / "grid.npz"
@@ -349,8 +349,8 @@ def test_costmap_refuses_a_bad_profile_in_one_line(maps, tmp_path, capsys):
 def test_evaluate_scores_the_costmap_against_the_ground_truth(tmp_path, capsys):
     """--costmap-report: the JSON has the map's and the baseline's group scores and planning
     check, their picture is written, and the scores are those of costmap_eval on the saved map."""
-    from convbki_core.costmap import load_profile
-    from convbki_core.costmap_eval import GroundTruthVoxels, grids_for, score_grid
+    from convbki_core.costmap.columns import load_profile
+    from convbki_core.measures.costmap_eval import GroundTruthVoxels, grids_for, score_grid
     from convbki_core.paths import traversability_profile
 
     write_drive(tmp_path / "data", "08", frames=4)

@@ -16,7 +16,7 @@ import json, sys
 import numpy as np
 import numba
 from convbki_core.config import MapperConfig
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.parts import Scratch
 from convbki_core.paths import kernel_path

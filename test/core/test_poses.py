@@ -1,4 +1,4 @@
-"""Poses and quaternions (``convbki_core.poses``): conversions both ways, slerp, interpolation."""
+"""Poses and quaternions (``convbki_core.geometry.poses``): conversions both ways, slerp, interpolation."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-from convbki_core import poses
+from convbki_core.geometry import poses
 
 
 def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ from test_free_space import BOUNDS
 
 from convbki_core import ConvBKIMapper
 from convbki_core.config import MapperConfig
-from convbki_core.present_movers import JOIN_CELL, MOVER_REACH, labels_now, present_movers, whole_movers
+from convbki_core.free_space.present_movers import JOIN_CELL, MOVER_REACH, labels_now, present_movers, whole_movers
 
 CAR_LOW, CAR_HIGH = np.array([-2.0, -0.9, 0.35]), np.array([2.0, 0.9, 1.85])
 TRUCK, PERSON = 4, 6

@@ -8,12 +8,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from convbki_core import compact_rows
-from convbki_core import store as store_module
-from convbki_core.compact_rows import compress_rows, expand_rows
 from convbki_core.config import MapperConfig
 from convbki_core.io.map_file import MAP_VERSION, MapSnapshot, read_map
-from convbki_core.store import VoxelStore
+from convbki_core.memory import compact_rows
+from convbki_core.memory import store as store_module
+from convbki_core.memory.compact_rows import compress_rows, expand_rows
+from convbki_core.memory.store import VoxelStore
 
 PRIOR = np.float32(1e-3)
 # Bit patterns a row may hold besides ordinary values: both zeros, the smallest subnormal, the

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import yaml
 
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.io.labels import load_label_map
 from convbki_core.synth import traffic
 from convbki_core.synth.drive import DriveConfig, _traffic, generate_drive
 from convbki_core.synth.lidar import EGO_BOXES

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from convbki_core.datasets.labels import load_label_map
-from convbki_core.metrics import ConfusionMatrix
+from convbki_core.io.labels import load_label_map
+from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.synth.drive import DriveConfig, generate_drive, lidar_poses
 from convbki_core.synth.scene import build_scene
 from convbki_core.tools.synth import main

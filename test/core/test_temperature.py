@@ -13,15 +13,15 @@ from kitti_fixture import pose_about_z, street_scene, write_sequence
 
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import DEFAULTS, MapperConfig
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.geometry.volume import voxelize
 from convbki_core.io.kernel_file import KernelFileError, load_kernel_file, parse_kernel_text, save_kernel_file
+from convbki_core.io.labels import load_label_map
+from convbki_core.measures.uncertainty import tempered_distribution
 from convbki_core.paths import kernel_path
 from convbki_core.tools import train
 from convbki_core.training import trainer
 from convbki_core.training.temperature import fit_input_temperature, input_nll, minimise_temperature
-from convbki_core.uncertainty_metrics import tempered_distribution
-from convbki_core.volume import voxelize
 
 BOUNDS = ((-3.0, -3.0, -1.5), (3.0, 3.0, 1.5))
 CLASSES = 6

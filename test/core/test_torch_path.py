@@ -16,11 +16,11 @@ import torch
 from convbki_core import ConvBKIKernel, ConvBKIMapper
 from convbki_core.config import MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.inference.statistics import dirichlet_statistics
+from convbki_core.outputs.records import packed_palette
 from convbki_core.paths import config_dir
-from convbki_core.records import packed_palette
-from convbki_core.statistics import dirichlet_statistics
 from convbki_core.tools import synth
-from convbki_core.torch_window import TorchWindow
+from convbki_core.torch_path.window import TorchWindow
 
 BOUNDS = ((-3.0, -3.0, -1.5), (3.0, 3.0, 1.5))
 
@@ -170,9 +170,9 @@ def test_the_defaults_on_a_torch_device_equal_the_compiled_path_over_a_drive_wit
     every concentration within 1e-5 relative, every costmap cell, the same rule counts, and the
     records made where the window lives (the view's, and the updates' after every scan) equal
     to the compiled ones."""
-    from convbki_core.costmap import grid_of_window, load_profile
-    from convbki_core.datasets.labels import load_label_map
-    from convbki_core.device_costmap import device_window_grid
+    from convbki_core.costmap.columns import grid_of_window, load_profile
+    from convbki_core.costmap.device import device_window_grid
+    from convbki_core.io.labels import load_label_map
 
     labels = load_label_map("semantic_kitti")
     config = MapperConfig.from_params_file(config_dir() / "mapper.yaml").replace(

@@ -8,7 +8,7 @@ import pytest
 import yaml
 from kitti_fixture import write_drive
 
-from convbki_core.kernels import ConvBKIKernel, load_kernel_file, save_kernel_file
+from convbki_core.inference.kernels import ConvBKIKernel, load_kernel_file, save_kernel_file
 from convbki_core.tools import train
 from convbki_core.training import trainer
 

@@ -10,10 +10,8 @@ from kitti_fixture import noisy, pose_about_z, street_scene, write_sequence
 
 from convbki_core import ConvBKIMapper
 from convbki_core.config import MapperConfig
-from convbki_core.metrics import ConfusionMatrix
-from convbki_core.paths import kernel_path
-from convbki_core.tools import evaluate
-from convbki_core.uncertainty_metrics import (
+from convbki_core.measures.metrics import ConfusionMatrix
+from convbki_core.measures.uncertainty import (
     BINS,
     PROBABILITY_FLOOR,
     VARIANCE_THRESHOLDS,
@@ -22,6 +20,8 @@ from convbki_core.uncertainty_metrics import (
     map_concentrations,
     map_distribution,
 )
+from convbki_core.paths import kernel_path
+from convbki_core.tools import evaluate
 
 # Four scored points over classes 1..3 (class 0 ignored), and one ignored point.
 PROBABILITIES = np.array([[0.0, 0.9, 0.1, 0.0],     # truth 1: chosen 1 (right), confidence 0.9 -> bin 13

@@ -359,7 +359,8 @@ def test_every_drop_reason_of_the_node_is_documented() -> None:
     ``MapperStatus.drop``, as a literal or through a constant, is in the docs' list."""
     import ast
 
-    from convbki_ros import mapping, sync
+    from convbki_ros.inputs import sync
+    from convbki_ros.mapping import mapping_thread as mapping
 
     reasons = set(mapping.DROP_REASONS.values()) | {sync.NO_MOUNT, sync.NO_MAP_TRANSFORM}
     for node in ast.walk(ast.parse(Path(mapping.__file__).read_text())):

@@ -17,9 +17,9 @@ import yaml
 from kitti_fixture import pose_about_z, write_sequence
 from ros_helpers import Probe, domain_id, odometry_to_pose
 
-from convbki_ros.cloud_decoding import decode_cloud
+from convbki_ros.inputs.cloud_decoding import decode_cloud
+from convbki_ros.inputs.transforms import stamp_to_ns, transform_to_pose
 from convbki_ros.tools import kitti_to_bag, play_bag
-from convbki_ros.transforms import stamp_to_ns, transform_to_pose
 
 REPO = Path(__file__).resolve().parents[2]
 EPOCH_NS = 1_700_000_000_000_000_000

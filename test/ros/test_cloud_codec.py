@@ -12,11 +12,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 from ros_helpers import odometry_to_pose, unpack_rgb
 
-from convbki_core.poses import pose_from_translation_quaternion
-from convbki_core.records import RECORD
-from convbki_ros import cloud_decoding as pc
-from convbki_ros import cloud_encoding as enc
-from convbki_ros import transforms as tf
+from convbki_core.geometry.poses import pose_from_translation_quaternion
+from convbki_core.outputs.records import RECORD
+from convbki_ros.inputs import cloud_decoding as pc
+from convbki_ros.inputs import transforms as tf
+from convbki_ros.outputs import cloud_encoding as enc
 
 DTYPE_CODES = {"f4": pc.FLOAT32, "f8": pc.FLOAT64, "u4": pc.UINT32, "u2": pc.UINT16, "i4": pc.INT32,
                "u1": pc.UINT8, "i2": pc.INT16, "i1": pc.INT8}

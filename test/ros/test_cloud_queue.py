@@ -4,7 +4,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from sensor_msgs.msg import PointCloud2
 
-from convbki_ros.sync import CloudQueue, Verdict
+from convbki_ros.inputs.sync import CloudQueue, Verdict
 
 SECOND = 1_000_000_000
 

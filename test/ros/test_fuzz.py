@@ -26,7 +26,7 @@ from convbki_core.io.kernel_file import (
     load_kernel_file,
     parse_kernel_text,
 )
-from convbki_ros.cloud_decoding import BAD_POINT_REASONS, CloudError, DecodedCloud, decode_cloud
+from convbki_ros.inputs.cloud_decoding import BAD_POINT_REASONS, CloudError, DecodedCloud, decode_cloud
 
 
 def fuzz(examples: int) -> settings:

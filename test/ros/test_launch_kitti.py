@@ -29,8 +29,8 @@ from ros_helpers import (
 )
 from test_node_frames import assert_same_voxels, shown_voxels
 
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.io.labels import load_label_map
 from convbki_ros.tools import kitti_to_bag
 
 BOUNDS = [-20.0, -20.0, -3.0, 20.0, 20.0, 3.0]

@@ -9,12 +9,12 @@ from mapper_rig import BOUNDS, Rig, node_default_mapper
 from ros_helpers import Probe, domain_id, start, stop
 
 from convbki_core.config import MapperConfig
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
 from convbki_core.tools.synth import main as synth
-from convbki_ros.cloud_decoding import FLOAT32, UINT32, decode_cloud
+from convbki_ros.inputs.cloud_decoding import FLOAT32, UINT32, decode_cloud
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
 
 FRAMES = 5

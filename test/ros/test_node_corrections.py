@@ -13,20 +13,20 @@ from mapper_rig import WAIT, Stats
 from ros_helpers import NodeLog, Probe, domain_id, start, stop
 
 from convbki_core.config import MapperConfig
-from convbki_core.correction import keyframe_corrections
+from convbki_core.correction.replay import keyframe_corrections
+from convbki_core.correction.scan_log import LoggedScan
 from convbki_core.datasets.drift import read_loop_closure
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.geometry.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
+from convbki_core.io.labels import load_label_map
 from convbki_core.io.map_file import MapSnapshot, read_map
 from convbki_core.mapper import ConvBKIMapper
+from convbki_core.outputs.records import RECORD, apply_records, packed_palette, records_from_alpha
 from convbki_core.paths import config_dir
-from convbki_core.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
-from convbki_core.records import RECORD, apply_records, packed_palette, records_from_alpha
-from convbki_core.scan_log import LoggedScan
 from convbki_core.tools import synth
+from convbki_ros.inputs.transforms import poses_to_path
 from convbki_ros.tools.kitti_to_bag import EPOCH_NS
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
-from convbki_ros.transforms import poses_to_path
 
 FRAMES, CLOSURE = 40, 25
 BOUNDS = [-20.0, -20.0, -3.0, 20.0, 20.0, 3.0]

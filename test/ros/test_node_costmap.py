@@ -4,10 +4,10 @@
 import numpy as np
 from mapper_rig import BOUNDS, POSE, Rig
 
-from convbki_core.costmap import column_costs, rasterise
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.costmap.columns import column_costs, rasterise
+from convbki_core.io.labels import load_label_map
 from convbki_core.io.map_file import read_map
-from convbki_ros.costmap_output import profile_of, rolling_geometry, whole_grid
+from convbki_ros.outputs.costmap import profile_of, rolling_geometry, whole_grid
 
 
 class Params:

@@ -8,10 +8,10 @@ odometry is the LiDAR's own pose, with the mount from ``base_to_sensor`` or from
 import numpy as np
 from mapper_rig import BOUNDS, LABELS, POINTS, Rig, cloud, expect_file_holds, node_default_mapper, odometry
 
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.geometry.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
-from convbki_ros.cloud_decoding import decode_cloud
+from convbki_ros.inputs.cloud_decoding import decode_cloud
 
 # The LiDAR 1.8 m above base_link, 0.4 m ahead, yawed by 0.2 rad and pitched a little.
 MOUNT_TRANSLATION = [0.4, 0.0, 1.8]
@@ -86,7 +86,7 @@ def test_a_lidar_on_a_mount_maps_like_odometry_of_the_lidar_itself(tmp_path):
 def test_the_mount_from_tf_static_gives_the_same_map(tmp_path):
     """No base_to_sensor: the mount published once on /tf_static (transient local, before the
     first cloud) places the clouds as the parameter does."""
-    from convbki_ros.transforms import pose_to_transform_stamped
+    from convbki_ros.inputs.transforms import pose_to_transform_stamped
 
     rig = Rig(tmp_path)
     try:

@@ -6,7 +6,7 @@ import numpy as np
 from mapper_rig import WAIT, Rig, fields
 from test_node_updates import records_of, shown
 
-from convbki_core.records import apply_records
+from convbki_core.outputs.records import apply_records
 
 CAR, TRUCK = 1, 4  # learning ids
 
@@ -33,7 +33,7 @@ def street(with_car: bool) -> tuple[np.ndarray, np.ndarray]:
 def test_the_rays_empty_a_car_that_has_gone_and_the_updates_say_so(tmp_path):
     from sensor_msgs.msg import PointCloud2
 
-    from convbki_ros.cloud_encoding import encode_cloud
+    from convbki_ros.outputs.cloud_encoding import encode_cloud
 
     rig = Rig(tmp_path)  # free space on: the node's default
     try:
@@ -94,7 +94,7 @@ def test_points_labelled_moving_stay_out_of_the_map_unless_moving_labels_is_off(
     from mapper_rig import odometry
 
     from convbki_core.io.map_file import read_map
-    from convbki_ros.cloud_encoding import encode_cloud
+    from convbki_ros.outputs.cloud_encoding import encode_cloud
 
     points, labels = street(with_car=True)
     car = labels == 10

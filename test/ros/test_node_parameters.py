@@ -11,9 +11,9 @@ from mapper_rig import LABELS, POINTS, POSE, TRANSLATION, WAIT, Rig, cloud, fiel
 from ros_helpers import domain_id
 from test_node_free_space import street
 
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.io.labels import load_label_map
 from convbki_core.io.map_file import read_map
-from convbki_ros.cloud_encoding import encode_cloud
+from convbki_ros.outputs.cloud_encoding import encode_cloud
 
 MAP_OPTIONS = {"prior": 0.01, "max_concentration": 20.0, "forget_movers": False}
 DEFAULT_OPTIONS = {"prior": 1e-3, "max_concentration": 300.0, "forget_movers": True}

@@ -38,9 +38,9 @@ from mapper_rig import (
 )
 from ros_helpers import IMPORT_LOG, domain_id, split_import_log, start
 
-from convbki_core.datasets.labels import load_label_map
 from convbki_core.io.atomic import writer_tag
-from convbki_ros.cloud_decoding import decode_cloud
+from convbki_core.io.labels import load_label_map
+from convbki_ros.inputs.cloud_decoding import decode_cloud
 
 # Root ignores file permissions through two capabilities; a node started without them (still
 # uid 0) meets a read-only folder as any user would. Empty when not root or no setpriv.

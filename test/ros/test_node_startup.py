@@ -10,9 +10,9 @@ import torch
 from mapper_rig import BOUNDS, LABELS, POINTS, QUATERNION, SECOND, TRANSLATION, WAIT, Rig, node_default_mapper
 from ros_helpers import IMPORT_LOG, domain_id, split_import_log, start
 
-from convbki_core.datasets.labels import load_label_map
-from convbki_core.poses import pose_from_translation_quaternion
-from convbki_ros.cloud_decoding import FLOAT32, UINT32, decode_cloud
+from convbki_core.geometry.poses import pose_from_translation_quaternion
+from convbki_core.io.labels import load_label_map
+from convbki_ros.inputs.cloud_decoding import FLOAT32, UINT32, decode_cloud
 
 MIXED_LIST = "/**:\n  ros__parameters:\n    local_bounds: [1.0, 2, 3.0, 4.0, 5.0, 6.0]\n"
 BROKEN_YAML = "/**:\n  ros__parameters:\n    resolution: [0.2\n"

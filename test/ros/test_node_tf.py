@@ -11,10 +11,10 @@ import numpy as np
 from mapper_rig import LABELS, POINTS, WAIT, Rig, cloud, expect_file_holds, node_default_mapper
 from test_node_frames import BOUNDS, MOUNT, assert_same_voxels, shown_voxels
 
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.geometry.poses import pose_from_translation_quaternion
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.poses import pose_from_translation_quaternion
-from convbki_ros.transforms import pose_to_odometry, pose_to_transform_stamped
+from convbki_ros.inputs.transforms import pose_to_odometry, pose_to_transform_stamped
 
 
 def yawed(x: float, y: float, yaw: float) -> np.ndarray:

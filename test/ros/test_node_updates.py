@@ -5,7 +5,7 @@ of the variance filter at run time; semantic_map/view stays within its radius an
 import numpy as np
 from mapper_rig import TRANSLATION, WAIT, Rig
 
-from convbki_core.records import RECORD, apply_records
+from convbki_core.outputs.records import RECORD, apply_records
 
 
 def records_of(msg) -> np.ndarray:

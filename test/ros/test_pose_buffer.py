@@ -4,8 +4,8 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from convbki_core.poses import pose_from_translation_quaternion
-from convbki_ros.pose_buffer import OUTAGE_MIN_S, OdometryBuffer, PoseStatus, pose_problem
+from convbki_core.geometry.poses import pose_from_translation_quaternion
+from convbki_ros.inputs.pose_buffer import OUTAGE_MIN_S, OdometryBuffer, PoseStatus, pose_problem
 
 
 def yaw_pose(yaw, x):

@@ -10,11 +10,11 @@ from ros_helpers import Probe, domain_id, start, stop
 
 from convbki_core.config import MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.geometry.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import config_dir
-from convbki_core.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
 from convbki_core.tools import label_noise
-from convbki_ros.cloud_decoding import decode_cloud
+from convbki_ros.inputs.cloud_decoding import decode_cloud
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
 
 SEQUENCE = "05"
@@ -24,10 +24,10 @@ def input_grid(dataset, grid) -> np.ndarray:
     """The input segmentation's own car costmap on the cells of ``grid`` (an OccupancyGrid): its
     labels of every scan's points counted per voxel and costed without a margin, as
     ``evaluate --costmap-report`` scores it."""
-    from convbki_core.costmap import column_costs, load_profile, rasterise
-    from convbki_core.costmap_eval import GroundTruthVoxels, truth_profile
+    from convbki_core.costmap.columns import column_costs, load_profile, rasterise
+    from convbki_core.geometry.volume import transform_points
+    from convbki_core.measures.costmap_eval import GroundTruthVoxels, truth_profile
     from convbki_core.paths import traversability_profile
-    from convbki_core.volume import transform_points
 
     counted = GroundTruthVoxels(dataset.label_map.num_classes, grid.info.resolution)
     for frame in dataset:

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from convbki_ros.status import Snapshot
+from convbki_ros.outputs.status import Snapshot
 from convbki_ros.tools.realtime_check import LISTENERS, listeners_arg, parse_counters
 
 

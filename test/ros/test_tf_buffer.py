@@ -10,8 +10,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from convbki_core.poses import interpolate_pose, pose_from_translation_quaternion, pose_to_translation_quaternion
-from convbki_ros.tf_buffer import (
+from convbki_core.geometry.poses import (
+    interpolate_pose,
+    pose_from_translation_quaternion,
+    pose_to_translation_quaternion,
+)
+from convbki_ros.inputs.tf_buffer import (
     MAX_GRAPH_DEPTH,
     BufferLookup,
     ConnectivityError,
@@ -23,7 +27,7 @@ from convbki_ros.tf_buffer import (
     UnknownFrameError,
     make_tf_lookup,
 )
-from convbki_ros.transforms import NS_PER_S
+from convbki_ros.inputs.transforms import NS_PER_S
 
 
 def rotation_pose(translation, axis, angle):
@@ -376,7 +380,7 @@ def test_a_random_chain_is_the_product_of_its_edges(links, data):
 
 
 def test_importing_the_module_does_not_import_rclpy():
-    code = "import sys, convbki_ros.tf_buffer; sys.exit('rclpy' in sys.modules)"
+    code = "import sys, convbki_ros.inputs.tf_buffer; sys.exit('rclpy' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
 
 

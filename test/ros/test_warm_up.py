@@ -23,16 +23,16 @@ from numba.core.errors import NumbaWarning
 
 warnings.simplefilter("error", NumbaWarning)  # e.g. a kernel that cannot be cached: every start would compile it
 from convbki_core.config import MapperConfig
-from convbki_core.datasets.labels import load_label_map
+from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import kernel_path
-from convbki_core.records import change_records, packed_palette, view_records
-from convbki_core.shown_map import ShownMap
+from convbki_core.outputs.records import change_records, packed_palette, view_records
+from convbki_core.outputs.shown_map import ShownMap
 from convbki_core.warm_up import warm_up
-from convbki_core.costmap import grid_of_window, load_profile
+from convbki_core.costmap.columns import grid_of_window, load_profile
 from convbki_core.paths import traversability_profile
-from convbki_ros.cloud_encoding import encode_cloud
-from convbki_ros.cloud_decoding import decode_cloud
+from convbki_ros.outputs.cloud_encoding import encode_cloud
+from convbki_ros.inputs.cloud_decoding import decode_cloud
 
 def signatures():
     found = {}
@@ -97,7 +97,7 @@ def test_after_the_warm_up_mapping_like_the_node_compiles_nothing():
 READ_ONLY_CHECK = r"""
 import json
 from convbki_core.compiled import kernel_cache
-from convbki_core.statistics import dirichlet_statistics
+from convbki_core.inference.statistics import dirichlet_statistics
 import numpy as np
 stats = dirichlet_statistics(np.array([[1.0, 3.0], [2.0, 1.0]], np.float32))  # a compiled kernel runs
 cache = kernel_cache()
@@ -234,7 +234,8 @@ def test_the_warm_up_runs_where_no_temporary_folder_can_be_made(tmp_path):
     assert result.returncode == 0, result.stderr
     outcome = json.loads(result.stdout.strip().splitlines()[-1])
     modules = {name.rsplit(".", 1)[0] for name in outcome["warmed"]}
-    assert {"convbki_core.update", "convbki_core.free_space", "convbki_core.window", "convbki_core.store",
-            "convbki_core.costmap", "convbki_core.records"} <= modules, modules
+    assert {"convbki_core.inference.update", "convbki_core.free_space.rays", "convbki_core.memory.window",
+            "convbki_core.memory.store", "convbki_core.costmap.columns", "convbki_core.outputs.records",
+    } <= modules, modules
     assert outcome["no_scratch"] and len(outcome["warmed"]) >= 20, outcome
     assert outcome["mapping"] == [] and outcome["files"] == [], outcome

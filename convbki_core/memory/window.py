@@ -1,0 +1,492 @@
+"""The active window: the local map around the sensor, dense, in memory, on a torus.
+
+The paper fetches the local window from the global map before every update and writes it
+back after. Here the window stays resident as dense concentrations alpha[c, x, y, z]
+(class-major) plus a byte mask of voxels that hold evidence; global voxel g lives at
+index g mod dims (a torus), so when the sensor moves only the slabs that leave the
+window are written to the global ``VoxelStore`` and the slabs that enter are read from it.
+Voxels without evidence hold the prior, so an update is a plain in-place addition.
+
+Every voxel with evidence is in exactly one place: in the window (mask set) or in the store.
+
+The mask's main bits: ``EVIDENCE`` (the voxel holds evidence) and ``CHANGED`` (its
+concentrations changed since the map's changes were last taken). With ``track_changes``,
+a changed voxel that leaves the window before its change is taken is remembered, so
+``take_changes`` misses nothing; outputs that send only what changed are built on it.
+
+Readers that go through every column of the window (the planner's costmap, the movers'
+rules) need not read a class's run of a column when all of it holds the prior, and most runs
+do: a column holds evidence of a few classes. Once asked for (``classes_by_column``), the window keeps per
+column a bit per class that may be above the prior there, a superset kept current from what
+can raise a class: a scan's class evidence reaches the columns within the kernel's half-width
+of its occupied voxels (``note_scan``), and voxels come back from the store. Everything else
+that writes concentrations only adds empty-space evidence (class 0, whose run is always read),
+scales the evidence above the prior, or resets classes to the prior.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from convbki_core.compiled import HAVE_NUMBA, parallel_region
+from convbki_core.geometry.volume import unravel_linear
+from convbki_core.memory.store import VoxelStore
+
+if HAVE_NUMBA:
+    from convbki_core.compiled import njit, prange
+
+# Bits of the window's byte mask: the voxel holds evidence; its concentrations changed since
+# the map's changes were last taken (``RollingWindow.take_changes``); it received class
+# evidence from the scan being integrated (set and cleared within one update, with free space).
+EVIDENCE = 1
+CHANGED = 2
+TOUCHED = 4
+# Kept for free space (``free_space``): the voxel holds the ground's surface, so rays leave
+# it; its classes, or those of a voxel next to it along z, changed (a scan's update, it came
+# from the store, the window moved along z, clamping) since that bit was derived.
+GROUND = 16
+RECLASSED = 32
+# The most classes whose runs ``classes_by_column`` keeps a bit for (one uint64 per column).
+MAX_CLASS_BITS = 64
+
+
+def box_difference(first_lo: np.ndarray, first_hi: np.ndarray, second_lo: np.ndarray,
+                   second_hi: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Disjoint boxes (lo, hi exclusive) covering ``first`` minus ``second`` (at most 6 boxes)."""
+    boxes = []
+    lo, hi = first_lo.copy(), first_hi.copy()
+    for axis in range(3):
+        if second_hi[axis] <= lo[axis] or second_lo[axis] >= hi[axis]:  # no overlap at all
+            return [*boxes, (lo, hi)]
+        if lo[axis] < second_lo[axis]:
+            below_hi = hi.copy()
+            below_hi[axis] = second_lo[axis]
+            boxes.append((lo.copy(), below_hi))
+            lo[axis] = second_lo[axis]
+        if hi[axis] > second_hi[axis]:
+            above_lo = lo.copy()
+            above_lo[axis] = second_hi[axis]
+            boxes.append((above_lo, hi.copy()))
+            hi[axis] = second_hi[axis]
+    return boxes
+
+
+class RollingWindow:
+    """Dense window of ``dims`` voxels over the global grid, backed by a ``VoxelStore``."""
+
+    def __init__(self, dims: np.ndarray, num_classes: int, prior: float, store: VoxelStore,
+                 track_changes: bool = False):
+        self.dims = np.asarray(dims, np.int64)
+        self.num_classes = int(num_classes)
+        self.prior = np.float32(prior)
+        self.store = store
+        self._allocate()
+        # Scratch table for the compiled voxeliser (voxel -> row of F), -1 between scans.
+        self.slot = np.full(int(np.prod(self.dims)), -1, np.int32)
+        self.origin: np.ndarray | None = None
+        # Changed voxels that left the window before their change was taken: (indices, alpha),
+        # kept only for a map whose changes are taken (``track_changes``), or they would pile up.
+        self.track_changes = bool(track_changes)
+        self._evicted_changes: list[tuple[np.ndarray, np.ndarray]] = []
+        # Per column (X, Y) uint64: bit c set where class c may be above the prior somewhere in
+        # the column; None until a reader asks for it (``classes_by_column``).
+        self._class_columns: np.ndarray | None = None
+        self._column_scratch: np.ndarray | None = None  # (2, X, Y) zeros for ``note_scan``
+
+    def _allocate(self) -> None:
+        """The window's arrays: concentrations at the prior, no evidence. Every page is written
+        now (np.zeros alone maps them lazily), so the first scan does not pay for the faults."""
+        self.alpha = np.full((self.num_classes, *self.dims.tolist()), self.prior, np.float32)
+        self.mask = np.full(self.dims.tolist(), 0, np.uint8)
+
+    @property
+    def nbytes(self) -> int:
+        return self.alpha.nbytes + self.mask.nbytes + self.slot.nbytes
+
+    def count(self) -> int:
+        """Voxels with evidence inside the window."""
+        return int(np.count_nonzero(self.mask)) if self.origin is not None else 0
+
+    def _physical(self, lo: np.ndarray, hi: np.ndarray):
+        """Index arrays (for np.ix_) of the torus positions of the global box [lo, hi)."""
+        return tuple(np.arange(lo[a], hi[a]) % self.dims[a] for a in range(3))
+
+    def _evict(self, lo: np.ndarray, hi: np.ndarray, keep: bool = True) -> np.ndarray:
+        """Move the evidence of global box [lo, hi) to the store (``keep``) or drop it, and reset
+        the box to the prior; returns the global indices (n, 3) of the voxels that held evidence."""
+        px, py, pz = self._physical(lo, hi)
+        mask = self.mask[np.ix_(px, py, pz)]
+        local = np.argwhere(mask)
+        if local.size and keep:
+            rows = self.alpha[:, px[local[:, 0]], py[local[:, 1]], pz[local[:, 2]]].T
+            if self.track_changes:
+                changed = (mask[local[:, 0], local[:, 1], local[:, 2]] & CHANGED) != 0
+                if changed.any():
+                    self._evicted_changes.append(((local + lo)[changed], rows[changed]))
+            self.store.write(local + lo, rows)
+        self.alpha[np.ix_(np.arange(self.num_classes), px, py, pz)] = self.prior
+        self.mask[np.ix_(px, py, pz)] = 0
+        self._columns_left(px, py, pz)
+        return local + lo
+
+    def _load(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Bring the stored voxels of global box [lo, hi) into the window."""
+        linear, alpha = self.store.take_window(lo, hi - lo)
+        if linear.size == 0:
+            return
+        physical = (unravel_linear(linear, hi - lo) + lo) % self.dims
+        self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]] = alpha.T
+        self.mask[physical[:, 0], physical[:, 1], physical[:, 2]] = EVIDENCE | RECLASSED
+        self._columns_loaded(physical, alpha)
+
+    # -- which classes each column holds -----------------------------------------------------
+    def classes_by_column(self) -> np.ndarray | None:
+        """(X, Y) uint64 by physical column: bit c set where class c may hold more than the prior
+        in the column (every run whose bit is clear holds exactly the prior). The first call
+        reads the whole window and from then on the window keeps the bits current. None for a
+        window of more than ``MAX_CLASS_BITS`` classes or whose arrays are not in host memory."""
+        if self.num_classes > MAX_CLASS_BITS or not self._in_host_memory():
+            return None
+        if self._class_columns is None:
+            self._class_columns = classes_held(self._host_alpha(), self.prior)
+            self._column_scratch = np.zeros((2, *self._class_columns.shape), np.uint64)
+        return self._class_columns
+
+    def _in_host_memory(self) -> bool:
+        return True
+
+    def _host_alpha(self) -> np.ndarray:
+        return self.alpha
+
+    def note_scan(self, volume, half: int) -> None:
+        """A scan's evidence was added: its classes may now be above the prior in the columns
+        within ``half`` (the filter's half-width) of its occupied voxels (``SparseVolume``
+        ``volume``, placed on this window's origin)."""
+        if self._class_columns is None or volume.num_voxels == 0:
+            return
+        _note_scan_classes(volume.linear, volume.features, np.asarray(self.origin, np.int64), self.dims, int(half),
+                           self._class_columns, self._column_scratch)
+
+    def _columns_left(self, px: np.ndarray, py: np.ndarray, pz: np.ndarray) -> None:
+        """Columns emptied whole (the window moved along x or y) hold no class any more."""
+        if self._class_columns is not None and len(pz) == self.dims[2]:
+            self._class_columns[np.ix_(px, py)] = 0
+
+    def _columns_loaded(self, physical: np.ndarray, alpha: np.ndarray) -> None:
+        """Voxels came back from the store: their classes above the prior, per column."""
+        if self._class_columns is None or not len(physical):
+            return
+        np.bitwise_or.at(self._class_columns, (physical[:, 0], physical[:, 1]), row_class_bits(alpha != self.prior))
+
+    def _columns_cleared(self) -> None:
+        """The window was emptied: no column holds a class."""
+        if self._class_columns is not None:
+            self._class_columns.fill(0)
+
+    def move_to(self, origin: np.ndarray) -> None:
+        """Make the window cover global indices origin .. origin + dims - 1."""
+        origin = np.asarray(origin, np.int64)
+        if self.origin is not None and np.array_equal(origin, self.origin):
+            return
+        new_lo, new_hi = origin, origin + self.dims
+        if self.origin is None:
+            self._load(new_lo, new_hi)
+        else:
+            old_lo, old_hi = self.origin, self.origin + self.dims
+            for lo, hi in box_difference(old_lo, old_hi, new_lo, new_hi):
+                self._evict(lo, hi)
+            for lo, hi in box_difference(new_lo, new_hi, old_lo, old_hi):
+                self._load(lo, hi)
+            if origin[2] != self.origin[2]:
+                self._mark_z_ends(origin)
+        self.origin = origin.copy()
+
+    def _mark_z_ends(self, origin: np.ndarray) -> None:
+        """The window moved along z: its new bottom and top layers have new neighbours along z
+        (or none), which a voxel's ground bit depends on: their voxels are ``RECLASSED``."""
+        size_z = int(self.dims[2])
+        for layer in (int(origin[2]) % size_z, (int(origin[2]) + size_z - 1) % size_z):
+            plane = self.mask[:, :, layer]
+            plane |= (plane & EVIDENCE) * RECLASSED
+
+    def warm_up(self, scratch) -> None:
+        """Moves of the scratch window (``parts.Scratch``, a window of this kind) along every
+        axis and back, with the scan's evidence in it: its classes by column kept from a scan,
+        slabs to its store and back, the changes taken, the voxels listed and looked up, a box
+        forgotten, the window flushed."""
+        window = scratch.window
+        window.classes_by_column()  # from now on kept by the window: its scans and moves below
+        window.note_scan(scratch.volume, 2)
+        for origin in scratch.origins():
+            window.move_to(origin)
+            window.take_changes()
+        indices, _ = window.items()
+        window.lookup(indices[window.inside(indices)])
+        window.forget_box(scratch.origin, scratch.origin + 2)
+        window.flush()
+
+    def flush(self) -> None:
+        """Move everything to the store and forget the window's position."""
+        if self.origin is not None:
+            self._evict(self.origin, self.origin + self.dims)
+        self.origin = None
+
+    def clear(self) -> None:
+        """Drop every voxel of the window (the store is cleared by its owner)."""
+        self.alpha.fill(self.prior)
+        self.mask.fill(0)
+        self.origin = None
+        self._evicted_changes.clear()
+        self._columns_cleared()
+
+    def forget_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Drop the evidence of the window's voxels in the global box [lo, hi) (and the changes
+        of voxels in it that left the window untaken); returns the indices (n, 3) dropped."""
+        lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
+        self._evicted_changes = [(indices[~inside], alpha[~inside]) for indices, alpha in self._evicted_changes
+                                 for inside in [((indices >= lo) & (indices < hi)).all(axis=1)]]
+        if self.origin is None:
+            return np.zeros((0, 3), np.int64)
+        lo, hi = np.maximum(lo, self.origin), np.minimum(hi, self.origin + self.dims)
+        if (hi <= lo).any():
+            return np.zeros((0, 3), np.int64)
+        return self._evict(lo, hi, keep=False)
+
+    def take_changes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Voxels whose concentrations changed since the last call, in the window or since
+        moved to the store: (global indices (n, 3), alpha (n, C)); their marks are cleared.
+        Needs ``track_changes``."""
+        if not self.track_changes:
+            raise RuntimeError("this window does not track changes (track_changes=False)")
+        parts = self._evicted_changes
+        self._evicted_changes = []
+        if self.origin is not None:
+            parts.append(gather_window(self.alpha, self.mask, self.origin, self.dims, select=CHANGED,
+                                       clear=CHANGED))
+        if not parts:
+            return np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32)
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+    def inside(self, indices: np.ndarray) -> np.ndarray:
+        """(N,) bool: global indices inside the current window."""
+        if self.origin is None:
+            return np.zeros(len(indices), bool)
+        local = indices - self.origin
+        return (local >= 0).all(axis=1) & (local < self.dims).all(axis=1)
+
+    def lookup(self, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Concentrations at global ``indices`` that lie inside the window: (alpha (n, C), has_evidence (n,))."""
+        physical = np.asarray(indices, np.int64) % self.dims
+        has = self.mask[physical[:, 0], physical[:, 1], physical[:, 2]].astype(bool)
+        alpha = self.alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
+        return alpha, has
+
+    def items(self, indices: np.ndarray | None = None,
+              alpha: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Voxels with evidence in the window: (global indices (n, 3), alpha (n, C)), in torus order.
+
+        ``indices``/``alpha`` of ``count()`` rows: fill these instead of new arrays.
+        """
+        if self.origin is None:
+            if indices is not None and alpha is not None:
+                return indices, alpha
+            return np.zeros((0, 3), np.int64), np.zeros((0, self.num_classes), np.float32)
+        return gather_window(self.alpha, self.mask, self.origin, self.dims, indices, alpha)
+
+
+if HAVE_NUMBA:
+
+    @njit(parallel=True, nogil=True)
+    def plane_starts(mask, select):  # pragma: no cover - compiled
+        """Where each x plane's voxels with a bit of ``select`` start in a gathered output: the
+        running count over the planes (X + 1 entries, the last one the total), so that the
+        planes can then be gathered in parallel."""
+        size_x, size_y, size_z = mask.shape
+        counts = np.zeros(size_x + 1, np.int64)
+        for x in prange(size_x):
+            found = 0
+            for y in range(size_y):
+                for z in range(size_z):
+                    if mask[x, y, z] & select != 0:
+                        found += 1
+            counts[x + 1] = found
+        return np.cumsum(counts)
+
+    @njit(parallel=True, nogil=True)
+    def _gather_window_numba(alpha, mask, origin, dims, indices, values, select, keep):  # pragma: no cover
+        size_x, size_y, size_z = mask.shape
+        num_classes = alpha.shape[0]
+        starts = plane_starts(mask, select)
+        if starts[-1] != indices.shape[0]:
+            return -1  # the caller's count of the mask was wrong: write nothing
+        for x in prange(size_x):
+            row = starts[x]
+            global_x = origin[0] + (x - origin[0]) % dims[0]
+            for y in range(size_y):
+                global_y = origin[1] + (y - origin[1]) % dims[1]
+                for z in range(size_z):
+                    if mask[x, y, z] & select != 0:
+                        indices[row, 0] = global_x
+                        indices[row, 1] = global_y
+                        indices[row, 2] = origin[2] + (z - origin[2]) % dims[2]
+                        for c in range(num_classes):
+                            values[row, c] = alpha[c, x, y, z]
+                        mask[x, y, z] &= keep
+                        row += 1
+        return starts[-1]
+
+
+def class_bits(classes) -> np.uint64:
+    """Classes (each below ``MAX_CLASS_BITS``) as the bits of one uint64, as ``classes_by_column`` keeps them."""
+    bits = np.uint64(0)
+    for c in classes:
+        bits |= np.uint64(1) << np.uint64(int(c))
+    return bits
+
+
+def row_class_bits(held: np.ndarray) -> np.ndarray:
+    """(n,) uint64: per row of ``held`` (n, C) bool, bit c set where column c is true."""
+    bits = np.uint64(1) << np.arange(held.shape[1], dtype=np.uint64)
+    return np.bitwise_or.reduce(np.where(held, bits, np.uint64(0)), axis=1)
+
+
+def classes_held(alpha: np.ndarray, prior: float) -> np.ndarray:
+    """(X, Y) uint64: per column of ``alpha`` (C, X, Y, Z), bit c set where class c holds
+    anything but ``prior`` in the column."""
+    prior = np.float32(prior)
+    if HAVE_NUMBA:
+        with parallel_region():
+            return _classes_held_numba(alpha, prior)
+    held = np.zeros(alpha.shape[1:3], np.uint64)
+    for c in range(alpha.shape[0]):
+        held |= (alpha[c] != prior).any(axis=2).astype(np.uint64) << np.uint64(c)
+    return held
+
+
+def _note_scan_classes(linear: np.ndarray, features: np.ndarray, origin: np.ndarray, dims: np.ndarray, half: int,
+                       held: np.ndarray, scratch: np.ndarray) -> None:
+    """Set in ``held`` (X, Y, physical columns) the bits of the classes with evidence in each
+    occupied voxel (``linear`` window-linear indices from ``origin``, ``features`` (M, C)) over
+    the window's columns within ``half`` of it (the update writes nothing outside the window);
+    ``scratch`` (2, X, Y) uint64 zeros, left zero."""
+    if HAVE_NUMBA:
+        with parallel_region():
+            # Separate kernels: each step reads what the previous one wrote in other rows.
+            voxel_bits = _voxel_class_bits(np.ascontiguousarray(features))
+            _scan_columns(linear, voxel_bits, int(dims[1]), int(dims[2]), scratch[0])
+            _spread_along_y(scratch[0], half, scratch[1])
+            _spread_along_x(scratch[1], half, int(origin[0] % dims[0]), int(origin[1] % dims[1]), held)
+            scratch[1].fill(0)
+        return
+    voxel_bits = row_class_bits(features != 0)
+    local = unravel_linear(linear, dims)
+    scan = np.zeros((int(dims[0]) + 2 * half, int(dims[1]) + 2 * half), np.uint64)  # local, with a margin
+    np.bitwise_or.at(scan, (local[:, 0] + half, local[:, 1] + half), voxel_bits)
+    spread = np.zeros_like(scan)
+    for shift in range(-half, half + 1):
+        spread |= np.roll(scan, shift, axis=1)
+    grown = np.zeros_like(scan)
+    for shift in range(-half, half + 1):
+        grown |= np.roll(spread, shift, axis=0)
+    inside = grown[half:half + int(dims[0]), half:half + int(dims[1])]
+    held[np.ix_(np.arange(origin[0], origin[0] + dims[0]) % dims[0],
+                np.arange(origin[1], origin[1] + dims[1]) % dims[1])] |= inside
+
+
+if HAVE_NUMBA:
+
+    @njit(parallel=True, nogil=True)
+    def _classes_held_numba(alpha, prior):  # pragma: no cover - compiled
+        classes, size_x, size_y, size_z = alpha.shape
+        held = np.zeros((size_x, size_y), np.uint64)
+        for x in prange(size_x):
+            for c in range(classes):
+                bit = np.uint64(1) << np.uint64(c)
+                for y in range(size_y):
+                    for z in range(size_z):
+                        if alpha[c, x, y, z] != prior:
+                            held[x, y] |= bit
+                            break
+        return held
+
+    @njit(parallel=True, nogil=True)
+    def _voxel_class_bits(features):  # pragma: no cover - compiled
+        rows, classes = features.shape
+        voxel_bits = np.zeros(rows, np.uint64)
+        for row in prange(rows):
+            bits = np.uint64(0)
+            for c in range(classes):
+                if features[row, c] != 0:
+                    bits |= np.uint64(1) << np.uint64(c)
+            voxel_bits[row] = bits
+        return voxel_bits
+
+    @njit(nogil=True)
+    def _scan_columns(linear, voxel_bits, size_y, size_z, scan):  # pragma: no cover - compiled
+        """The scan's columns in window-local order (local x, y from the origin)."""
+        for row in range(linear.shape[0]):
+            rest = linear[row] // size_z
+            scan[rest // size_y, rest % size_y] |= voxel_bits[row]
+
+    @njit(parallel=True, nogil=True)
+    def _spread_along_y(scan, half, spread):  # pragma: no cover - compiled
+        """``spread`` |= ``scan`` grown by ``half`` along y; ``scan`` left zero."""
+        size_x, size_y = scan.shape
+        for x in prange(size_x):
+            for y in range(size_y):
+                bits = scan[x, y]
+                if bits == 0:
+                    continue
+                scan[x, y] = 0
+                for near in range(max(0, y - half), min(size_y, y + half + 1)):
+                    spread[x, near] |= bits
+
+    @njit(parallel=True, nogil=True)
+    def _spread_along_x(spread, half, start_x, start_y, held):  # pragma: no cover - compiled
+        """``held`` (physical columns, local column 0 at ``start_x``, ``start_y``) |= ``spread``
+        grown by ``half`` along x."""
+        size_x, size_y = spread.shape
+        for x in prange(size_x):
+            physical_x = start_x + x - size_x if start_x + x >= size_x else start_x + x
+            for y in range(size_y):
+                bits = np.uint64(0)
+                for near in range(max(0, x - half), min(size_x, x + half + 1)):
+                    bits |= spread[near, y]
+                if bits != 0:
+                    physical_y = start_y + y - size_y if start_y + y >= size_y else start_y + y
+                    held[physical_x, physical_y] |= bits
+
+
+def gather_window(alpha: np.ndarray, mask: np.ndarray, origin: np.ndarray, dims: np.ndarray,
+                  indices: np.ndarray | None = None, values: np.ndarray | None = None,
+                  select: int = EVIDENCE, clear: int = 0):
+    """Voxels of the torus window whose ``mask`` has a bit of ``select``: (global indices (n, 3),
+    alpha (n, C)), torus order; the bits ``clear`` are then cleared in them.
+
+    One compiled pass instead of ``alpha[:, argwhere(mask)]``, which gathers each of the C
+    class planes separately (an order of magnitude slower); the node does this
+    for every map it publishes. ``indices``/``values`` (n rows, n = the voxels selected):
+    write into these (e.g. slices of a larger array) instead of new arrays.
+    """
+    origin = np.ascontiguousarray(origin, np.int64)
+    dims = np.ascontiguousarray(dims, np.int64)
+    if indices is None or values is None:
+        count = int(np.count_nonzero(mask & select)) if select != EVIDENCE else int(np.count_nonzero(mask))
+        indices = np.empty((count, 3), np.int64)
+        values = np.empty((count, alpha.shape[0]), np.float32)
+    if HAVE_NUMBA:
+        with parallel_region():
+            gathered = _gather_window_numba(alpha, mask, origin, dims, indices, values, np.uint8(select),
+                                            np.uint8(~clear & 0xFF))
+        if gathered != indices.shape[0]:
+            raise ValueError(f"output has {indices.shape[0]} rows, the window "
+                             f"{int(np.count_nonzero(mask & select))} selected voxels")
+        return indices, values
+    physical = np.argwhere(mask & select)
+    if physical.shape[0] != indices.shape[0]:
+        raise ValueError(f"output has {indices.shape[0]} rows, the window {physical.shape[0]} selected voxels")
+    values[:] = alpha[:, physical[:, 0], physical[:, 1], physical[:, 2]].T
+    # Unwrap the torus: the global index is the one in [origin, origin + dims) with this remainder.
+    indices[:] = origin + (physical - origin) % dims
+    mask[physical[:, 0], physical[:, 1], physical[:, 2]] &= np.uint8(~clear & 0xFF)
+    return indices, values
