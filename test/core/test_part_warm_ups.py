@@ -21,18 +21,18 @@ from convbki_core.mapper import ConvBKIMapper
 from convbki_core.parts import Scratch
 from convbki_core.paths import kernel_path
 
-MODULES = ("volume", "window", "store", "update", "free_space", "forgetting")
-
+# Every compiled kernel of every loaded convbki_core module: "stage.module:kernel" -> signatures.
 def signatures():
     found = {}
-    for module in MODULES:
-        for attribute, value in vars(sys.modules[f"convbki_core.{module}"]).items():
-            if isinstance(value, numba.core.dispatcher.Dispatcher):
-                found[f"{module}.{attribute}"] = len(value.signatures)
+    for module_name, module in list(sys.modules.items()):
+        if module_name.startswith("convbki_core.") and module is not None:
+            for attribute, value in vars(module).items():
+                if isinstance(value, numba.core.dispatcher.Dispatcher) and value.__module__ == module_name:
+                    found[f"{module_name.removeprefix('convbki_core.')}:{attribute}"] = len(value.signatures)
     return found
 
 def modules_gained(before, after):
-    return sorted({name.split(".")[0] for name in after if after[name] > before.get(name, 0)})
+    return sorted({name.split(":")[0] for name in after if after[name] > before.get(name, 0)})
 
 labels = load_label_map("semantic_kitti")
 config = MapperConfig.paper(local_bounds=((-12, -12, -2.6), (12, 12, 2.6)), device="cpu",
@@ -75,11 +75,11 @@ def test_each_part_compiles_its_own_kernels_on_a_scratch_window_and_then_mapping
     report = json.loads(result.stdout.strip().splitlines()[-1])
     parts = report["parts"]
     # The window's moves bring the window's and the store's kernels (slabs out and back).
-    assert {"window", "store"} <= set(parts["window"]), parts
-    assert parts["voxelize"] == ["volume"], parts
-    assert parts["update"] == ["update"], parts
-    assert "free_space" in parts["free"], parts
-    assert parts["forgetting"] == ["forgetting"], parts
+    assert {"memory.window", "memory.store"} <= set(parts["window"]), parts
+    assert parts["voxelize"] == ["geometry.volume"], parts
+    assert parts["update"] == ["inference.update"], parts
+    assert "free_space.rays" in parts["free"], parts
+    assert parts["forgetting"] == ["free_space.forgetting"], parts
     assert report["untouched"] == [0, 0, True, 0], report["untouched"]
     assert report["new"] == {}, report["new"]
     assert report["mapped"] > 1000, report
