@@ -15,8 +15,9 @@ the ones before it in this list:
 * ``torch_path``: the whole window on a torch device;
 * ``measures``: mIoU, calibration, trails, the costmap's and a correction's scores.
 
-At the top: ``mapper`` (``ConvBKIMapper``, which composes the stages), ``config``
-(``MapperConfig``), ``parts`` (the parts a configuration builds), ``offline`` (mapping drives
+At the top: ``mapper`` (``ConvBKIMapper``, which composes the stages), ``map_contents``
+(the mapper's queries: reading the map and its changes), ``config`` (``MapperConfig``),
+``parts`` (the parts a configuration builds), ``offline`` (mapping drives
 without ROS), ``warm_up`` (the compiled kernels' cache) and the plumbing (``compiled``,
 ``devices``, ``paths``). Beside them: ``datasets`` (SemanticKITTI and drift drives),
 ``synth`` (the synthetic drive's simulator), ``training`` and ``tools`` (the programs).
@@ -30,8 +31,8 @@ from importlib import import_module
 _PUBLIC = {
     "ConvBKIKernel": "inference.kernels", "KernelConfig": "io.kernel_file", "load_kernel_file": "io.kernel_file",
     "save_kernel_file": "io.kernel_file", "sparse_kernel": "inference.kernels", "ConvBKILayer": "inference.layer",
-    "MapFileError": "io.map_file", "ConvBKIMapper": "mapper", "IntegrationResult": "mapper", "MapChanges": "mapper",
-    "VoxelSet": "mapper", "dirichlet_statistics": "inference.statistics",
+    "MapFileError": "io.map_file", "ConvBKIMapper": "mapper", "IntegrationResult": "mapper",
+    "MapChanges": "map_contents", "VoxelSet": "map_contents", "dirichlet_statistics": "inference.statistics",
 }
 __all__ = sorted(_PUBLIC)
 __version__ = "0.1.0"

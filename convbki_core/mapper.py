@@ -17,13 +17,19 @@ The parts are built once, in the constructor, from the ``MapperConfig``.
 
 Public surface: ``integrate``, ``labels_at``, ``voxels``, ``local_voxels``, ``save``,
 ``load``, ``export_ply``, ``reset``.
+
+This module holds the set-up and the update (``integrate``, ``withdraw``); the mapper's other
+sides are mixins it inherits, each in the module of its part: reading the map and its changes
+(``map_contents.MapContents``), its files (``io.mapper_files.MapFiles``) and a SLAM's
+corrections (``correction.map_corrections.MapCorrections``). Mixins, not one-line delegates:
+their methods read and write the mapper's own store, window, scan log and change bookkeeping,
+and as methods of one class they stay where the node and the tools call them.
 """
 
 from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,42 +37,23 @@ import numpy as np
 import torch
 
 from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
-from convbki_core.correction.replay import CorrectionResult, continue_correction, pose_displacement
-from convbki_core.correction.scan_log import LoggedScan, ScanLog, Segment
+from convbki_core.correction.map_corrections import MapCorrections
+from convbki_core.correction.scan_log import LoggedScan, ScanLog
 from convbki_core.devices import resolve_device
 from convbki_core.free_space.clamping import check_limit
 from convbki_core.free_space.forgetting import MoverForgetting
-from convbki_core.free_space.present_movers import PresentMovers, labels_now, present_movers, whole_movers
-from convbki_core.free_space.rays import (
-    FREE_CLASS,
-)
-from convbki_core.geometry.volume import (
-    VoxelizeStats,
-    WindowGeometry,
-    check_pose,
-    check_scan,
-    transform_points,
-    voxel_centres,
-    voxel_indices,
-    voxel_keys,
-    voxels_of_keys,
-)
+from convbki_core.free_space.present_movers import PresentMovers, present_movers, whole_movers
+from convbki_core.free_space.update import FREE_CLASS
+from convbki_core.geometry.grid import WindowGeometry, check_pose, transform_points
+from convbki_core.geometry.volume import VoxelizeStats, check_scan
 from convbki_core.inference.kernels import ConvBKIKernel
 from convbki_core.inference.layer import ConvBKILayer
-from convbki_core.inference.statistics import dirichlet_statistics
-from convbki_core.io.kernel_file import KernelConfig, kernel_config_to_dict, load_kernel_file
-from convbki_core.io.map_file import (
-    MAP_FORMAT,
-    MAP_VERSION,
-    MapSetupError,
-    MapSnapshot,
-    read_map,
-    setup_differences,
-)
-from convbki_core.io.ply import write_voxels_ply
+from convbki_core.io.kernel_file import KernelConfig, load_kernel_file
+from convbki_core.io.mapper_files import MapFiles
+from convbki_core.map_contents import MapContents
+from convbki_core.memory.column_classes import MAX_CLASS_BITS
 from convbki_core.memory.store import VoxelStore
-from convbki_core.memory.window import CHANGED, EVIDENCE, MAX_CLASS_BITS, RECLASSED, TOUCHED, RollingWindow
-from convbki_core.outputs.records import RECORD, records_from_alpha, window_records
+from convbki_core.memory.window import CHANGED, EVIDENCE, RECLASSED, TOUCHED, RollingWindow
 from convbki_core.parts import KernelFilters, Scratch, Voxelizer, make_free_space, make_update
 from convbki_core.torch_path.window import TorchWindow
 
@@ -85,37 +72,8 @@ class IntegrationResult:
     timing_ms: dict[str, float] = field(default_factory=dict)
 
 
-@dataclass
-class MapChanges:
-    """What changed in the map since the changes were last taken.
 
-    ``removed``: global indices (R, 3) of voxels that left the map (a reset, a load);
-    ``indices`` (N, 3) and ``alpha`` (N, C): voxels whose concentrations changed, in order
-    (a voxel may appear more than once: its last row is its state). Applying the removals
-    first and then the rows to a copy of the map as it was gives the map as it is.
-    """
-
-    removed: np.ndarray
-    indices: np.ndarray
-    alpha: np.ndarray
-
-
-@dataclass
-class VoxelSet:
-    """Voxels with their statistics. Centres in the map frame (m)."""
-
-    indices: np.ndarray  # (N, 3) int64 global voxel indices
-    centres: np.ndarray  # (N, 3) float32
-    alpha: np.ndarray  # (N, C) float32 concentrations
-    label: np.ndarray  # (N,) int64 expected class
-    confidence: np.ndarray  # (N,) float32
-    variance: np.ndarray  # (N,) float32
-
-    def __len__(self) -> int:
-        return int(self.indices.shape[0])
-
-
-class ConvBKIMapper:
+class ConvBKIMapper(MapContents, MapFiles, MapCorrections):
     """Online ConvBKI semantic mapping in a global voxel map, set up by a ``MapperConfig``
     (``config``; the product's defaults when None).
 
@@ -325,338 +283,3 @@ class ConvBKIMapper:
             self.update(volume, EVIDENCE | CHANGED)
         return volume.num_voxels
 
-    # -- the scan log and corrections (a SLAM moved poses) -------------------------------------
-    def base_copy(self):
-        """The map as it is now, as a store of its own (a log segment's base): the global
-        store's chunks shared, the window's voxels written into it. Returns (store, the memory
-        it takes beside the map's store: about the window's voxels)."""
-        base = self.store.copy()
-        base.write(*self.window.items())
-        return base, base.bytes_not_shared_with(self.store)
-
-    def _begin_log_segment(self) -> None:
-        self.scan_log.refresh_base_bytes(self.store)  # the bound counts what the older bases own by now
-        base, nbytes = self.base_copy()
-        self.scan_log.begin_segment(base, self.sensor_position, nbytes)
-
-    def _restart_log(self, why: str) -> None:
-        """The map changed other than by a scan (a load, a forgotten box): a correction can
-        reach back to here only, from the map as it is now; ``why`` the scans before cannot move."""
-        if self.scan_log is not None:
-            base, nbytes = self.base_copy()
-            self.scan_log.restart(base, self.sensor_position, nbytes, self.scans_integrated, why)
-
-    def plan_correction(self, poses: dict[int, np.ndarray], tolerance: float = 0.0, reach: float | None = None,
-                        log: ScanLog | None = None) -> tuple[dict[int, np.ndarray], int, float]:
-        """Which logged scans a correction moves: of ``poses`` (corrected map <- sensor poses by
-        the drive's scan index), those still in the log whose points within ``reach`` m (default:
-        the window's half extent) move by ``tolerance`` m or more; ``log``: a copy of this
-        mapper's log taken earlier (default: the log). Returns (moves, scans left alone, the
-        largest displacement of a sensor in m)."""
-        log = self.scan_log if log is None else log
-        if log is None:
-            raise ValueError("this mapper keeps no scan log: nothing can be moved")
-        reach = float(np.max(np.abs(self.geometry.bounds_max))) if reach is None else reach
-        logged = dict(log.scans())
-        moves, skipped, largest = {}, 0, 0.0
-        for index, pose in poses.items():
-            if index not in logged:
-                continue
-            pose = check_pose(pose)
-            if pose_displacement(logged[index].pose, pose, reach) < tolerance:
-                skipped += 1
-                continue
-            moves[index] = pose
-            largest = max(largest, float(np.linalg.norm(pose[:3, 3] - logged[index].pose[:3, 3])))
-        return moves, skipped, largest
-
-    def corrected(self, poses: dict[int, np.ndarray], tolerance: float = 0.0, until: int | None = None,
-                  reuse: ConvBKIMapper | None = None, log: ScanLog | None = None
-                  ) -> tuple[ConvBKIMapper, CorrectionResult]:
-        """This map as it would be had the logged scans been integrated at corrected poses
-        (``poses``: map <- sensor by the drive's scan index; scans no longer logged, or moved by
-        less than ``tolerance`` m, are left alone), and what that took. The map is not changed:
-        a new mapper maps every logged scan again, in the order they came, from the base of the
-        log's segment that holds the first moved one (``correction``), up to scan ``until``
-        (exclusive; default: every logged scan). ``reuse``: a mapper of the same set-up to map
-        into instead of a new one (the one a correction replaced: its window is already in
-        memory, where a new window's pages cost more than the scans). ``log``: a copy of this
-        mapper's log (``ScanLog.copy``) to read instead of the log, so that this mapper may go
-        on mapping meanwhile (the node's live scans). Returns (the new mapper, or this one when
-        nothing moves; the result)."""
-        started = time.perf_counter()
-        log = self.scan_log if log is None else log
-        moves, skipped, largest = self.plan_correction(poses, tolerance, log=log)
-        result = CorrectionResult(scans=len(moves), largest_move=largest, skipped=skipped)
-        if not moves:
-            result.seconds = time.perf_counter() - started
-            return self, result
-        segment = log.segment_for(min(moves))
-        new = reuse if reuse is not None and reuse is not self else ConvBKIMapper(self.config, self.layer.kernel)
-        new.frame_id = self.frame_id
-        new.start_from(segment, log)
-        replayed = continue_correction(new, log, moves, segment.first_index, until)
-        result.replayed = replayed
-        result.seconds = time.perf_counter() - started
-        return new, result
-
-    def start_from(self, segment, log: ScanLog) -> None:
-        """Make this (new) mapper the map as it was when ``segment`` of ``log`` began: its base,
-        and the log's segments before it (a correction maps the scans from there again)."""
-        if self.scans_integrated or len(self) or self.sensor_position is not None:
-            self._clear()  # a fresh mapper is already empty: its window is not filled twice
-        if segment.base is not None:
-            self.store = segment.base.copy()
-            self.window.store = self.store
-        self.scans_integrated = segment.first_index
-        if segment.base_position is not None:
-            self.sensor_position = np.asarray(segment.base_position, np.float64).copy()
-            self.window.move_to(self.geometry.origin_for(self.sensor_position))
-        self._everything_changed = True
-        self._removed = []
-        self._replaced_keys = None
-        if self.scan_log is not None:
-            older = [s for s in log.segments() if s.first_index < segment.first_index]
-            self.scan_log.frozen, self.scan_log.frozen_stamp_ns = log.frozen, log.frozen_stamp_ns
-            self.scan_log.frozen_why = log.frozen_why
-            self.scan_log.calibration = log.calibration
-            self.scan_log.replace_from(0, [*older, Segment(segment.first_index, segment.base, segment.base_position,
-                                                           segment.base_bytes)])
-
-    # -- reading the map -------------------------------------------------------------------
-    def concentrations_at(self, points_map: np.ndarray,
-                          within_window: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Concentrations of the voxel under each map-frame point: (alpha (N, C) float32,
-        has_evidence (N,) bool); rows are zero where the voxel holds no evidence, or (with
-        ``within_window``) lies outside the current window, or the point is not finite."""
-        points_map = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
-        usable = np.isfinite(points_map).all(axis=1)
-        indices = np.zeros((points_map.shape[0], 3), np.int64)
-        indices[usable] = voxel_indices(points_map[usable], self.resolution)
-        in_window = usable & self.window.inside(indices)
-        alpha = np.zeros((points_map.shape[0], self.num_classes), np.float32)
-        has_evidence = np.zeros(points_map.shape[0], bool)
-        alpha[in_window], has_evidence[in_window] = self.window.lookup(indices[in_window])
-        if not within_window:
-            elsewhere = usable & ~in_window
-            alpha[elsewhere], has_evidence[elsewhere] = self.store.lookup(indices[elsewhere])
-        alpha[~has_evidence] = 0.0
-        return alpha, has_evidence
-
-    def labels_at(self, points_map: np.ndarray, within_window: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Expected class of the voxel under each map-frame point.
-
-        Returns (labels (N,) int64, has_evidence (N,) bool); labels are -1 where the voxel
-        holds no evidence, or (with ``within_window``) lies outside the current window. With
-        free space, the class is the most likely of the others: a query point is a return,
-        so the question is what the surface there is, not whether the voxel is empty. A voxel
-        that holds the last scan's moving points reads as their most likely class.
-        """
-        alpha, has_evidence = self.concentrations_at(points_map, within_window)
-        labels = np.full(alpha.shape[0], -1, np.int64)
-        if self.free_space:
-            alpha[:, FREE_CLASS] = 0.0
-        labels[has_evidence] = dirichlet_statistics(alpha[has_evidence]).label
-        if self.present_movers is not None:
-            points_map = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
-            usable = np.isfinite(points_map).all(axis=1)
-            now = np.full(len(labels), -1, np.int64)
-            held = np.zeros(len(labels), bool)
-            now[usable], held[usable] = labels_now(self.present_movers, voxel_indices(points_map[usable],
-                                                                                      self.resolution))
-            labels[held], has_evidence = now[held], has_evidence | held
-        return labels, has_evidence
-
-    def items(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every voxel with evidence: (global indices (N, 3) int64, alpha (N, C) float32)."""
-        # One allocation filled by both parts: a map of millions of voxels is hundreds of MB,
-        # and the node does this for every map it publishes.
-        stored, in_window = len(self.store), self.window.count()
-        indices = np.empty((stored + in_window, 3), np.int64)
-        alpha = np.empty((stored + in_window, self.num_classes), np.float32)
-        self.store.items(indices[:stored], alpha[:stored])
-        self.window.items(indices[stored:], alpha[stored:])
-        return indices, alpha
-
-    def voxels(self) -> VoxelSet:
-        """Every voxel that ever received evidence, with its statistics."""
-        return self.voxel_set(*self.items())
-
-    def local_voxels(self) -> VoxelSet:
-        """The voxels with evidence in the current window."""
-        return self.voxel_set(*self.window.items())
-
-    def window_records(self, palette: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """Records (``records.RECORD``: centre, colour, class, variance, probability) of the voxels
-        with evidence in the current window, computed from the window in place; ``out``: as
-        many records as ``window.count()`` to fill."""
-        window = self.window
-        if window.origin is None:
-            return np.empty(0, RECORD) if out is None else out
-        if isinstance(window, TorchWindow):  # made on the device: one copy of the records
-            return window.records(self.resolution, palette, out)
-        count = window.count() if out is None else len(out)
-        return window_records(window.alpha, window.mask, window.origin, window.dims, count, self.resolution,
-                              palette, out)
-
-    def voxel_set(self, indices: np.ndarray, alpha: np.ndarray) -> VoxelSet:
-        """Statistics of the given voxels (e.g. a copy taken from ``items()``)."""
-        stats = dirichlet_statistics(alpha)
-        return VoxelSet(indices, voxel_centres(indices, self.resolution).astype(np.float32), alpha,
-                        stats.label, stats.confidence, stats.variance)
-
-    def __len__(self) -> int:
-        return len(self.store) + self.window.count()
-
-    # -- persistence -----------------------------------------------------------------------
-    def reset(self) -> None:
-        """Forget every voxel, and the scan log (the kernel and settings stay)."""
-        self._removed.append(self.items()[0])
-        self._clear()
-
-    def retire(self) -> None:
-        """Forget every voxel and the log without reporting them as removed: a map another took
-        the place of, kept only for its window (``corrected``'s ``reuse``)."""
-        self._clear()
-        self._removed, self._everything_changed, self._replaced_keys = [], False, None
-
-    def _clear(self) -> None:
-        self.store.clear()
-        self.window.clear()
-        if self.scan_log is not None:
-            self.scan_log.clear()
-        self.scans_integrated = 0
-        self.sensor_position = None
-        self.present_movers = None
-        if self.forgetting is not None:
-            self.forgetting.clear()
-
-    def forget_box(self, box_min: Sequence[float], box_max: Sequence[float]) -> np.ndarray:
-        """Forget the evidence of every voxel whose centre lies in the box ``box_min`` ..
-        ``box_max`` (x, y, z in the map frame, m), as if it had never been observed (octomap's
-        clear_bbox). Returns the global indices (n, 3) of the voxels forgotten; they are
-        reported as removed by ``take_changes``."""
-        box_min, box_max = np.asarray(box_min, np.float64), np.asarray(box_max, np.float64)
-        if box_min.shape != (3,) or box_max.shape != (3,) or not np.isfinite([box_min, box_max]).all():
-            raise ValueError(f"a box needs finite x, y, z corners, got {box_min.tolist()} and {box_max.tolist()}")
-        # Voxel i's centre is (i + 0.5) * resolution: the first and one past the last voxel inside.
-        lo = np.ceil(box_min / self.resolution - 0.5).astype(np.int64)
-        hi = np.floor(box_max / self.resolution - 0.5).astype(np.int64) + 1
-        if (hi <= lo).any():
-            return np.zeros((0, 3), np.int64)
-        forgotten = np.concatenate([self.store.forget_box(lo, hi), self.window.forget_box(lo, hi)])
-        self._removed.append(forgotten)
-        if len(forgotten):
-            # A correction mapping older scans again would bring the box back.
-            self._restart_log("a box of the map was forgotten after them")
-        return forgotten
-
-    def take_changes(self, everything: bool = False) -> MapChanges:
-        """The voxels that changed or left the map since the last call (``everything``: every
-        voxel of the map, as after a load), for outputs that send only what changed."""
-        removed = np.concatenate(self._removed) if self._removed else np.zeros((0, 3), np.int64)
-        self._removed = []
-        indices, alpha = self.window.take_changes()
-        if everything or self._everything_changed:
-            self._everything_changed = False
-            indices, alpha = self.items()
-            if self._replaced_keys is not None:  # what the map this one replaced had and this one has not
-                gone = np.setdiff1d(self._replaced_keys, voxel_keys(indices), assume_unique=True)
-                removed = np.concatenate([removed, voxels_of_keys(gone)])
-                self._replaced_keys = None
-        return MapChanges(removed, indices, alpha)
-
-    def take_change_records(self, palette: np.ndarray, everything: bool = False) -> tuple[np.ndarray, np.ndarray,
-                                                                                          np.ndarray]:
-        """``take_changes`` as (removed (R, 3), changed voxels' indices (N, 3), their records
-        (``records.RECORD``)): for a window on a torch device the records are made there, so
-        the changes come to the host as records, not as concentrations."""
-        if isinstance(self.window, TorchWindow) and not (everything or self._everything_changed):
-            removed = np.concatenate(self._removed) if self._removed else np.zeros((0, 3), np.int64)
-            self._removed = []
-            indices, records = self.window.take_change_records(self.resolution, palette)
-            return removed, indices, records
-        changes = self.take_changes(everything)
-        return changes.removed, changes.indices, records_from_alpha(changes.indices, changes.alpha, self.resolution,
-                                                                    palette)
-
-    def announce_replacement(self, previous_indices: np.ndarray) -> None:
-        """This map took the place of another (a correction's): the next changes are every voxel,
-        and the other's voxels (``previous_indices``, (n, 3)) this map does not have as removed,
-        so a copy kept from the changes becomes this map."""
-        self._replaced_keys = np.unique(voxel_keys(previous_indices))
-        self._everything_changed = True
-
-    def save(self, path: str | Path) -> None:
-        """Write the whole map to one self-describing file, atomically."""
-        self.snapshot().write(path)
-
-    def snapshot(self) -> MapSnapshot:
-        """A copy of everything a map file holds (``items()`` returns fresh arrays), with its
-        metadata: take it under a lock, ``write()`` it later."""
-        indices, alpha = self.items()
-        metadata = {
-            "format": MAP_FORMAT,
-            "version": MAP_VERSION,
-            "resolution": self.resolution,
-            "num_classes": self.num_classes,
-            "num_voxels": int(indices.shape[0]),
-            "frame_id": self.frame_id,
-            "prior": self.prior,
-            "local_bounds": [list(self.geometry.bounds_min), list(self.geometry.bounds_max)],
-            "kernel": kernel_config_to_dict(self.kernel.to_config()),
-            "scans_integrated": self.scans_integrated,
-            "mapping": self.config.replace(frame_id=self.frame_id).mapping_record(self.resolution,
-                                                                                  self.kernel.filter_size),
-        }
-        if self.sensor_position is not None:
-            metadata["sensor_position"] = [float(v) for v in self.sensor_position]
-        return MapSnapshot(metadata, indices, alpha, self.scan_log.copy() if self.scan_log is not None else None)
-
-    def load(self, path: str | Path) -> dict:
-        """Replace the map's voxels with those of a map file (resolution, classes and prior must
-        match); the map is untouched if the file is unusable. Returns the file's metadata."""
-        metadata, indices, alpha = read_map(path, with_scan_log=True)
-        self.check_compatible(path, metadata)
-        self.replace_with(metadata, indices, alpha)
-        return metadata
-
-    def check_compatible(self, path: str | Path, metadata: dict) -> None:
-        """Raise ``MapSetupError`` unless a map file with this metadata (``read_map``) can be
-        loaded into this mapper: the same classes, resolution and prior."""
-        differences = setup_differences(metadata, self.resolution, self.num_classes, self.prior)
-        if not differences:
-            return
-        first = differences[0]
-        if first.what == "num_classes":
-            message = f"{path}: map has {first.in_file} classes, the mapper {first.here}"
-        elif first.what == "resolution":
-            message = f"{path}: map resolution {first.in_file} m differs from the mapper's {first.here} m"
-        else:
-            message = (f"{path}: map prior {first.in_file} differs from the mapper's {first.here}: its voxels' "
-                       "unobserved classes would hold the wrong concentration")
-        raise MapSetupError(message, differences)
-
-    def replace_with(self, metadata: dict, indices: np.ndarray, alpha: np.ndarray) -> None:
-        """Make the map the given one (a map file's contents, ``read_map``, checked with
-        ``check_compatible``). The window is placed around the sensor position the file
-        recorded (else the centre of its voxels), so the map around the robot is at hand
-        before the next scan."""
-        self.reset()  # its voxels count as removed
-        self.store.write(indices, alpha)
-        self.scans_integrated = int(metadata.get("scans_integrated", 0))
-        position = metadata.get("sensor_position")
-        if position is None and len(indices):
-            position = voxel_centres((indices.min(axis=0) + indices.max(axis=0)) // 2, self.resolution)
-        if position is not None:
-            self.sensor_position = np.asarray(position, np.float64)
-            self.window.move_to(self.geometry.origin_for(self.sensor_position))
-        if self.scan_log is not None and metadata.get("scan_log") is not None:
-            self.scan_log.adopt(metadata["scan_log"])
-        else:  # a file without a log: its map is where corrections begin
-            self._restart_log("they came from a map file without a scan log")
-        self._everything_changed = True
-
-    def export_ply(self, path: str | Path, max_variance: float | None = None) -> int:
-        """Write the map as a PLY point cloud in class colours; returns the number of voxels written."""
-        return write_voxels_ply(self.voxels(), path, max_variance=max_variance)

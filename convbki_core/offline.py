@@ -12,7 +12,7 @@ import numpy as np
 
 from convbki_core.config import MapperConfig
 from convbki_core.datasets import Frame, SequenceDataset
-from convbki_core.geometry.volume import transform_points
+from convbki_core.geometry.grid import transform_points
 from convbki_core.io.kernel_file import KernelConfig
 from convbki_core.mapper import ConvBKIMapper, IntegrationResult
 

@@ -26,23 +26,11 @@ import torch
 from convbki_core.compiled import HAVE_NUMBA
 from convbki_core.free_space.clamping import clamp_torch
 from convbki_core.free_space.device_rays import count_rays_on_device
-from convbki_core.free_space.rays import (
-    FREE_CLASS,
-    beyond_window,
-    free_space_update,
-    free_taps,
-    scan_rays,
-    scratch_counts,
-    window_exits,
-)
-from convbki_core.geometry.volume import (
-    SparseVolume,
-    WindowGeometry,
-    transform_points,
-    unravel_linear,
-    voxelize,
-    voxelize_scan,
-)
+from convbki_core.free_space.ray_walk import scratch_counts
+from convbki_core.free_space.scan_rays import beyond_window, scan_rays, window_exits
+from convbki_core.free_space.update import FREE_CLASS, free_space_update, free_taps
+from convbki_core.geometry.grid import WindowGeometry, transform_points, unravel_linear
+from convbki_core.geometry.volume import SparseVolume, voxelize, voxelize_scan
 from convbki_core.inference.layer import ConvBKILayer
 from convbki_core.inference.update import FilterPlan, dense_volume, scatter_volume
 from convbki_core.memory.store import VoxelStore

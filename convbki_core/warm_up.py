@@ -44,12 +44,15 @@ import numpy as np
 
 from convbki_core.compiled import KernelCache, kernel_cache, threading_layer
 from convbki_core.config import DEFAULTS, MapperConfig
-from convbki_core.costmap.columns import TraversabilityProfile, column_costs, grid_of_window, window_grid
-from convbki_core.free_space.rays import FREE_CLASS
+from convbki_core.costmap.columns import column_costs
+from convbki_core.costmap.profile import TraversabilityProfile
+from convbki_core.costmap.window_pass import grid_of_window, window_grid
+from convbki_core.free_space.update import FREE_CLASS
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
 from convbki_core.mapper import ConvBKIMapper
-from convbki_core.memory.window import EVIDENCE, classes_held
+from convbki_core.memory.column_classes import classes_held
+from convbki_core.memory.window import EVIDENCE
 from convbki_core.outputs.records import change_records, packed_palette, view_records
 from convbki_core.outputs.shown_map import ShownMap
 from convbki_core.parts import Scratch

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from convbki_core.config import MapperConfig
-from convbki_core.costmap.columns import TraversabilityProfile
+from convbki_core.costmap.profile import TraversabilityProfile
 from convbki_core.io.kernel_file import KernelConfig, load_kernel_file
 from convbki_core.paths import kernel_path
 from convbki_ros.outputs.costmap import profile_of

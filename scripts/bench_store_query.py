@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from convbki_core.geometry.volume import WindowGeometry, linear_index
+from convbki_core.geometry.grid import WindowGeometry, linear_index
 from convbki_core.memory.store import VoxelStore
 
 NUM_CLASSES = 20

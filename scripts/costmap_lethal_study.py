@@ -23,7 +23,7 @@ import collections
 import numpy as np
 
 from convbki_core.config import DEFAULTS
-from convbki_core.costmap.columns import LETHAL, load_profile
+from convbki_core.costmap.profile import LETHAL, load_profile
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.measures.costmap_eval import (
     GroundTruthVoxels,
@@ -34,7 +34,7 @@ from convbki_core.measures.costmap_eval import (
     score_grid,
 )
 from convbki_core.paths import kernel_path, traversability_profile
-from convbki_core.tools.evaluate import evaluate_kernel
+from convbki_core.tools.evaluate_run import evaluate_kernel
 
 FREE, COSTLY, LETHAL_GROUP = 0, 1, 2
 

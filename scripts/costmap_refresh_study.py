@@ -20,7 +20,8 @@ import time
 
 import numpy as np
 
-from convbki_core.costmap.columns import grid_of_window, load_profile
+from convbki_core.costmap.profile import load_profile
+from convbki_core.costmap.window_pass import grid_of_window
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.memory.window import CHANGED, EVIDENCE
 from convbki_core.offline import paper_mapper

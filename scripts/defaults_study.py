@@ -35,7 +35,7 @@ from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.paths import kernel_path
-from convbki_core.tools.evaluate import evaluate_kernel
+from convbki_core.tools.evaluate_run import evaluate_kernel
 from convbki_core.tools.synth import main as synth_main
 
 
@@ -99,7 +99,7 @@ def study(root: Path, sequence: str, frames: str | None, variants: dict[str, dic
     cpu = DEFAULTS.replace(device="cpu")
     profile = None
     if with_costmap:
-        from convbki_core.costmap.columns import load_profile
+        from convbki_core.costmap.profile import load_profile
         from convbki_core.paths import traversability_profile
 
         profile = load_profile(traversability_profile("car"), names)

@@ -20,10 +20,10 @@ import numpy as np
 
 from convbki_core.config import DEFAULTS
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.geometry.volume import transform_points
+from convbki_core.geometry.grid import transform_points
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.paths import kernel_path
-from convbki_core.tools.evaluate import evaluate_kernel
+from convbki_core.tools.evaluate_run import evaluate_kernel
 from convbki_core.tools.plots import _pyplot
 
 

@@ -30,8 +30,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.costmap.columns import grid_of_window, load_profile, rolling_geometry
 from convbki_core.costmap.device import device_window_grid
+from convbki_core.costmap.grid import rolling_geometry
+from convbki_core.costmap.profile import load_profile
+from convbki_core.costmap.window_pass import grid_of_window
 from convbki_core.inference.statistics import dirichlet_statistics
 from convbki_core.io.labels import load_label_map
 from convbki_core.offline import paper_mapper

@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-import convbki_core.free_space.rays as free_space
+import convbki_core.free_space.update as free_space
 from convbki_core.free_space.clamping import DEFAULT_LIMIT, clamp_numpy
 from convbki_core.io.labels import load_label_map
 from convbki_core.io.map_file import read_map
 from convbki_core.memory.window import EVIDENCE
-from convbki_core.tools import evaluate, map_tool
+from convbki_core.tools import evaluate, map_merge
 
 
 class MissedEvidence:
@@ -134,7 +134,7 @@ def main() -> int:
     _, second_indices, second_alpha = read_map(second_map)
     _, whole_indices, whole_alpha = read_map(whole_map)
     prior = float(metadata["prior"])
-    indices, alpha, _ = map_tool.merge_arrays([(first_indices, first_alpha), (second_indices, second_alpha)], prior)
+    indices, alpha, _ = map_merge.merge_arrays([(first_indices, first_alpha), (second_indices, second_alpha)], prior)
     keys = key(indices)
     whole_labels = lookup(key(whole_indices), whole_alpha.argmax(axis=1), keys, missing=-1)
     added = np.where(np.isin(keys, key(first_indices)), lookup(key(missed_voxels), missed, keys), 0.0)

@@ -26,7 +26,7 @@ from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.paths import kernel_path
-from convbki_core.tools.evaluate import evaluate_kernel
+from convbki_core.tools.evaluate_run import evaluate_kernel
 from convbki_core.tools.synth import main as synth_main
 
 

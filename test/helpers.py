@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from convbki_core.free_space.rays import _walk_ray
+from convbki_core.free_space.ray_walk import _walk_ray
 from convbki_core.inference.kernels import ConvBKIKernel
 from convbki_core.io.kernel_file import load_kernel_file
 from convbki_core.io.map_file import read_map
@@ -95,3 +95,16 @@ def tap_offsets(filter_size: int, resolution: float, dtype=torch.float64):
 
 def kernel_from_file(path: str | Path) -> ConvBKIKernel:
     return ConvBKIKernel.from_config(load_kernel_file(path))
+
+
+def small_saved_map(folder: Path) -> Path:
+    """``folder``/good.npz: a map of three voxels and four classes (concentrations 0..11), saved by the mapper."""
+    from convbki_core import ConvBKIMapper
+    from convbki_core.config import MapperConfig
+
+    mapper = ConvBKIMapper(MapperConfig.paper(local_bounds=((-1, -1, -1), (1, 1, 1)), device="cpu"),
+                           ConvBKIKernel("single", 4, 3, 0.2, ell=0.3))
+    mapper.store.write(np.array([[0, 0, 0], [1, 2, 3], [-4, 5, 6]]), np.arange(12, dtype=np.float32).reshape(3, 4))
+    path = folder / "good.npz"
+    mapper.save(path)
+    return path

@@ -3,6 +3,7 @@ process and talks to it over DDS (publishes clouds and odometry, reads /semantic
 /diagnostics, calls its services)."""
 
 import re
+import signal
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -111,11 +112,15 @@ class Rig:
     """A running mapper node, a probe that publishes its inputs and reads its map, and its log."""
 
     def __init__(self, folder: Path, *parameters: str, prefix: tuple[str, ...] = (), namespace: str = "",
-                 watch_map: bool = True, map_file: Path | None = None, odometry: bool = True):
+                 watch_map: bool = True, map_file: Path | None = None, odometry: bool = True,
+                 diagnostics_period: float = 0.2, wait: bool = True):
         """``namespace``: run the node in it ("/robot1"); its topics and services move there.
         ``watch_map``: subscribe to ``semantic_map`` (into ``maps``); ``map_file``: the node's map file
         (default ``folder/maps/map.npz``); ``odometry``: whether the node reads odometry (not with
-        pose_source tf)."""
+        pose_source tf). ``diagnostics_period``: the node's /diagnostics period, which paces every
+        ``stats`` (0.05 s: a test waits a quarter as long for each counter it reads; a test that
+        counts reports as time keeps 0.2 s). ``wait``: False returns once the node is started, to
+        start several at once (a node's start leaves a core idle); ``wait_ready`` then waits."""
         from diagnostic_msgs.msg import DiagnosticArray
         from nav_msgs.msg import Odometry
         from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -130,7 +135,7 @@ class Rig:
         remap = ("-r", f"__ns:={namespace}") if namespace else ()
         self.process = start("convbki_ros.main", domain, "--ros-args", *remap, "-p", f"local_bounds:={BOUNDS}",
                              "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "map_period:=0.2",
-                             "-p", "diagnostics_period:=0.2",
+                             "-p", f"diagnostics_period:={diagnostics_period}",
                              "-p", "pose_wait_timeout:=1.5", "-p", f"map_file:={self.map_file}",
                              "-p", f"ply_file:={folder / 'shown.ply'}", *parameters,
                              prefix=prefix)
@@ -143,10 +148,20 @@ class Rig:
         self.odometry_publisher = self.probe.node.create_publisher(Odometry, f"{namespace}/odom", qos)
         self.stamp = START
         self._tf_publishers: dict[str, object] = {}
+        self._reads_odometry = odometry
+        self._closed = False
+        if wait:
+            self.wait_ready()
+
+    def wait_ready(self) -> "Rig":
+        """Wait until the node is ready and its inputs are matched (done by the constructor
+        unless ``wait=False``)."""
         connected = self.probe.spin_until(lambda: self.cloud_publisher.get_subscription_count()
-                                          and (self.odometry_publisher.get_subscription_count() or not odometry)
+                                          and (self.odometry_publisher.get_subscription_count()
+                                               or not self._reads_odometry)
                                           and self.log.find("mapper ready"), timeout=60)
         assert connected, self.log.text()
+        return self
 
     # -- inputs --------------------------------------------------------------------------
     def next_stamp(self, step: float = 1.0) -> int:
@@ -247,8 +262,38 @@ class Rig:
         return self.probe.call(Trigger, f"{self.namespace}/convbki_mapper/{service}")
 
     def close(self) -> str:
-        self.probe.close()
+        """Stop the node (Ctrl-C, unless it has ended) and the probe; the node's whole output.
+        Closing again only returns the output."""
+        if not self._closed:
+            self._closed = True
+            self.probe.close()
         return self.log.close()
+
+
+def started_together(*rigs: Rig) -> tuple[Rig, ...]:
+    """``rigs`` made with ``wait=False`` (their nodes starting side by side), once each is ready;
+    all of them closed if one is not."""
+    try:
+        for rig in rigs:
+            rig.wait_ready()
+    except BaseException:
+        close_together(*rigs)
+        raise
+    return rigs
+
+
+def close_together(*rigs: Rig) -> list[str]:
+    """Close ``rigs``, their nodes stopping side by side (Ctrl-C to each first); their outputs."""
+    import contextlib
+    import subprocess
+
+    for rig in rigs:
+        if rig.process.poll() is None:
+            rig.process.send_signal(signal.SIGINT)
+    for rig in rigs:  # ended before ``close``, which would send a second Ctrl-C to a node still stopping
+        with contextlib.suppress(subprocess.TimeoutExpired):  # ``close`` then kills it
+            rig.process.wait(timeout=10)
+    return [rig.close() for rig in rigs]
 
 
 def expect_file_holds(path: Path, expected: ConvBKIMapper) -> None:

@@ -1,6 +1,6 @@
 """The planner's costmap computed where a torch window lives (a GPU): only the grid comes back.
 
-The rules are ``costmap``'s (its module docstring), written as whole-window torch operations
+The rules are ``columns``' (its module docstring), written as whole-window torch operations
 over the columns the grid needs (its cells and the ``NEIGHBOUR_PASSES`` around them that a
 hidden ground's estimate reads), in the compiled column pass's arithmetic, so that the cells
 are the same: each voxel's moments summed class by class in float64 from the prior's, its
@@ -25,18 +25,15 @@ from convbki_core.costmap.columns import (
     _TOTAL,
     EMPTY_SHARE,
     GROUND_SHARE,
-    LETHAL,
     MOMENTS,
     NEIGHBOUR_PASSES,
     UNKNOWN,
-    CostGrid,
-    TraversabilityProfile,
-    _cropped,
     _lethal_prior,
     _moment_weights,
     _prior_moments,
-    columns_to_read,
 )
+from convbki_core.costmap.grid import CostGrid, _cropped, columns_to_read
+from convbki_core.costmap.profile import LETHAL, TraversabilityProfile
 from convbki_core.memory.window import EVIDENCE
 
 _TINY = float(np.finfo(np.float64).tiny)

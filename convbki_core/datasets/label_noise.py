@@ -69,23 +69,22 @@ flicker a map must fuse).
 One knob, ``strength``, scales every rate; ``calibrate`` finds by bisection the strength whose
 input mIoU over all the written scans (as ``convbki_core.measures.metrics`` computes it: class 0
 ignored, mean over the classes in the ground truth) is the target, within ``TOLERANCE``
-(0.002; a target the model cannot meet within 0.01 is reported as out of reach).
+(0.002; a target the model cannot meet within 0.01 is reported as out of reach):
+``label_noise_calibration``. The neighbour search is ``label_noise_neighbours``.
 """
 
 from __future__ import annotations
 
 import hashlib
-import math
 import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
 
-from convbki_core.compiled import njit, parallel_region, prange
 from convbki_core.datasets import Frame
+from convbki_core.datasets.label_noise_neighbours import nearest_other
 from convbki_core.io.labels import LabelMap
-from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.synth import lidar
 from convbki_core.synth.noise import CONFUSIONS, DIFFICULTY, range_factor
 
@@ -109,9 +108,7 @@ SCAN_MODES = ((0.50, 1.0, 1.0), (0.25, 0.6, 0.95), (0.10, 0.15, 0.45), (0.15, 0.
 THIRD_CLASS = 0.15  # share of the scans in which a confused object of a 3-class group shows the third class
 OBJECT_RAMP = 0.03  # confusion-probability range over which a newly confused object grows to its full share
 BLOB_RAMP = 0.15  # relative rate range over which a newly active blob fills
-MAX_STRENGTH = 40.0
 RANGE_POWER = 2.0  # rates grow with range_factor(range) ** RANGE_POWER
-TOLERANCE = 0.002  # bisection stops this close to the target mIoU
 # Mechanism codes of ``predict``'s second result (which rule set each point's label).
 NONE, POINT, VIEW_BLOB, BOUNDARY, WORLD_BLOB, OBJECT = range(6)
 MECHANISMS = ("none", "point", "view_blob", "boundary", "world_blob", "object")
@@ -126,78 +123,6 @@ def _salt(seed: int, sequence: str, stream: str) -> int:
 def sequence_number(sequence: str) -> int:
     """The sequence as an integer for the hashes (``"05"`` -> 5; a non-numeric name by its CRC)."""
     return int(sequence) if sequence.isdigit() else zlib.crc32(sequence.encode())
-
-
-# ---- neighbour search: voxel hashing ------------------------------------------------------------
-@njit(parallel=True)
-def _nearest_kernel(queries, query_labels, points, labels, cell_keys, cell_start, order, origin, dims, cell,
-                    radius):
-    n = queries.shape[0]
-    out_index = np.full(n, -1, np.int64)
-    out_dist = np.full(n, np.inf, np.float32)
-    r2 = radius * radius
-    for i in prange(n):
-        qx, qy, qz = queries[i, 0], queries[i, 1], queries[i, 2]
-        own = query_labels[i]
-        ix = math.floor(qx / cell) - origin[0]
-        iy = math.floor(qy / cell) - origin[1]
-        iz = math.floor(qz / cell) - origin[2]
-        best, best_j = r2, -1
-        for ax in range(ix - 1, ix + 2):
-            if ax < 0 or ax >= dims[0]:
-                continue
-            for ay in range(iy - 1, iy + 2):
-                if ay < 0 or ay >= dims[1]:
-                    continue
-                for az in range(iz - 1, iz + 2):
-                    if az < 0 or az >= dims[2]:
-                        continue
-                    key = (ax * dims[1] + ay) * dims[2] + az
-                    k = np.searchsorted(cell_keys, key)
-                    if k >= cell_keys.shape[0] or cell_keys[k] != key:
-                        continue
-                    for m in range(cell_start[k], cell_start[k + 1]):
-                        j = order[m]
-                        label = labels[j]
-                        if label == own or label == 0:
-                            continue
-                        dx, dy, dz = points[j, 0] - qx, points[j, 1] - qy, points[j, 2] - qz
-                        d2 = dx * dx + dy * dy + dz * dz
-                        if d2 < best:
-                            best, best_j = d2, j
-        if best_j >= 0:
-            out_index[i] = best_j
-            out_dist[i] = math.sqrt(best)
-    return out_index, out_dist
-
-
-def nearest_other(points: np.ndarray, labels: np.ndarray, radius: float, queries: np.ndarray | None = None,
-                  query_labels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """For each query point: the nearest of ``points`` whose label is neither the query's nor 0,
-    within ``radius`` (m). Returns (index into ``points``, -1 for none; distance float32, inf for
-    none). Queries default to ``points`` themselves (then: the nearest point of another class)."""
-    lidar.require_numba()
-    points = np.ascontiguousarray(points, np.float64)
-    labels = np.ascontiguousarray(labels, np.int64)
-    queries = points if queries is None else np.ascontiguousarray(queries, np.float64)
-    query_labels = labels if query_labels is None else np.ascontiguousarray(query_labels, np.int64)
-    if not len(queries):
-        return np.zeros(0, np.int64), np.zeros(0, np.float32)
-    cell = float(radius)
-    index = np.floor(points / cell).astype(np.int64)
-    origin = np.minimum(index.min(0), np.floor(queries / cell).astype(np.int64).min(0)) - 1 if len(points) \
-        else np.zeros(3, np.int64)
-    index -= origin
-    dims = index.max(0, initial=0) + 3
-    keys = (index[:, 0] * dims[1] + index[:, 1]) * dims[2] + index[:, 2]
-    order = np.argsort(keys, kind="stable")
-    sorted_keys = keys[order]
-    first = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]]) if len(keys) else np.zeros(0, np.int64)
-    cell_keys = np.ascontiguousarray(sorted_keys[first])
-    cell_start = np.append(first, len(keys)).astype(np.int64)
-    with parallel_region():
-        return _nearest_kernel(queries, query_labels, points, labels, cell_keys, cell_start, order,
-                               origin.astype(np.int64), dims.astype(np.int64), cell, float(radius))
 
 
 # ---- the draws of one scan ----------------------------------------------------------------------
@@ -422,79 +347,3 @@ class LabelNoiseModel:
         apply(on_object & (d.object_q < d.object_share * ramp), d.object_class.astype(np.int64), OBJECT)
         return predicted, mechanism
 
-
-def confusion_of(truth: np.ndarray, predicted: np.ndarray, label_map: LabelMap) -> ConfusionMatrix:
-    matrix = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
-    matrix.add(truth, predicted)
-    return matrix
-
-
-@dataclass
-class Calibration:
-    strength: float
-    miou: float  # of the draws calibrated on, at ``strength``
-    reachable: bool
-    evaluations: int
-
-
-def calibrate(model: LabelNoiseModel, draws: ScanDraws, target: float, weight: np.ndarray | None = None,
-              max_iterations: int = 60, on_step: Callable[[float, float], None] | None = None) -> Calibration:
-    """The strength whose input mIoU over ``draws`` is ``target`` (bisection: the mIoU falls with
-    the strength). ``weight``: how many points each draw stands for (a sample), None: 1 each.
-    ``reachable`` is False when even MAX_STRENGTH keeps the mIoU above the target, or the
-    bisection ends further than 0.01 from it (a jump of the mIoU there)."""
-    labels = model.label_map
-    truth = draws.truth.astype(np.int64)
-    scored = truth > 0
-    evaluations = 0
-
-    def miou(strength: float) -> float:
-        nonlocal evaluations
-        evaluations += 1
-        predicted = model.predict(draws, strength)[0]
-        if weight is None:
-            value = confusion_of(truth, predicted, labels).miou()
-        else:
-            c = labels.num_classes
-            counts = np.bincount(truth[scored] * c + predicted[scored], weights=weight[scored],
-                                 minlength=c * c).reshape(c, c)
-            tp = np.diag(counts)
-            union = counts.sum(0) + counts.sum(1) - tp
-            present = counts.sum(1) > 0
-            present[list(labels.ignore_classes)] = False
-            value = float(np.mean(tp[present] / union[present])) if present.any() else math.nan
-        if on_step is not None:
-            on_step(strength, value)
-        return value
-
-    low, high = 0.0, MAX_STRENGTH
-    value_low = miou(low)
-    if value_low <= target:
-        return Calibration(0.0, value_low, abs(value_low - target) <= 0.01, evaluations)
-    value_high = miou(high)
-    if value_high > target + 0.01:
-        return Calibration(high, value_high, False, evaluations)
-    best = (abs(value_high - target), high, value_high)
-    # Bisection on log-strength first decade by decade would also do; plain bisection converges in ~25 steps.
-    for _ in range(max_iterations):
-        middle = 0.5 * (low + high)
-        value = miou(middle)
-        if abs(value - target) < best[0]:
-            best = (abs(value - target), middle, value)
-        if abs(value - target) <= TOLERANCE or high - low < 1e-7:
-            break
-        if value > target:
-            low = middle
-        else:
-            high = middle
-    return Calibration(best[1], best[2], best[0] <= 0.01, evaluations)
-
-
-def sample_draws(draws: ScanDraws, per_class: int, rng: np.random.Generator) -> tuple[ScanDraws, np.ndarray]:
-    """At most about ``per_class`` scored points of each true class (all of a rare one), weighted:
-    what a calibration of a sequence too long to hold whole uses."""
-    truth = draws.truth.astype(np.int64)
-    counts = np.bincount(truth, minlength=32)
-    rate = np.minimum(1.0, per_class / np.maximum(counts, 1))[truth]
-    keep = (rng.random(len(truth)) < rate) & (truth > 0)
-    return draws.subset(keep), (1.0 / rate[keep]).astype(np.float32)

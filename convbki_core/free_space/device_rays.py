@@ -1,6 +1,6 @@
 """Free space's rays walked on a torch device: every crossing of every ray at once.
 
-The compiled pass walks each ray voxel by voxel (``free_space._walk_ray``, Amanatides-Woo),
+The compiled pass walks each ray voxel by voxel (``ray_walk._walk_ray``, Amanatides-Woo),
 which a GPU would do one small step at a time. The same walk, written so that each of its
 steps is computed on its own:
 
@@ -31,7 +31,7 @@ def count_rays_on_device(sensor: np.ndarray, ends: torch.Tensor, weights: torch.
                          counts: torch.Tensor) -> torch.Tensor:
     """Add each ray's weight to ``counts`` (X, Y, Z) float32 on the device, torus order (voxel v at
     v mod dims), at every voxel the ray crosses before its end voxel (and the end voxel too where
-    ``through``): what ``free_space.count_rays`` counts on the host. ``sensor`` (3,) the sensor in
+    ``through``): what ``ray_walk.count_rays`` counts on the host. ``sensor`` (3,) the sensor in
     voxel units; ``ends`` (M, 3) int64, ``weights`` (M,) float32, ``through`` (M,) bool, on the
     device. Returns ``counts``."""
     device = counts.device

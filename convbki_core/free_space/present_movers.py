@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.geometry.volume import TOUCHING_OFFSETS, voxel_indices, voxel_keys
+from convbki_core.geometry.grid import TOUCHING_OFFSETS, voxel_indices, voxel_keys
 
 # How far (m) a mover's marking spreads through the touching points of movable classes: a
 # car's length, so that a mover's mislabelled parts join it and a row of parked cars that

@@ -1,17 +1,14 @@
-"""The local window and the input volume F (paper Eq. 3).
-
-Geometry: the global map is an axis-aligned grid in the map frame with voxel index
-``floor(x / resolution)`` on each axis, so voxel (i, j, k) has its centre at
-``(i + 0.5, j + 0.5, k + 0.5) * resolution``. The local window is a box of that grid
-around the sensor: ``dims`` voxels per axis starting at global index ``origin``. Inside a
-window a voxel is addressed by its linear index ``(x * DY + y) * DZ + z``, the memory
-order of a C-contiguous (X, Y, Z) volume.
+"""The input volume F (paper Eq. 3): a labelled scan voxelised into the local window.
 
 F[c, v] is the sum over the points inside voxel v of their class evidence y_c: a one-hot
 label, or a probability vector. Probability vectors can first be calibrated by a temperature
 T (Guo et al., 2017: p' = softmax(log p / T), the kernel file's ``temperature``; a row keeps
 its sum): a network whose softmax is too soft (under-confident) gets T < 1, one too sharp
 T > 1. T = 1 (or None) leaves the rows exactly as given and costs nothing.
+
+The window's geometry and the voxel index helpers are in ``grid``; here the scan's checks,
+the tempering of probabilities, and the voxeliser: a numpy reference (``voxelize``) and the
+compiled pass that must equal it (``voxelize_scan``).
 """
 
 from __future__ import annotations
@@ -23,123 +20,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from convbki_core.compiled import HAVE_NUMBA, parallel_region
+from convbki_core.geometry.grid import linear_index, voxel_indices
 
 if HAVE_NUMBA:
     from convbki_core.compiled import njit, prange
 if TYPE_CHECKING:
     import torch
-
-
-@dataclass(frozen=True)
-class WindowGeometry:
-    """The local window's shape around the sensor, in voxels of ``resolution`` metres.
-
-    ``bounds_min``/``bounds_max`` are metres relative to the sensor position along the
-    map axes (the paper: [-40, -40, -2.6] .. [40, 40, 2.6]). They are rounded outwards to
-    whole voxels.
-    """
-
-    resolution: float
-    bounds_min: tuple[float, float, float] = (-40.0, -40.0, -2.6)
-    bounds_max: tuple[float, float, float] = (40.0, 40.0, 2.6)
-
-    def __post_init__(self):
-        if not (self.resolution > 0 and math.isfinite(self.resolution)):
-            raise ValueError(f"resolution must be positive metres, got {self.resolution}")
-        if len(self.bounds_min) != 3 or len(self.bounds_max) != 3:
-            raise ValueError("local bounds need three values each (x, y, z)")
-        if any(not lo < hi for lo, hi in zip(self.bounds_min, self.bounds_max)):
-            raise ValueError(f"local bounds must satisfy min < max, got {self.bounds_min} .. {self.bounds_max}")
-
-    @property
-    def offset(self) -> np.ndarray:
-        """Index of the window's first voxel relative to the sensor's voxel, (3,) int64."""
-        return np.floor(np.asarray(self.bounds_min) / self.resolution + 1e-6).astype(np.int64)
-
-    @property
-    def dims(self) -> np.ndarray:
-        """Voxels per axis, (3,) int64 (the paper's set-up: 400, 400, 26)."""
-        end = np.ceil(np.asarray(self.bounds_max) / self.resolution - 1e-6).astype(np.int64)
-        return end - self.offset
-
-    @property
-    def num_voxels(self) -> int:
-        return int(np.prod(self.dims))
-
-    def origin_for(self, sensor_position: np.ndarray) -> np.ndarray:
-        """Global index of the window's first voxel when the sensor is at ``sensor_position`` (map frame, m)."""
-        sensor_voxel = np.floor(np.asarray(sensor_position, dtype=np.float64) / self.resolution).astype(np.int64)
-        return sensor_voxel + self.offset
-
-
-def check_pose(pose: np.ndarray) -> np.ndarray:
-    """Validate a 4x4 homogeneous SE(3) pose (map <- sensor); returns it as float64."""
-    pose = np.asarray(pose, dtype=np.float64)
-    if pose.shape != (4, 4):
-        raise ValueError(f"pose must be a 4x4 matrix, got shape {pose.shape}")
-    if not np.isfinite(pose).all():
-        raise ValueError("pose contains NaN or inf")
-    rotation = pose[:3, :3]
-    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) or np.linalg.det(rotation) < 0:
-        raise ValueError("pose rotation is not a proper rotation matrix (orthonormal, det +1)")
-    if not np.allclose(pose[3], [0, 0, 0, 1]):
-        raise ValueError("pose last row must be [0, 0, 0, 1]")
-    return pose
-
-
-def transform_points(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """Points (N, 3) moved by a 4x4 pose, in float64: ((x r0 + y r1) + z r2) + t per axis.
-
-    Written out term by term (not a BLAS product) so that every path, the compiled
-    voxeliser included, rounds identically and puts a point in the same voxel.
-    """
-    points = np.asarray(points, dtype=np.float64)
-    pose = np.asarray(pose, dtype=np.float64)
-    with np.errstate(invalid="ignore"):  # NaN points stay NaN (dropped later)
-        rotated = (points[:, 0:1] * pose[:3, 0] + points[:, 1:2] * pose[:3, 1]) + points[:, 2:3] * pose[:3, 2]
-        return rotated + pose[:3, 3]
-
-
-def voxel_indices(points: np.ndarray, resolution: float) -> np.ndarray:
-    """Global voxel index (N, 3) int64 of map-frame points (N, 3) in metres."""
-    return np.floor(np.asarray(points, dtype=np.float64) / resolution).astype(np.int64)
-
-
-_KEY_BITS = 21
-_KEY_OFFSET = 1 << (_KEY_BITS - 1)
-# A voxel and its 26 neighbours (faces, edges, corners), as index offsets (27, 3).
-TOUCHING_OFFSETS = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
-
-
-def voxel_keys(indices: np.ndarray) -> np.ndarray:
-    """One int64 per global voxel index (N, 3), each axis within +-2^20 voxels: sets of voxels
-    are then sorted, searched and intersected as plain integers."""
-    shifted = np.asarray(indices, np.int64).reshape(-1, 3) + _KEY_OFFSET
-    return (shifted[:, 0] << (2 * _KEY_BITS)) | (shifted[:, 1] << _KEY_BITS) | shifted[:, 2]
-
-
-def voxel_centres(indices: np.ndarray, resolution: float) -> np.ndarray:
-    """Map-frame centres (N, 3) float64 of global voxel indices (N, 3)."""
-    return (np.asarray(indices, dtype=np.float64) + 0.5) * resolution
-
-
-def linear_index(local: np.ndarray, dims: np.ndarray) -> np.ndarray:
-    """(N, 3) window-local indices -> (N,) linear indices (x-major, z fastest)."""
-    return (local[:, 0] * dims[1] + local[:, 1]) * dims[2] + local[:, 2]
-
-
-def voxels_of_keys(keys: np.ndarray) -> np.ndarray:
-    """The global voxel indices (n, 3) of ``voxel_keys``."""
-    mask = (1 << _KEY_BITS) - 1
-    keys = np.asarray(keys, np.int64)
-    return np.stack([keys >> (2 * _KEY_BITS), (keys >> _KEY_BITS) & mask, keys & mask], axis=1) - _KEY_OFFSET
-
-
-def unravel_linear(linear: np.ndarray, dims: np.ndarray) -> np.ndarray:
-    """(N,) linear indices -> (N, 3) window-local indices."""
-    z = linear % dims[2]
-    rest = linear // dims[2]
-    return np.stack([rest // dims[1], rest % dims[1], z], axis=1)
 
 
 @dataclass
@@ -360,7 +246,7 @@ if HAVE_NUMBA:
                 code[i] = -1
                 continue
             if use_probabilities:
-                # One pass over the row decides what probabilities.bad_probability_rows decides. A
+                # One pass over the row decides what bad_probability_rows decides. A
                 # float64 sum of float32 values cannot overflow, so it is finite exactly when
                 # every value is; with no negative value it is positive exactly when one value is.
                 total = 0.0
@@ -383,7 +269,7 @@ if HAVE_NUMBA:
                 if ignored[label]:
                     code[i] = -3
                     continue
-            # Same operation order as voxelize.transform_points: identical rounding, identical voxels.
+            # Same operation order as grid.transform_points: identical rounding, identical voxels.
             vx = np.int64(np.floor((((x * pose[0, 0] + y * pose[0, 1]) + z * pose[0, 2]) + pose[0, 3]) / resolution))
             vy = np.int64(np.floor((((x * pose[1, 0] + y * pose[1, 1]) + z * pose[1, 2]) + pose[1, 3]) / resolution))
             vz = np.int64(np.floor((((x * pose[2, 0] + y * pose[2, 1]) + z * pose[2, 2]) + pose[2, 3]) / resolution))
@@ -513,7 +399,7 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
     passes over the voxels, not the points), and the points are summed into their rows in
     point order. Probabilities are judged and summed
     in float32, as ``voxelize`` does; with a ``temperature`` other than 1 the kept rows are
-    calibrated first (a compiled pass on every core). Returns a ``voxelize.SparseVolume``
+    calibrated first (a compiled pass on every core). Returns a ``SparseVolume``
     equal to the numpy path's (same voxels, same sums, same counts).
     """
     temperature = check_temperature(temperature)
@@ -521,7 +407,7 @@ def voxelize_scan(points: np.ndarray, values: np.ndarray, pose: np.ndarray, orig
     ignored = np.zeros(num_classes, np.bool_)
     ignored[[c for c in ignore_classes if 0 <= c < num_classes]] = True
     labels = np.zeros(0, np.int64) if with_probabilities else np.ascontiguousarray(values, np.int64)
-    with np.errstate(over="ignore"):  # beyond float32: inf, then dropped (as voxelize.check_scan does)
+    with np.errstate(over="ignore"):  # beyond float32: inf, then dropped (as check_scan does)
         probabilities = (np.ascontiguousarray(values, np.float32) if with_probabilities
                          else np.zeros((0, num_classes), np.float32))
     points = np.ascontiguousarray(points)

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from convbki_core.compiled import HAVE_NUMBA, parallel_region
-from convbki_core.geometry.volume import SparseVolume, unravel_linear
+from convbki_core.geometry.grid import unravel_linear
+from convbki_core.geometry.volume import SparseVolume
 from convbki_core.inference.layer import ConvBKILayer
 from convbki_core.memory.window import CHANGED, EVIDENCE
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from convbki_core.correction.replay import CorrectionResult
-from convbki_core.geometry.volume import TOUCHING_OFFSETS, transform_points, voxel_keys
+from convbki_core.geometry.grid import TOUCHING_OFFSETS, transform_points, voxel_keys
 from convbki_core.inference.statistics import dirichlet_statistics
 from convbki_core.measures.metrics import ConfusionMatrix
 

@@ -32,16 +32,9 @@ from dataclasses import dataclass, field, replace
 import numba
 import numpy as np
 
-from convbki_core.costmap.columns import (
-    FREE_MAX,
-    LETHAL,
-    LETHAL_MIN,
-    UNKNOWN,
-    CostGrid,
-    TraversabilityProfile,
-    column_costs,
-    rasterise,
-)
+from convbki_core.costmap.columns import UNKNOWN, column_costs
+from convbki_core.costmap.grid import CostGrid, rasterise
+from convbki_core.costmap.profile import FREE_MAX, LETHAL, LETHAL_MIN, TraversabilityProfile
 
 COST_WEIGHT = 25.0
 GROUPS = ("free", "costly", "lethal")

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from convbki_core.geometry.volume import TOUCHING_OFFSETS, voxel_indices, voxel_keys
+from convbki_core.geometry.grid import TOUCHING_OFFSETS, voxel_indices, voxel_keys
 
 
 def _grown(indices: np.ndarray) -> np.ndarray:

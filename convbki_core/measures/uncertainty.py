@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.free_space.rays import FREE_CLASS
+from convbki_core.free_space.update import FREE_CLASS
 from convbki_core.measures.metrics import ConfusionMatrix
 
 BINS = 15

@@ -20,7 +20,7 @@ import sys
 import numpy as np
 
 from convbki_core.compiled import HAVE_NUMBA
-from convbki_core.geometry.volume import linear_index, unravel_linear
+from convbki_core.geometry.grid import linear_index, unravel_linear
 from convbki_core.memory.compact_rows import compress_rows, entry_ranges, entry_starts, expand_rows
 
 if HAVE_NUMBA:

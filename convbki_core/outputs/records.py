@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from convbki_core.compiled import HAVE_NUMBA, parallel_region
-from convbki_core.geometry.volume import voxel_centres
+from convbki_core.geometry.grid import voxel_centres
 from convbki_core.inference.statistics import dirichlet_statistics
 
 RECORD = np.dtype({"names": ["x", "y", "z", "rgb", "label", "variance", "confidence"],

@@ -16,7 +16,8 @@ import numpy as np
 import torch
 
 from convbki_core.datasets import SequenceDataset
-from convbki_core.geometry.volume import WindowGeometry, transform_points, voxelize
+from convbki_core.geometry.grid import WindowGeometry, transform_points
+from convbki_core.geometry.volume import voxelize
 from convbki_core.io.labels import load_label_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.offline import integrate_frames, paper_mapper, query_ms, read_frames, update_ms
@@ -213,7 +214,9 @@ def costmap_figures(frames: list, repeat: int, device: str = "cpu") -> dict:
     window, read from the window in place, as the node does) after each scan, free space on,
     with 1 M and with 10 M voxels stored elsewhere in the map; and, with 1 M, a refresh of a
     40 m grid centred on the sensor (``costmap_size`` 40), which reads only its own columns."""
-    from convbki_core.costmap.columns import grid_of_window, load_profile, rolling_geometry
+    from convbki_core.costmap.grid import rolling_geometry
+    from convbki_core.costmap.profile import load_profile
+    from convbki_core.costmap.window_pass import grid_of_window
     from convbki_core.paths import traversability_profile
 
     label_map = load_label_map("semantic_kitti")

@@ -9,6 +9,8 @@ On the same points the map's uncertainty is measured (``calibration``): ECE, NLL
 score of its class distributions (and of the input's, given probabilities), the paper's
 variance-filter curve, and a reliability diagram.
 Several ``--kernel`` files are evaluated one after another on the same frames (ablations).
+This module is the command line; ``evaluate_run`` maps and scores, ``evaluate_report`` writes
+the report, the figures and the printed summary.
 """
 
 from __future__ import annotations
@@ -17,255 +19,33 @@ import argparse
 import json
 import os
 import sys
-import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
-from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
+from convbki_core.config import DEFAULTS, UPDATE_PATHS
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.free_space.clamping import check_limit
-from convbki_core.geometry.volume import tempers, transform_points
+from convbki_core.geometry.volume import tempers
 from convbki_core.io.atomic import atomic_write_bytes
 from convbki_core.io.kernel_file import load_kernel_file
-from convbki_core.mapper import ConvBKIMapper
 from convbki_core.measures.metrics import ConfusionMatrix
-from convbki_core.measures.trails import StaticCoverage, SweptSpace
-from convbki_core.measures.uncertainty import (
-    CalibrationStats,
-    MapCalibration,
-    input_distribution,
-    tempered_distribution,
-)
-from convbki_core.offline import map_frame_labels
+from convbki_core.measures.uncertainty import CalibrationStats
 from convbki_core.tools.cli import (
     NewOutputs,
     UserError,
     device_arg,
     frames_arg,
     output_folder,
-    progress,
     run,
     say_notices,
     sequence_arg,
     window_bounds,
 )
-from convbki_core.warm_up import warm_up
+from convbki_core.tools.evaluate_report import build_report, print_summary, save_pictures, write_costmap_report
+from convbki_core.tools.evaluate_run import drift_study_of, evaluate_kernel
 
 PROG = "evaluate"
-
-
-@dataclass
-class KernelRun:
-    """The outcome of mapping one sequence with one kernel."""
-
-    kernel_file: str
-    kernel: str
-    map_scores: ConfusionMatrix
-    update_ms: list[float] = field(default_factory=list)
-    query_ms: list[float] = field(default_factory=list)
-    mapper: ConvBKIMapper | None = None
-    trail_voxels: int | None = None  # None: the ground truth marks no moving objects
-    static_coverage: float | None = None  # share of every tenth scan's static points the final map shows
-    moving_labels_used: bool = False  # some frame's input marked moving points, and they were used
-    # The same protocol on the points the ground truth marks as moving only: input and map.
-    moving_input_scores: ConfusionMatrix | None = None
-    moving_map_scores: ConfusionMatrix | None = None
-    # ... and on the points it does not mark as moving (parked and standing objects, everything
-    # static): the movable classes' IoU there says whether the map keeps what did not move.
-    static_input_scores: ConfusionMatrix | None = None
-    static_map_scores: ConfusionMatrix | None = None
-    calibration: MapCalibration | None = None  # the map's uncertainty on the scored points
-
-
-def write_label_file(path: Path, learning_labels: np.ndarray, label_map) -> None:
-    """One submission file: uint32 raw ids (learning_map_inv), file order kept.
-
-    Written plainly: the command writes into a staging folder that becomes visible only
-    when the whole run succeeded (``NewOutputs``).
-    """
-    path.write_bytes(label_map.to_raw(learning_labels).astype("<u4").tobytes())
-
-
-def evaluate_kernel(dataset: SemanticKittiSequence, positions: Sequence[int], kernel_file: str | Path,
-                    mapper_config: MapperConfig, input_scores: ConfusionMatrix | None, labels_folder: Path | None,
-                    show_progress: bool = True, input_calibration: CalibrationStats | None = None,
-                    tempered_calibration: CalibrationStats | None = None, truth_voxels=None,
-                    moving_labels: bool = True, input_voxels=None) -> KernelRun:
-    """Map ``positions`` of ``dataset`` with one kernel and score every frame as it is integrated.
-
-    ``input_scores`` (when given) also receives the input segmentation's confusion counts, and
-    ``input_calibration`` (when given) the input's class probabilities (frames without any are skipped),
-    and ``tempered_calibration`` (when given) the same calibrated by the kernel's temperature;
-    the run's ``calibration`` measures the map's class distributions on the scored points;
-    ``labels_folder`` (when given, an existing folder) receives one NNNNNN.label per frame.
-    Where the ground truth marks moving objects, the run also counts the map's trail voxels.
-    ``mapper_config``: how to map (the dataset's label map decides the ignored and movable classes).
-    ``truth_voxels`` (a ``costmap_eval.GroundTruthVoxels``, when given) receives every frame's
-    ground-truth points, for the costmap's report, and ``input_voxels`` (the same, when given) the
-    input's labels of those points. ``moving_labels``: where the input marks
-    moving points (raw ids such as 252-259), they are evidence for their scan only
-    (``present_movers``); False maps them as their static classes.
-    """
-    config = load_kernel_file(kernel_file)
-    label_map = dataset.label_map
-    if config.num_classes != label_map.num_classes:
-        raise UserError(f"{kernel_file}: kernel has {config.num_classes} classes, the dataset {label_map.num_classes}")
-    mapper_config = mapper_config.replace(ignore_classes=label_map.ignore_classes,
-                                          movable_classes=label_map.movable_classes,
-                                          ground_classes=label_map.ground_classes)
-    mapper = ConvBKIMapper(mapper_config, config)
-    if mapper.scan_log is not None:  # map_tool correct reads a poses file with the scans' calibration
-        mapper.scan_log.calibration = dataset.calibration
-    warm_up(mapper)  # every kernel compiled (or loaded) before the first timed frame
-    run_result = KernelRun(str(kernel_file), config.kernel, ConfusionMatrix(label_map.num_classes,
-                                                                             label_map.ignore_classes), mapper=mapper)
-    run_result.calibration = MapCalibration(label_map.num_classes, label_map.ignore_classes,
-                                            free_space=mapper.free_space)
-    run_result.static_input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
-    run_result.static_map_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
-    out_folder = labels_folder
-    swept = SweptSpace(mapper.resolution)
-    coverage = StaticCoverage(mapper.resolution)
-    frames = (dataset[position] for position in positions)
-    if show_progress:
-        frames = progress(frames, total=len(positions), description=f"{Path(kernel_file).stem}")
-    for frame in frames:
-        if frame.ground_truth is None:
-            raise DatasetError(f"{dataset.folder}: no labels/ folder, so there is no ground truth to score against")
-        input_labels = frame.input_labels if frame.input_labels is not None else frame.probabilities.argmax(axis=1)
-        moving = frame.input_moving if moving_labels else None
-        run_result.moving_labels_used |= moving is not None
-        result = mapper.integrate(frame.points, frame.input_values, frame.pose, moving,
-                                  stamp_ns=round(frame.stamp * 1e9))
-        started = time.perf_counter()
-        predicted = map_frame_labels(mapper, frame.points, frame.pose, input_labels)
-        labelling_ms = 1e3 * (time.perf_counter() - started)
-        timing = result.timing_ms
-        run_result.update_ms.append(timing["voxelize"] + timing["update"] + timing["free"])
-        run_result.query_ms.append(timing["query"] + labelling_ms)
-        run_result.map_scores.add(frame.ground_truth, predicted)
-        points_map = transform_points(frame.points, frame.pose)  # for the uncertainty and the trails
-        run_result.calibration.add(mapper, points_map, frame.ground_truth)
-        if input_scores is not None:
-            input_scores.add(frame.ground_truth, input_labels)
-        if input_calibration is not None and frame.probabilities is not None:
-            input_calibration.add(frame.ground_truth, input_distribution(frame.probabilities))
-        if tempered_calibration is not None and frame.probabilities is not None:
-            tempered_calibration.add(frame.ground_truth, tempered_distribution(frame.probabilities, config.temperature))
-        if out_folder is not None:
-            write_label_file(out_folder / f"{frame.name}.label", predicted, label_map)
-        still = ~frame.moving if frame.moving is not None else slice(None)
-        run_result.static_input_scores.add(frame.ground_truth[still], input_labels[still])
-        run_result.static_map_scores.add(frame.ground_truth[still], predicted[still])
-        if frame.moving is not None and label_map.movable_classes:
-            swept.add(points_map, frame.moving)
-            if run_result.moving_map_scores is None:
-                run_result.moving_input_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
-                run_result.moving_map_scores = ConfusionMatrix(label_map.num_classes, label_map.ignore_classes)
-            run_result.moving_input_scores.add(frame.ground_truth[frame.moving], input_labels[frame.moving])
-            run_result.moving_map_scores.add(frame.ground_truth[frame.moving], predicted[frame.moving])
-        coverage.add(points_map, frame.ground_truth, frame.moving)
-        if truth_voxels is not None:
-            truth_voxels.add(points_map, frame.ground_truth, frame.moving, frame.pose[:3, 3],
-                             mapper_config.window.local_bounds)
-        if input_voxels is not None:  # the input's labels of the points the truth counts (not its unlabelled ones)
-            input_voxels.add(points_map, np.where(frame.ground_truth > 0, input_labels, 0), frame.moving,
-                             frame.pose[:3, 3], mapper_config.window.local_bounds)
-    voxels = mapper.voxels()
-    if swept.moving_points:
-        run_result.trail_voxels = swept.trail_voxels(voxels.indices, voxels.label, label_map.movable_classes)
-    run_result.static_coverage = coverage.coverage(voxels.indices, voxels.label)
-    return run_result
-
-
-def format_table(class_names: Sequence[str], input_scores: ConfusionMatrix, runs: Sequence[KernelRun]) -> str:
-    """Per-class IoU (%) table: one row per class present in the ground truth, one column per input/kernel."""
-    headers = ["class", "input"] + [Path(r.kernel_file).stem.replace("semantic_kitti_", "") for r in runs]
-    width = max(12, *(len(h) for h in headers[1:]))
-    lines = [f"{headers[0]:<14}" + "".join(f"{h:>{width + 1}}" for h in headers[1:])]
-    ious = [input_scores.iou()] + [r.map_scores.iou() for r in runs]
-    for class_id in np.flatnonzero(input_scores.present):
-        lines.append(f"{class_names[class_id]:<14}" + "".join(f"{100 * iou[class_id]:>{width + 1}.1f}" for iou in ious))
-    scores = [input_scores] + [r.map_scores for r in runs]
-    lines.append(f"{'mIoU':<14}" + "".join(f"{100 * s.miou():>{width + 1}.1f}" for s in scores))
-    lines.append(f"{'accuracy':<14}" + "".join(f"{100 * s.accuracy():>{width + 1}.1f}" for s in scores))
-    return "\n".join(lines)
-
-
-def build_report(sequence: str, frame_count: int, class_names: Sequence[str], input_scores: ConfusionMatrix,
-                 runs: Sequence[KernelRun], input_calibration: CalibrationStats | None = None,
-                 tempered: tuple[float, CalibrationStats] | None = None,
-                 movable_classes: Sequence[int] = ()) -> dict:
-    """report.json (docs/evaluation.md): the first kernel at the top level, every kernel under "runs".
-
-    ``input_calibration``: the input's probabilities measured (None: labels only, so the input's
-    ECE, NLL and Brier score are null); ``tempered``: (the first kernel's temperature, the input's
-    probabilities measured after calibration by it), when that temperature is not 1;
-    ``movable_classes``: where the ground truth marks movers, the classes that move, whose IoU
-    the report gives for the input and the map side by side.
-    """
-
-    def recall(scores: ConfusionMatrix | None, c: int) -> float | None:
-        if scores is None or not scores.counts[c].sum():
-            return None
-        return float(scores.counts[c, c] / scores.counts[c].sum())
-
-    def iou(scores: ConfusionMatrix | None, c: int) -> float | None:
-        if scores is None or not scores.present[c]:
-            return None
-        return float(scores.iou()[c])
-
-    def movable_entry(run_result: KernelRun) -> dict:
-        """Per movable class: IoU of input and map over all points; over the points the ground
-        truth does not mark as moving (parked and standing objects) and over those it does;
-        and the share of the moving points that each labels right."""
-        input_iou, map_iou = input_scores.iou(), run_result.map_scores.iou()
-        return {class_names[c]: {"input_iou": float(input_iou[c]), "map_iou": float(map_iou[c]),
-                                 "map_minus_input": float(map_iou[c] - input_iou[c]),
-                                 "static_input_iou": iou(run_result.static_input_scores, c),
-                                 "static_map_iou": iou(run_result.static_map_scores, c),
-                                 "moving_input_iou": iou(run_result.moving_input_scores, c),
-                                 "moving_map_iou": iou(run_result.moving_map_scores, c),
-                                 "moving_points_input_recall": recall(run_result.moving_input_scores, c),
-                                 "moving_points_map_recall": recall(run_result.moving_map_scores, c)}
-                for c in movable_classes if input_scores.present[c]}
-
-    def run_entry(run_result: KernelRun) -> dict:
-        scores = run_result.map_scores.summary(class_names)
-        if run_result.calibration is not None:
-            scores.update(run_result.calibration.summary())
-        if run_result.trail_voxels is not None:
-            scores["trail_voxels"] = run_result.trail_voxels
-        scores["static_coverage"] = run_result.static_coverage
-        if movable_classes:
-            scores["movable_classes"] = movable_entry(run_result)
-        return {"kernel": run_result.kernel, "kernel_file": run_result.kernel_file,
-                "free_space": run_result.mapper.free_space, "moving_labels": run_result.moving_labels_used,
-                "forget_movers": run_result.mapper.forgetting is not None,
-                "max_concentration": run_result.mapper.max_concentration, "map": scores,
-                "timing_ms": {"update_median": float(np.median(run_result.update_ms)),
-                              "query_median": float(np.median(run_result.query_ms))}}
-
-    entries = [run_entry(r) for r in runs]
-    input_entry = input_scores.summary(class_names)
-    if input_calibration is not None and input_calibration.points:
-        input_entry.update(input_calibration.summary(with_curve=False))
-        input_entry["calibration_points"] = input_calibration.points
-    else:
-        input_entry.update({"ece": None, "nll": None, "brier": None})
-    if tempered is not None and tempered[1].points:
-        input_entry["tempered"] = {"temperature": tempered[0], **tempered[1].summary(with_curve=False)}
-    report = {"sequence": sequence, "frames": frame_count, "kernel": entries[0]["kernel"],
-              "kernel_file": entries[0]["kernel_file"], "input": input_entry,
-              "free_space": entries[0]["free_space"], "max_concentration": entries[0]["max_concentration"],
-              "map": entries[0]["map"], "timing_ms": entries[0]["timing_ms"]}
-    if len(entries) > 1:
-        report["runs"] = entries
-    return report
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -349,26 +129,6 @@ def check_writable_file(path: str | Path, flag: str) -> None:
         raise UserError(f"{folder}: folder is not writable (for {flag} {path})")
 
 
-def _drift_study(dataset, positions, kernel_file, mapper_config: MapperConfig, quiet: bool):
-    """On a drift drive (``loop_closure.yaml``) whose frames cross the loop closure: the maps
-    without correction, corrected and from scratch (``correction_eval``); else None."""
-    from convbki_core.datasets.drift import read_loop_closure
-    from convbki_core.measures.correction_eval import drift_study
-
-    closure = read_loop_closure(dataset)
-    if closure is None or not positions[0] < closure.closure_frame <= positions[-1]:
-        return None
-    label_map = dataset.label_map
-    config = mapper_config.replace(ignore_classes=label_map.ignore_classes, movable_classes=label_map.movable_classes,
-                                   ground_classes=label_map.ground_classes, scan_log=True)
-    kernel = load_kernel_file(kernel_file)
-
-    def show(frames, what):
-        return frames if quiet else progress(frames, total=len(positions), description=f"drift: {what}")
-
-    return drift_study(dataset, positions, closure, lambda: ConvBKIMapper(config, kernel), show)
-
-
 def _evaluate(args: argparse.Namespace) -> int:
     outputs = NewOutputs()
     try:
@@ -420,7 +180,7 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     label_map = dataset.label_map
     costmap_profile = truth_voxels = input_voxels = None
     if args.costmap_report:
-        from convbki_core.costmap.columns import ProfileError, load_profile
+        from convbki_core.costmap.profile import ProfileError, load_profile
         from convbki_core.measures.costmap_eval import GroundTruthVoxels
         from convbki_core.paths import traversability_profile
 
@@ -455,50 +215,12 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     movable = label_map.movable_classes
     report = build_report(dataset.sequence, len(positions), label_map.class_names, input_scores, runs,
                           input_calibration, tempered, movable)
-    drift = _drift_study(dataset, positions, kernels[0], mapper_config, args.quiet)
+    drift = drift_study_of(dataset, positions, kernels[0], mapper_config, args.quiet)
     if drift is not None:
         report["drift"] = drift.report()
 
-    from convbki_core.tools.plots import save_map_picture, save_reliability_diagram
-
-    pictures = []
-    for run_result in runs:
-        if args.picture and len(runs) == 1:
-            picture = Path(args.picture)
-        else:
-            suffix = "" if len(runs) == 1 else "_" + Path(run_result.kernel_file).stem
-            picture = report_path.with_name(f"{report_path.stem}{suffix}_map.png")
-        voxels = run_result.mapper.voxels()
-        title = (f"sequence {dataset.sequence}, {len(positions)} frames, {Path(run_result.kernel_file).stem}: "
-                 f"map mIoU {run_result.map_scores.miou():.3f} (input {input_scores.miou():.3f})")
-        save_map_picture(voxels, label_map, run_result.mapper.resolution, outputs.file(picture), title)
-        pictures.append(picture)
-        suffix = "" if len(runs) == 1 else "_" + Path(run_result.kernel_file).stem
-        reliability_path = report_path.with_name(f"{report_path.stem}{suffix}_reliability.png")
-        stats = run_result.calibration.stats
-        diagrams = {"map": (stats.reliability(), stats.ece())}
-        if input_calibration is not None and input_calibration.points:
-            diagrams["input"] = (input_calibration.reliability(), input_calibration.ece())
-        if tempered is not None and tempered[1].points and run_result is runs[0]:
-            diagrams[f"input, T = {tempered[0]:.3g}"] = (tempered[1].reliability(), tempered[1].ece())
-        save_reliability_diagram(diagrams, outputs.file(reliability_path), stats.variance_curve(),
-                                 title=f"sequence {dataset.sequence}, {len(positions)} frames, "
-                                 f"{Path(run_result.kernel_file).stem}")
-        pictures.append(reliability_path)
-    if drift is not None:
-        from convbki_core.tools.plots import save_maps_side_by_side
-
-        drift_picture = report_path.with_name(f"{report_path.stem}_drift.png")
-        before, after = drift.maps[0], drift.maps[1]
-        save_maps_side_by_side(
-            [(f"{before.name}: double surface {before.double_surface:.3f}, mIoU {before.miou:.3f}",
-              before.mapper.voxels()),
-             (f"{after.name}: double surface {after.double_surface:.3f}, mIoU {after.miou:.3f}",
-              after.mapper.voxels())],
-            label_map, before.mapper.resolution, outputs.file(drift_picture),
-            f"sequence {dataset.sequence}: the loop closes at frame {drift.closure_frame}, the odometry "
-            f"{drift.drift_m:.2f} m off")
-        pictures.append(drift_picture)
+    pictures = save_pictures(dataset, positions, runs, input_scores, input_calibration, tempered, drift,
+                             report_path, args.picture, outputs)
     costmap_lines = []
     if args.costmap_report:
         costmap_lines = write_costmap_report(runs[0].mapper, truth_voxels, costmap_profile, label_map,
@@ -509,94 +231,9 @@ def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
     atomic_write_bytes(outputs.file(report_path), (json.dumps(report, indent=2) + "\n").encode())
     outputs.commit()
 
-    print(f"sequence {dataset.sequence}, {len(positions)} frames: IoU per class (%)")
-    print(format_table(label_map.class_names, input_scores, runs))
-    for run_result in runs:
-        print(f"{Path(run_result.kernel_file).stem}: map mIoU {run_result.map_scores.miou():.4f} vs input "
-              f"{input_scores.miou():.4f} ({run_result.map_scores.miou() - input_scores.miou():+.4f}); "
-              f"update {np.median(run_result.update_ms):.1f} ms, query {np.median(run_result.query_ms):.1f} ms "
-              f"(median), {len(run_result.mapper)} voxels"
-              + ("" if run_result.trail_voxels is None else f", {run_result.trail_voxels} trail voxels")
-              + ("" if run_result.static_coverage is None
-                 else f", static coverage {100 * run_result.static_coverage:.1f} %")
-              + (", the input's moving labels used" if run_result.moving_labels_used else ""))
-        if movable:
-            entry = (report["runs"][runs.index(run_result)] if "runs" in report else report)["map"]["movable_classes"]
-            print("  movable classes, IoU % input -> map; not moving (parked, standing) | moving: " + ", ".join(
-                f"{name} {100 * v['input_iou']:.1f} -> {100 * v['map_iou']:.1f}; "
-                + _pair(v["static_input_iou"], v["static_map_iou"]) + " | " + _pair(v["moving_input_iou"],
-                                                                                      v["moving_map_iou"])
-                for name, v in entry.items()))
-        calibration = run_result.calibration.summary()
-        line = (f"  uncertainty on {calibration['calibration_points']} scored points with map evidence "
-                f"({calibration['points_without_evidence']} without): map ECE {_number(calibration['ece'])}, "
-                f"NLL {_number(calibration['nll'])}, Brier {_number(calibration['brier'])}")
-        if run_result is runs[0]:
-            line += (f"; input ECE {_number(report['input']['ece'])}, NLL {_number(report['input']['nll'])}, "
-                     f"Brier {_number(report['input']['brier'])}")
-            if "tempered" in report["input"]:
-                scaled = report["input"]["tempered"]
-                line += (f"; input at temperature {scaled['temperature']:g}: ECE {_number(scaled['ece'])}, "
-                         f"NLL {_number(scaled['nll'])}, Brier {_number(scaled['brier'])}")
-        print(line)
-    for line in costmap_lines:
-        print(line)
-    for line in drift.lines() if drift is not None else []:
-        print(line)
-    print(f"report: {report_path}; pictures: {', '.join(map(str, pictures))}")
-    if args.write_labels:
-        print(f"labels: {Path(args.write_labels) / 'sequences' / dataset.sequence / 'predictions'}")
-    if args.save_map:
-        print(f"map: {args.save_map} ({len(runs[0].mapper)} voxels)")
+    print_summary(dataset, positions, runs, input_scores, report, report_path, pictures, costmap_lines, drift,
+                  args.write_labels, args.save_map)
     return 0
-
-
-def write_costmap_report(mapper, truth_voxels, profile, label_map, path: Path, outputs: NewOutputs,
-                         input_voxels=None) -> list[str]:
-    """Score the map's costmap, the projected-occupancy baseline and (``input_voxels`` given) the
-    input segmentation's grid against the ground truth's (``costmap_eval``); write the JSON and a
-    picture (map, baseline, truth; one planned path); return the lines to print."""
-    from convbki_core.measures.costmap_eval import grids_for, planning_check, road_cells, score_grid
-    from convbki_core.tools.plots import save_costmap_pictures
-
-    indices, alpha = mapper.items()
-    grids = grids_for(indices, alpha, truth_voxels, mapper.resolution, mapper.prior, profile, input_voxels)
-    road = road_cells(truth_voxels, grids["truth"], label_map.class_names.index("road"))
-    report = {"profile": profile.name, "resolution": mapper.resolution, "cells": int(grids["truth"].values.size)}
-    lines = [f"costmap ({profile.name}) against the ground truth's, on "
-             f"{int((grids['truth'].values >= 0).sum())} observed cells:"]
-    for name in [name for name in ("map", "baseline", "input") if name in grids]:
-        scores = score_grid(grids[name].values, grids["truth"].values)
-        check = planning_check(grids[name].values, grids["truth"].values, road)
-        report[name] = {"precision": scores.precision, "recall": scores.recall,
-                        "unknown_share": scores.unknown_share, "planning": check.summary()}
-        summary = check.summary()
-
-        def pct(value):
-            return "-" if value is None else f"{100 * value:.1f}"
-
-        lines.append(f"  {name:8s} precision free {pct(scores.precision['free'])} costly "
-                     f"{pct(scores.precision['costly'])} lethal {pct(scores.precision['lethal'])}; recall free "
-                     f"{pct(scores.recall['free'])} costly {pct(scores.recall['costly'])} lethal "
-                     f"{pct(scores.recall['lethal'])}; unknown {pct(scores.unknown_share)} %; paths "
-                     f"{summary['planned_on_both']}/{summary['pairs']}, crossing truth-lethal "
-                     f"{summary['crossing_truth_lethal']}, length ratio median "
-                     f"{_number(summary['length_ratio_median'])}")
-    picture = path.with_suffix(".png")
-    save_costmap_pictures({name: grids[name] for name in ("map", "baseline", "truth")}, road,
-                          outputs.file(picture), title=f"costmap, {profile.name} profile")
-    atomic_write_bytes(outputs.file(path), (json.dumps(report, indent=2) + "\n").encode())
-    lines.append(f"costmap report: {path}; picture: {picture}")
-    return lines
-
-
-def _pair(before: float | None, after: float | None) -> str:
-    """``input -> map`` IoU in %, or ``-`` where the class has no such points."""
-    return "-" if before is None or after is None else f"{100 * before:.1f} -> {100 * after:.1f}"
-
-
-def _number(value: float | None) -> str:
-    return "n/a" if value is None else f"{value:.4f}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

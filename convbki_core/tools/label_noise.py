@@ -144,6 +144,7 @@ def _label_noise(args: argparse.Namespace) -> int:
 
     from convbki_core.datasets import DatasetError, parse_frames
     from convbki_core.datasets import label_noise as model_module
+    from convbki_core.datasets.label_noise_calibration import calibrate, sample_draws
     from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
     from convbki_core.io.atomic import atomic_write_bytes, remove_stale_staging_folders, staging_prefix
     from convbki_core.io.labels import load_label_map
@@ -188,7 +189,7 @@ def _label_noise(args: argparse.Namespace) -> int:
         if exact:
             kept.append(draws)
         else:
-            sample, weight = model_module.sample_draws(draws, per_class, rng)
+            sample, weight = sample_draws(draws, per_class, rng)
             kept.append(sample)
             weights.append(weight)
     everything = model_module.ScanDraws.join(kept)
@@ -207,7 +208,7 @@ def _label_noise(args: argparse.Namespace) -> int:
             bar.update(1)
 
     try:
-        calibration = model_module.calibrate(model, everything, args.input_miou, weight, on_step=step)
+        calibration = calibrate(model, everything, args.input_miou, weight, on_step=step)
     finally:
         if bar is not None:
             bar.close()

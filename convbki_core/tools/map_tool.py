@@ -10,12 +10,13 @@
 * ``export-ply``: the voxel centres in class colours, for CloudCompare, Open3D or MeshLab;
 * ``costmap``: the map's traversability grid for a robot profile (``convbki_core.costmap.columns``),
   as the node's ``~/get_costmap`` gives it, to a ``.npz`` or a ``.png``.
+
+This module is the command line; ``map_info`` reads what a map holds, ``map_merge`` sums maps.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,13 +25,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from convbki_core.tools.cli import UserError, output_folder, positive, run
+from convbki_core.tools.map_info import class_names_for, format_info, map_info
+from convbki_core.tools.map_merge import check_same, merge_arrays
 
 if TYPE_CHECKING:
-    from convbki_core.mapper import VoxelSet
+    from convbki_core.map_contents import VoxelSet
 
 PROG = "map_tool"
-# Relative tolerance when comparing resolutions and priors read back from JSON metadata.
-SAME_VALUE = 1e-9
 
 
 class _Parser(argparse.ArgumentParser):
@@ -59,156 +60,7 @@ def _check_output(path: str, force: bool) -> Path:
     return out
 
 
-# -- info ---------------------------------------------------------------------------------
-def class_names_for(metadata: dict) -> list[str] | None:
-    """Class names for the map's classes: the metadata's, else SemanticKITTI's when the count matches."""
-    from convbki_core.io.labels import load_label_map
-
-    names = metadata.get("class_names")
-    if isinstance(names, list) and len(names) == metadata["num_classes"]:
-        return [str(name) for name in names]
-    label_map = load_label_map("semantic_kitti")
-    return list(label_map.class_names) if label_map.num_classes == metadata["num_classes"] else None
-
-
-def map_info(path: str | Path) -> dict:
-    """Everything ``info`` reports about one map file, as JSON-ready values (lengths in m)."""
-    from convbki_core.inference.statistics import dirichlet_statistics
-    from convbki_core.io.map_file import read_map
-    from convbki_core.memory.store import VoxelStore
-
-    metadata, indices, alpha = read_map(path, with_scan_log=True)
-    resolution = float(metadata["resolution"])
-    num_classes = metadata["num_classes"]
-    bounds = None
-    if len(indices):
-        low, high = indices.min(axis=0), indices.max(axis=0)
-        # Metres: the box the voxels fill, from the low corner of the first to the high corner of the last.
-        bounds = {"index_min": low.tolist(), "index_max": high.tolist(),
-                  "metres_min": [round(v, 9) for v in (low * resolution).tolist()],
-                  "metres_max": [round(v, 9) for v in ((high + 1) * resolution).tolist()]}
-    counts = np.bincount(dirichlet_statistics(alpha).label, minlength=num_classes)
-    names = class_names_for(metadata)
-    kernel = metadata.get("kernel")
-    # Measured: the map as the mapper's global store holds it once loaded.
-    store = VoxelStore(num_classes, prior=float(metadata.get("prior") or 1e-3))
-    store.write(indices, alpha)
-    memory = store.resident_bytes
-    del store
-    return {
-        "file": str(path), "file_bytes": Path(path).stat().st_size,
-        "format": metadata.get("format"), "version": metadata.get("version"),
-        "frame_id": metadata.get("frame_id"), "resolution": resolution, "num_voxels": len(indices),
-        "bounds": bounds, "prior": metadata.get("prior"),
-        "kernel": kernel.get("kernel") if isinstance(kernel, dict) else None,
-        "scans_integrated": metadata.get("scans_integrated"), "num_classes": num_classes,
-        "class_voxels": [{"class": c, "name": names[c] if names else None, "voxels": int(counts[c])}
-                         for c in range(num_classes)],
-        "bytes_per_voxel": round(memory / len(indices), 1) if len(indices) else 0.0, "memory_bytes": memory,
-        "merged_from": metadata.get("merged_from"),
-        "scan_log": _log_info(metadata.get("scan_log")),
-    }
-
-
-def _log_info(log) -> dict | None:
-    """What a map file's scan log holds (None: the file has none)."""
-    if log is None:
-        return None
-    scans = log.scans()
-    return {"scans": len(scans), "first_scan": scans[0][0] if scans else None,
-            "first_stamp_s": scans[0][1].stamp_ns / 1e9 if scans else None,
-            "last_stamp_s": scans[-1][1].stamp_ns / 1e9 if scans else None,
-            "points": int(sum(scan.count for _, scan in scans)), "bytes": int(log.nbytes),
-            "bytes_per_scan": round(log.nbytes / len(scans)) if scans else 0, "segments": len(log.segments()),
-            "frozen_scans": log.frozen, "frozen_why": log.frozen_why or None,
-            "calibration": log.calibration is not None}
-
-
-def format_info(info: dict) -> str:
-    """``info``'s plain-text report."""
-    lines = [f"map:         {info['file']} ({_size(info['file_bytes'])})",
-             f"frame_id:    {info['frame_id']}",
-             f"resolution:  {info['resolution']:g} m",
-             f"voxels:      {info['num_voxels']}"]
-    bounds = info["bounds"]
-    if bounds:
-        lines.append("bounds:      index " + ", ".join(f"{axis} {lo}..{hi}" for axis, lo, hi in
-                                                     zip("xyz", bounds["index_min"], bounds["index_max"])))
-        lines.append("             metres " + ", ".join(f"{axis} {lo:.2f}..{hi:.2f}" for axis, lo, hi in
-                                                      zip("xyz", bounds["metres_min"], bounds["metres_max"])))
-    lines += [f"prior:       {info['prior']}", f"kernel:      {info['kernel']}"]
-    if info["scans_integrated"] is not None:
-        lines.append(f"scans:       {info['scans_integrated']}")
-    if info["merged_from"]:
-        lines.append(f"merged from: {', '.join(map(str, info['merged_from']))}")
-    log = info["scan_log"]
-    if log is None:
-        lines.append("scan log:    none (no scan of this map can be moved by map_tool correct)")
-    elif log["scans"]:
-        frozen = f"; the {log['frozen_scans']} before are frozen ({log['frozen_why']})" if log["frozen_scans"] else ""
-        lines.append(f"scan log:    scans {log['first_scan']}..{log['first_scan'] + log['scans'] - 1} (stamped "
-                     f"{log['first_stamp_s']:.3f}..{log['last_stamp_s']:.3f} s), {_size(log['bytes'])}, "
-                     f"{_size(log['bytes_per_scan'])} a scan{frozen}")
-    else:
-        lines.append(f"scan log:    empty; the {log['frozen_scans']} scans are frozen ({log['frozen_why']})")
-    lines.append(f"memory:      {info['bytes_per_voxel']:g} bytes per voxel in the mapper's store once loaded, "
-                 f"{_size(info['memory_bytes'])} in all")
-    lines.append(f"classes:     {info['num_classes']} (voxels per expected class; class 0: seen empty by free "
-                 "space, not shown)")
-    width = max([len(entry["name"] or "") for entry in info["class_voxels"]] + [8])
-    for entry in info["class_voxels"]:
-        lines.append(f"  {entry['class']:>3} {entry['name'] or '':<{width}} {entry['voxels']:>10}")
-    return "\n".join(lines)
-
-
-def _size(count: int) -> str:
-    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
-        if count >= scale:
-            return f"{count / scale:.1f} {unit}"
-    return f"{count} B"
-
-
 # -- merge --------------------------------------------------------------------------------
-def merge_arrays(parts: Sequence[tuple[np.ndarray, np.ndarray]], prior: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """The exact merge of maps built in one frame with the same ``prior``.
-
-    ``parts``: (indices (N_i, 3) int64, alpha (N_i, C) float32) per map, each without duplicate
-    voxels. Returns (indices (M, 3) int64 sorted x, y, z; alpha (M, C) float32; how many voxels
-    were in more than one map). Vectorised: one sort of all voxel keys, one scatter per map.
-    """
-    indices = np.concatenate([part[0] for part in parts]).astype(np.int64, copy=False)
-    order = np.lexsort(indices.T[::-1])
-    ordered = indices[order]
-    first = np.ones(len(order), bool)
-    first[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
-    group = np.empty(len(order), np.int64)
-    group[order] = np.cumsum(first) - 1  # each input row's row in the output
-    merged = np.zeros((int(first.sum()), parts[0][1].shape[1]), np.float32)
-    count = np.zeros(len(merged), np.int64)
-    start = 0
-    for part_indices, part_alpha in parts:
-        rows = group[start:start + len(part_indices)]
-        # A map holds each voxel once, so these rows are distinct and += adds every row exactly once.
-        merged[rows] += part_alpha
-        count[rows] += 1
-        start += len(part_indices)
-    shared = count > 1
-    # Each map started its voxels at the prior: keep it once. A voxel in one map keeps its row bit for bit.
-    merged[shared] -= ((count[shared] - 1) * prior).astype(np.float32)[:, None]
-    return ordered[first], merged, int(shared.sum())
-
-
-def _check_same(first: tuple[str, dict], other: tuple[str, dict]) -> None:
-    """Refuse to merge maps whose grids, classes, frames or priors differ: their sum would mean nothing."""
-    (name_a, meta_a), (name_b, meta_b) = first, other
-    for key, what in (("resolution", "resolution (m)"), ("num_classes", "num_classes"), ("frame_id", "frame_id"),
-                      ("prior", "prior")):
-        a, b = meta_a.get(key), meta_b.get(key)
-        same = (math.isclose(float(a), float(b), rel_tol=SAME_VALUE) if key in ("resolution", "prior") else a == b)
-        if not same:
-            raise UserError(f"cannot merge {name_a} and {name_b}: {what} differs ({a!r} vs {b!r})")
-
-
 def _merge(args: argparse.Namespace) -> int:
     from convbki_core.io.map_file import MapSnapshot, read_map
 
@@ -229,7 +81,7 @@ def _merge(args: argparse.Namespace) -> int:
                 raise UserError(f"{name}: metadata has no positive prior ({prior!r}), so the merge cannot count "
                                 "it once")
             if maps:
-                _check_same((names[0], maps[0][0]), (name, metadata))
+                check_same((names[0], maps[0][0]), (name, metadata))
             # Every class of every voxel starts at the prior and only grows: anything below was built otherwise.
             if len(alpha) and alpha.min() < prior * (1 - 1e-6):
                 raise UserError(f"{name}: holds concentrations below its prior {prior}, so it was not built "
@@ -257,10 +109,10 @@ def _merge(args: argparse.Namespace) -> int:
 
 # -- export-ply ---------------------------------------------------------------------------
 def voxel_set(indices: np.ndarray, alpha: np.ndarray, resolution: float) -> VoxelSet:
-    """A ``mapper.VoxelSet`` (centres in m, expected class, variance) of map-file arrays."""
-    from convbki_core.geometry.volume import voxel_centres
+    """A ``map_contents.VoxelSet`` (centres in m, expected class, variance) of map-file arrays."""
+    from convbki_core.geometry.grid import voxel_centres
     from convbki_core.inference.statistics import dirichlet_statistics
-    from convbki_core.mapper import VoxelSet
+    from convbki_core.map_contents import VoxelSet
 
     stats = dirichlet_statistics(alpha)
     return VoxelSet(indices, voxel_centres(indices, resolution).astype(np.float32), alpha, stats.label,
@@ -288,7 +140,9 @@ def _export_ply(args: argparse.Namespace) -> int:
 
 
 def _costmap(args: argparse.Namespace) -> int:
-    from convbki_core.costmap.columns import ProfileError, column_costs, load_profile, rasterise
+    from convbki_core.costmap.columns import column_costs
+    from convbki_core.costmap.grid import rasterise
+    from convbki_core.costmap.profile import ProfileError, load_profile
     from convbki_core.io.atomic import atomic_write_with
     from convbki_core.io.map_file import read_map
     from convbki_core.paths import traversability_profile

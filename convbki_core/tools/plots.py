@@ -14,7 +14,7 @@ from convbki_core.io.labels import LabelMap
 
 if TYPE_CHECKING:
     from convbki_core.inference.kernels import ConvBKIKernel
-    from convbki_core.mapper import VoxelSet
+    from convbki_core.map_contents import VoxelSet
 
 
 def _pyplot():

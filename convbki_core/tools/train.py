@@ -47,19 +47,16 @@ from convbki_core.tools.cli import (
     sequence_arg,
     window_bounds,
 )
-from convbki_core.training.trainer import (
-    FREE_WEIGHT,
-    MIN_CLASS_POINTS,
-    TARGET_UPDATES,
-    TEMPERATURE_MIOU_LOSS,
+from convbki_core.training.objective import FREE_WEIGHT
+from convbki_core.training.temperature_fit import TEMPERATURE_MIOU_LOSS, fit_temperature
+from convbki_core.training.trainer import MIN_CLASS_POINTS, TARGET_UPDATES, train_kernel
+from convbki_core.training.validation import (
     VALIDATION_BLOCK,
     VALIDATION_EVERY,
     VALIDATION_FRAMES,
     VALIDATION_GAP,
     Validator,
-    fit_temperature,
     split_validation,
-    train_kernel,
 )
 
 PROG = "train"

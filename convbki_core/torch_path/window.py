@@ -19,11 +19,14 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from convbki_core.free_space.rays import FREE_CLASS, ground_marks
-from convbki_core.geometry.volume import SparseVolume, unravel_linear
+from convbki_core.free_space.ground import ground_marks
+from convbki_core.free_space.update import FREE_CLASS
+from convbki_core.geometry.grid import unravel_linear
+from convbki_core.geometry.volume import SparseVolume
 from convbki_core.inference.update import FilterPlan
+from convbki_core.memory.column_classes import class_bits
 from convbki_core.memory.store import VoxelStore
-from convbki_core.memory.window import CHANGED, EVIDENCE, RECLASSED, TOUCHED, RollingWindow, class_bits
+from convbki_core.memory.window import CHANGED, EVIDENCE, RECLASSED, TOUCHED, RollingWindow
 from convbki_core.outputs.records import RECORD, records_from_alpha
 
 

@@ -41,8 +41,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from convbki_core.free_space.rays import FREE_CLASS, count_rays, scan_rays, scratch_counts
-from convbki_core.geometry.volume import SparseVolume, unravel_linear, voxel_indices
+from convbki_core.free_space.ray_walk import count_rays, scratch_counts
+from convbki_core.free_space.scan_rays import scan_rays
+from convbki_core.free_space.update import FREE_CLASS
+from convbki_core.geometry.grid import unravel_linear, voxel_indices
+from convbki_core.geometry.volume import SparseVolume
 
 FREE_PER_RAY = 2  # free points drawn on each sampled ray
 FREE_RAYS = 20_000  # at most this many of scan t's returns give free points

@@ -1,11 +1,13 @@
 """The node's mapping side: inputs in, the map updated, on its own thread.
 
 ``MappingCore`` builds the ``ConvBKIMapper`` from the node's checked start-up settings
-(``settings``), takes clouds and odometry from the executor (cheap checks only: a cloud that
-can never be used is refused on arrival, before it waits or fills the queue), and runs the
-update thread, which places each cloud at its sensor pose (odometry interpolated at the
-cloud's stamp, times the sensor's mount) and integrates it. Bad input never touches the map:
-every rejection is counted and warned about once per problem (throttled).
+(``settings``), takes clouds and odometry from the executor (``intake``: cheap checks only: a
+cloud that can never be used is refused on arrival, before it waits or fills the queue), and runs
+the update thread (``update_thread``), which places each cloud at its sensor pose (odometry
+interpolated at the cloud's stamp, times the sensor's mount) and integrates it. Bad input never
+touches the map: every rejection is counted and warned about once per problem (throttled). Here:
+the set-up, the changes to the map other than scans (reset, cleared box, loaded file, a
+correction's map) and what the outputs take from it.
 """
 
 from __future__ import annotations
@@ -15,31 +17,22 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from convbki_core.geometry.poses import pose_from_translation_quaternion
 from convbki_core.io.map_file import MapSetupError, SetupDifference, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.warm_up import WarmUpReport, warm_up
-from convbki_ros.inputs.cloud_decoding import CloudError, decode_cloud
-from convbki_ros.inputs.pose_buffer import PoseStatus, pose_problem
-from convbki_ros.inputs.sync import NO_MAP_TRANSFORM, CloudQueue, Decision, Missing, PendingCloud, SensorFrames, Verdict
+from convbki_ros.inputs.sync import CloudQueue, Missing, PendingCloud, SensorFrames
 from convbki_ros.inputs.tf_buffer import make_tf_lookup
-from convbki_ros.inputs.transforms import seconds_to_ns, stamp_to_ns
+from convbki_ros.inputs.transforms import stamp_to_ns
+from convbki_ros.mapping.intake import InputIntake
+from convbki_ros.mapping.update_thread import ScanIntegration
 from convbki_ros.outputs.costmap import rolling_grid
-from convbki_ros.outputs.status import problem_key
 from convbki_ros.params import StartupError
 from convbki_ros.settings import StartSettings
 
-NO_POSE_REASONS = {
-    PoseStatus.EMPTY: "no odometry received yet",
-    PoseStatus.TOO_OLD: "the cloud is older than the odometry kept",
-    PoseStatus.JUMP: "the odometry jumped between the poses around its stamp",
-    PoseStatus.OUTAGE: "it was taken during an outage of the odometry",
-}
-DROP_REASONS = {PoseStatus.JUMP: "pose jump", PoseStatus.OUTAGE: "odometry outage"}
 TF_CACHE_S = 60.0  # seconds of TF kept: clouds may wait in the queue that long behind the newest
 
 
-class MappingCore:
+class MappingCore(InputIntake, ScanIntegration):
     """Inputs, the cloud queue, the update thread and the map, for ``MapperNode``."""
 
     def __init__(self, node, settings: StartSettings, status, warnings, label_map):
@@ -111,160 +104,6 @@ class MappingCore:
             return self.frames.map_frame
         return self.odometry_frame or self.mapper.frame_id
 
-    # -- inputs (executor thread: cheap, no maths) -------------------------------------------
-    def on_cloud(self, msg) -> None:
-        self.status.cloud_received()
-        stamp = stamp_to_ns(msg.header.stamp)
-        points = int(msg.width) * int(msg.height)
-        limit = int(self.node.param("max_points_per_cloud"))
-        if limit and points > limit:
-            self.status.drop("too large")
-            self.warnings.warn("too large", f"dropping cloud stamped {stamp / 1e9:.3f} s: {points} points "
-                               f"({len(msg.data) / 1e6:.0f} MB), more than max_points_per_cloud = {limit}")
-            return
-        if points == 0:
-            self.status.drop("empty")
-            self.warnings.warn("empty", f"dropping empty cloud stamped {stamp / 1e9:.3f} s "
-                               f"(width {msg.width} x height {msg.height})")
-            return
-        queue_limit = int(self.node.param("cloud_queue_size"))
-        megabytes = self.node.param("cloud_queue_megabytes")
-        evicted = self.queue.push(msg, queue_limit, int(megabytes * 1e6), self.clock_ns())
-        self.status.queued(len(self.queue))
-        if not evicted:
-            return
-        full = f"update queue full ({len(self.queue)} clouds, {self.queue.bytes / 1e6:.0f} MB; cloud_queue_size " \
-               f"{queue_limit}, cloud_queue_megabytes {megabytes:g})"
-        if evicted.waiting_for_pose:
-            self.status.drop("no pose", evicted.waiting_for_pose)
-            latest = self.queue.poses.latest_stamp
-            self.warnings.warn("queue no pose", f"{full}: dropping the oldest cloud, still waiting for odometry "
-                               "covering its stamp (latest odometry "
-                               f"{'none' if latest is None else f'{latest / 1e9:.3f} s'})")
-        if evicted.ready:
-            self.status.drop("queue full", evicted.ready)
-            self.warnings.warn("queue", f"{full}: dropping the oldest cloud; the map update is slower than the "
-                               "input rate")
-
-    def clock_ns(self) -> int:
-        """The node's clock (ROS time: the data's time under use_sim_time), in nanoseconds."""
-        return self.node.get_clock().now().nanoseconds
-
-    def on_odometry(self, msg) -> None:
-        stamp = stamp_to_ns(msg.header.stamp)
-        position, orientation = msg.pose.pose.position, msg.pose.pose.orientation
-        translation = [position.x, position.y, position.z]
-        quaternion = [orientation.x, orientation.y, orientation.z, orientation.w]
-        problem = pose_problem(translation, quaternion)
-        self.status.odometry_received(usable=problem is None)
-        if problem:
-            self.warnings.warn("odometry " + problem_key(problem),
-                               f"ignoring odometry stamped {stamp / 1e9:.3f} s: {problem}")
-            return
-        self.status.odometry_delay(self.clock_ns() - stamp)
-        self._note_odometry_frame(msg.header.frame_id)
-        self._check_time_going_backwards(stamp)
-        found, previous = self.queue.add_odometry(stamp, pose_from_translation_quaternion(translation, quaternion),
-                                                  msg.child_frame_id)
-        if found is None:
-            return
-        limit = f"max_pose_jump = {self.node.param('max_pose_jump')} m"
-        after = "out of order" if previous is None or previous > stamp else f"after {previous / 1e9:.3f} s"
-        if found.outage:
-            # Odometry that stopped and resumed is the same odometry: the robot moved on meanwhile.
-            self.warnings.warn("outage", f"odometry outage of {found.gap_s:.1f} s (none stamped between "
-                               f"{(stamp - found.gap_s * 1e9) / 1e9:.3f} s and {stamp / 1e9:.3f} s); the pose after "
-                               f"it is {found.distance:.2f} m away ({limit}): map kept; clouds stamped in the "
-                               "outage are dropped")
-            return
-        action = self.on_pose_jump(stamp)
-        text = f"odometry jumped {found.distance:.2f} m in {found.gap_s:.2f} s at {stamp / 1e9:.3f} s ({after}; " \
-               f"{limit}): {action}"
-        if self.node.param("on_pose_jump") == "keep":
-            self.warnings.warn("jump", text)
-        else:  # the map was reset or a file started: every one is said
-            self.node.get_logger().warning(text)
-
-    def on_pose_jump(self, stamp: int) -> str:
-        """Apply parameter on_pose_jump to a jump at ``stamp``; what was done, in words."""
-        choice = self.node.param("on_pose_jump")
-        where = f"the pose jump at {stamp / 1e9:.3f} s"
-        if choice == "new_file" and not self.node.files.path:
-            return "map kept, as map_file is empty (on_pose_jump new_file needs it); clouds stamped inside the " \
-                   "jump are dropped"
-        if choice == "keep":
-            return "map kept (on_pose_jump keep): the scans after it are added where the odometry now says; " \
-                   "clouds stamped inside the jump are dropped"
-        self.queue.forget_odometry(before=stamp)  # the new map starts at the new pose
-        if choice == "new_file":
-            return f"{self.node.files.start_new_segment(where)} (on_pose_jump new_file)"
-        self.reset_map(f"a reset on {where}")
-        return "map reset (on_pose_jump reset): a new map starts at the new pose"
-
-    def _note_odometry_frame(self, frame: str) -> None:
-        """The first odometry names its frame: the map's, unless map_frame names another that TF
-        connects it to. Without TF a different map_frame cannot be honoured, so it is said once
-        and not used."""
-        if not frame or frame == self.odometry_frame:
-            return
-        wanted = self.frames.map_frame
-        if self.odometry_frame is not None:
-            self.node.get_logger().warning(f"the odometry's frame changed from '{self.odometry_frame}' to "
-                                           f"'{frame}'; the map stays in '{self.frame}'")
-            return
-        through_tf = bool(wanted) and wanted != frame and self.tf is not None
-        self.odometry_frame = frame
-        with self.map_lock:
-            loaded_frame = self.mapper.frame_id if len(self.mapper) else None
-            self.mapper.frame_id = self.frame
-        if through_tf:
-            self.node.get_logger().info(f"the odometry is in '{frame}', the map in map_frame '{wanted}': each cloud "
-                                        f"goes through TF '{wanted}' -> '{frame}' at its stamp")
-        elif wanted and wanted != frame:
-            self.node.get_logger().warning(
-                f"map_frame is '{wanted}' but the odometry is in '{frame}': the map is built and published in "
-                f"'{frame}' (no transform between the two is applied: {self.tf_missing}); set map_frame to '' or "
-                f"'{frame}'")
-        if loaded_frame and loaded_frame != self.frame:
-            self.node.get_logger().warning(f"the map loaded at start was built in '{loaded_frame}'; this node maps "
-                                           f"in '{self.frame}': the new scans are added as if they were the same")
-
-    def _check_time_going_backwards(self, stamp: int) -> None:
-        """Notice time going backwards (a bag played again, a restarted source) on the odometry.
-
-        Only odometry that passed its checks counts. Clouds are left out on purpose: they
-        may lag the odometry by seconds (segmentation keeps the capture stamp) and arrive
-        in any order, and a malformed cloud with a wild stamp must change nothing.
-        """
-        newest = self.newest_odometry_stamp
-        if newest is None or stamp > newest:
-            self.newest_odometry_stamp = stamp
-            return
-        if newest - stamp <= seconds_to_ns(self.node.param("stamp_backwards_tolerance")):
-            return
-        self.newest_odometry_stamp = stamp
-        stale = self.queue.forget_odometry()
-        self.status.drop("time reset", stale)
-        reset = self.node.param("reset_on_stamp_backwards")
-        if reset:
-            self.reset_map(f"a reset when time went back at {stamp / 1e9:.3f} s")
-        self.warnings.warn("time", f"time went backwards by {(newest - stamp) / 1e9:.3f} s (odometry stamped "
-                           f"{stamp / 1e9:.3f} s after input stamped {newest / 1e9:.3f} s; a restarted bag?): "
-                           f"odometry history cleared, {stale} waiting clouds dropped, "
-                           f"{'map reset (reset_on_stamp_backwards)' if reset else 'map kept'}")
-
-    def watch_odometry(self) -> None:
-        """Warn every odometry_timeout seconds while clouds come in and odometry does not."""
-        timeout = self.node.param("odometry_timeout")
-        missing = self.status.odometry_missing(timeout)
-        if missing is None:
-            return
-        what, since = missing
-        topics = self.node.resolve_topic_name("odom"), self.node.resolve_topic_name("cloud_in")
-        self.warnings.warn("no odometry", f"{what} on {topics[0]} for {since:.1f} s while clouds arrive on "
-                           f"{topics[1]}: clouds cannot be placed (check the odom remapping, its QoS and its "
-                           "publisher)", period=timeout)
-
     def reset_map(self, why: str) -> int:
         """Clear the map; clouds received before now are stale (their poses may be too). Returns
         how many voxels it forgot; ``why`` says what asked for it (for the user)."""
@@ -322,115 +161,6 @@ class MappingCore:
         self.lineage += 1
         if why:
             self.forgotten_by = why
-
-    # -- the update thread ---------------------------------------------------------------------
-    def run(self) -> None:
-        """Integrate queued clouds as their poses become known, until ``stop()``."""
-        while True:
-            name = "transform_timeout" if self.pose_source == "tf" else "pose_wait_timeout"
-            decision = self.queue.next(lambda name=name: self.node.param(name), self.clock_ns)
-            if decision is None:
-                return
-            try:
-                self._integrate(decision)
-            except Exception as error:  # never let one scan stop the mapping thread
-                self.status.drop("error")
-                self.node.get_logger().error(f"scan not integrated: {error.__class__.__name__}: {error}")
-
-    def stop(self) -> None:
-        self.queue.stop()
-
-    def _integrate(self, decision: Decision) -> None:
-        msg, lookup = decision.pending.msg, decision.lookup
-        if decision.verdict is Verdict.STALE:
-            self.status.drop("map reset")
-            self.warnings.warn("stale", "dropping a cloud received before the map was reset")
-            return
-        if decision.verdict is Verdict.NO_POSE:
-            self._no_pose(msg, lookup)
-            return
-        if decision.verdict is Verdict.NO_TRANSFORM:
-            missing = decision.missing or Missing(NO_MAP_TRANSFORM, "")
-            self.status.drop(missing.reason)
-            self.warnings.warn("transform " + problem_key(missing.detail),
-                               f"dropping cloud stamped {stamp_to_ns(msg.header.stamp) / 1e9:.3f} s in frame "
-                               f"'{msg.header.frame_id}' after waiting transform_timeout = "
-                               f"{self.queue.transform_timeout:g} s ({missing.reason}): {missing.detail}")
-            return
-        sensor_pose = decision.pose
-        try:
-            cloud = decode_cloud(msg, self.mapper.num_classes)
-        except CloudError as error:
-            self.status.drop("bad cloud")
-            self.warnings.warn("cloud " + problem_key(str(error)), f"dropping cloud: {error}")
-            return
-        if not len(cloud):
-            self.status.drop("no usable points")
-            text = cloud.bad_points_text()
-            self.warnings.warn("no usable " + problem_key(text), f"dropping cloud: no usable point ({text})")
-            return
-        if cloud.dropped:
-            self.warnings.warn("bad points " + problem_key(cloud.bad_points_text()),
-                               f"{cloud.bad_points_text()}; the rest are integrated")
-        values, moving = cloud.probabilities, None
-        if values is None:
-            values = self._learning_labels(cloud.labels)
-            if values is None:
-                self.status.drop("unknown labels")
-                return
-            if self.node.param("label_space") == "raw" and self.node.param("moving_labels"):
-                moving = self.label_map.is_moving(cloud.labels)
-                moving = moving if moving.any() else None
-        with self.map_lock:
-            if decision.pending.generation != self.queue.generation:  # a reset came while it was decoded
-                self.status.drop("map reset")
-                return
-            result = self.mapper.integrate(cloud.points, values, sensor_pose, moving,
-                                           stamp_ns=stamp_to_ns(msg.header.stamp), mount=self._mount(decision))
-            self.map_version += 1
-            self.last_stamp = msg.header.stamp
-            self.position = sensor_pose[:3, 3]
-        self.status.integrated_one(result.timing_ms["total"])
-        self.on_integrated()
-
-    def _mount(self, decision: Decision) -> np.ndarray | None:
-        """The cloud frame's pose on the body whose poses a SLAM corrects (the odometry's child
-        frame), for the scan log; None (the cloud's own frame) with poses from TF."""
-        lookup = decision.lookup
-        if self.pose_source == "tf" or lookup is None:
-            return None
-        mount, _ = self.frames.mount(lookup.child_frame_id, decision.pending.msg.header.frame_id,
-                                     stamp_to_ns(decision.pending.msg.header.stamp))
-        return mount
-
-    def _no_pose(self, msg, lookup) -> None:
-        status = lookup.status
-        reason = lookup.reason or NO_POSE_REASONS.get(status) or \
-            f"no odometry covered its stamp within pose_wait_timeout = {self.node.param('pose_wait_timeout')} s"
-        self.status.drop(DROP_REASONS.get(status, "no pose"))
-        latest = self.queue.poses.latest_stamp
-        latest_text = f"; latest odometry {latest / 1e9:.3f} s" if latest is not None else ""
-        self.warnings.warn(f"pose {status.value}", f"dropping cloud stamped {stamp_to_ns(msg.header.stamp) / 1e9:.3f}"
-                           f" s: {reason}{latest_text}")
-
-    def _learning_labels(self, labels: np.ndarray) -> np.ndarray | None:
-        """The cloud's labels as learning ids; unknown ids are warned about and become ignored
-        class 0. None (and a warning) when no label is known: the cloud would add nothing, and
-        such a cloud usually means a wrong label_space."""
-        space = self.node.param("label_space")
-        num_classes = self.mapper.num_classes
-        unknown = self.label_map.unknown_raw(labels) if space == "raw" else (labels < 0) | (labels >= num_classes)
-        count = int(np.count_nonzero(unknown))
-        if count:
-            examples = ", ".join(str(v) for v in np.unique(labels[unknown])[:5])
-            known = f"{self.label_map.name} label map" if space == "raw" else f"learning ids 0..{num_classes - 1}"
-            if count == labels.size:
-                self.warnings.warn("all unknown", f"dropping cloud: all {count} label ids are unknown to the "
-                                   f"{known} (e.g. {examples}); is label_space ({space}) right?")
-                return None
-            self.warnings.warn("unknown", f"{count} of {labels.size} points carry label ids unknown to the "
-                               f"{known} (e.g. {examples}); they are ignored")
-        return self.label_map.to_learning(labels) if space == "raw" else np.where(unknown, 0, labels)
 
     # -- what the outputs show (taken under the lock, encoded and sent without it) ------------
     def take_changes(self, everything: bool = False):

@@ -10,16 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from convbki_core.costmap.columns import (
-    UNKNOWN,
-    CostGrid,
-    ProfileError,
-    column_costs,
-    grid_of_window,
-    load_profile,
-    rasterise,
-    rolling_geometry,
-)
+from convbki_core.costmap.columns import UNKNOWN, column_costs
+from convbki_core.costmap.grid import CostGrid, rasterise, rolling_geometry
+from convbki_core.costmap.profile import ProfileError, load_profile
+from convbki_core.costmap.window_pass import grid_of_window
 from convbki_core.paths import traversability_profile
 from convbki_ros.inputs.transforms import make_header, message_types
 from convbki_ros.params import StartupError

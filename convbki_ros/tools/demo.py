@@ -31,7 +31,7 @@ import numpy as np
 
 from convbki_core.config import MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.geometry.volume import transform_points
+from convbki_core.geometry.grid import transform_points
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.measures.trails import SweptSpace
@@ -84,7 +84,9 @@ def score_final_map(map_file: Path, dataset: SemanticKittiSequence) -> dict:
 def save_costmap_picture(map_file: Path, label_map, path: Path) -> None:
     """The saved map's costmap for the car profile (what the node's ~/get_costmap answers), with
     a path planned between two road cells far apart."""
-    from convbki_core.costmap.columns import column_costs, load_profile, rasterise
+    from convbki_core.costmap.columns import column_costs
+    from convbki_core.costmap.grid import rasterise
+    from convbki_core.costmap.profile import load_profile
     from convbki_core.io.map_file import read_map
     from convbki_core.paths import traversability_profile
     from convbki_core.tools.plots import save_costmap_pictures

@@ -6,7 +6,7 @@ from kitti_fixture import pose_about_z, write_sequence
 
 from convbki_core.datasets import DatasetError, parse_frames
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.geometry.volume import voxel_indices
+from convbki_core.geometry.grid import voxel_indices
 from convbki_core.io.labels import load_label_map
 from convbki_core.measures.metrics import ConfusionMatrix
 

@@ -11,7 +11,7 @@ from kitti_fixture import BUILDING, POLE, ROAD, SIDEWALK, write_drive
 
 from convbki_core import ConvBKIMapper
 from convbki_core.paths import kernel_path
-from convbki_core.tools import evaluate, train
+from convbki_core.tools import evaluate, evaluate_run, train
 
 # SemanticKITTI's learning_map (semantic-kitti.yaml of the semantic-kitti-api), typed here
 # independently of the project's label map.
@@ -44,7 +44,7 @@ def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys
     # Record the mapper's own per-scan timings, and make labelling frame i take (i + 1) * 7 ms on
     # the clock evaluate reads, so that the reported medians can be checked exactly.
     seen, clock = [], [0.0]
-    integrate, label = ConvBKIMapper.integrate, evaluate.map_frame_labels
+    integrate, label = ConvBKIMapper.integrate, evaluate_run.map_frame_labels
 
     def watched_integrate(self, *args, **options):
         result = integrate(self, *args, **options)
@@ -57,8 +57,8 @@ def test_evaluate_reports_and_writes_labels_that_score_the_same(tmp_path, capsys
         return label(*args)
 
     monkeypatch.setattr(ConvBKIMapper, "integrate", watched_integrate)
-    monkeypatch.setattr(evaluate, "map_frame_labels", slow_label)
-    monkeypatch.setattr(evaluate, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
+    monkeypatch.setattr(evaluate_run, "map_frame_labels", slow_label)
+    monkeypatch.setattr(evaluate_run, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
     report_path = tmp_path / "report.json"
     code = evaluate.main(["--dataset", str(tmp_path / "data"), "--sequence", "08", "--report", str(report_path),
                           "--write-labels", str(tmp_path / "out"), "--quiet", "--device", "cpu", *SMALL_WINDOW])

@@ -129,7 +129,8 @@ def test_evaluate_writes_identical_labels_on_both_paths(tmp_path):
 
 @given(seed=st.integers(0, 2**31 - 1), probabilities=st.booleans(), temperature=st.sampled_from([None, 0.4, 2.5]))
 def test_compiled_voxeliser_equals_numpy_voxeliser(seed, probabilities, temperature):
-    from convbki_core.geometry.volume import transform_points, voxelize, voxelize_scan
+    from convbki_core.geometry.grid import transform_points
+    from convbki_core.geometry.volume import voxelize, voxelize_scan
 
     rng = np.random.default_rng(seed)
     count = int(rng.integers(0, 400))

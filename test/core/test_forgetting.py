@@ -10,16 +10,17 @@ from helpers import BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
 
 from convbki_core import ConvBKIMapper
 from convbki_core.config import MapperConfig
-from convbki_core.free_space.forgetting import (
+from convbki_core.free_space.device_forgetting import _unsupported_torch
+from convbki_core.free_space.host_forgetting import (
     _EMPTIED,
     _FLAGGED,
     _contradicted_numba,
     _contradicted_numpy,
     _unsupported_numba,
     _unsupported_numpy,
-    _unsupported_torch,
 )
-from convbki_core.memory.window import CHANGED, EVIDENCE, TOUCHED, classes_held
+from convbki_core.memory.column_classes import classes_held
+from convbki_core.memory.window import CHANGED, EVIDENCE, TOUCHED
 
 TRUCK, BICYCLIST = 4, 7
 MOVABLE = (1, 4, 5, 6, 7, 8)  # SemanticKITTI's: car, truck, other-vehicle, person, bicyclist, motorcyclist

@@ -10,9 +10,9 @@ import torch
 from kitti_fixture import pose_about_z, write_sequence
 
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.geometry.volume import WindowGeometry
+from convbki_core.geometry.grid import WindowGeometry
 from convbki_core.inference.kernels import ConvBKIKernel
-from convbki_core.training import trainer
+from convbki_core.training import objective, samples, trainer
 
 CAR, POLE, BUILDING = 10, 80, 50  # raw ids
 
@@ -64,7 +64,7 @@ def start_kernel(free_ell):
 
 def built_sample(dataset, frames=7):
     support = ConvBKIKernel("single", 20, 5, 0.2, ell=IDENTITY).filters().detach().numpy()[:, 0]
-    builder = trainer.SampleBuilder(WindowGeometry(0.2), 20, frames, 5, (0,), free_support=support)
+    builder = samples.SampleBuilder(WindowGeometry(0.2), 20, frames, 5, (0,), free_support=support)
     return builder.build(0, dataset, frames - 1)
 
 
@@ -73,7 +73,7 @@ def test_the_free_term_has_a_finite_non_zero_gradient_in_free_ell(tmp_path):
     free = built[3]
     assert free is not None and free.at_free.num_queries > 20  # free points where the car was
     kernel = ConvBKIKernel.from_config(start_kernel(0.3))
-    loss = trainer.sample_loss(built, kernel, torch.ones(20), 1e-3, torch.device("cpu"))
+    loss = objective.sample_loss(built, kernel, torch.ones(20), 1e-3, torch.device("cpu"))
     loss.backward()
     gradient = kernel.free_ell.grad
     assert gradient is not None and torch.isfinite(gradient) and float(gradient) < -1e-3

@@ -18,6 +18,7 @@ import pytest
 from helpers import REAL_SCANS
 
 from convbki_core.datasets import label_noise as noise
+from convbki_core.datasets.label_noise_neighbours import nearest_other
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_label_words
 from convbki_core.io.labels import load_label_map
 from convbki_core.measures.metrics import ConfusionMatrix
@@ -162,7 +163,7 @@ def test_blur_only_near_borders_and_borders_err_more(model_run):
     _, _, scans = model_run
     frame, _, draws, predicted, mechanism = scans[0]
     truth = draws.truth.astype(np.int64)
-    _, distance = noise.nearest_other(frame.points, truth, 1.0)
+    _, distance = nearest_other(frame.points, truth, 1.0)
     # The neighbour search against brute force on a sample of points.
     rng = np.random.default_rng(0)
     points = frame.points.astype(np.float64)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from convbki_core import ConvBKIKernel, ConvBKIMapper, MapFileError, dirichlet_statistics
 from convbki_core.config import MapperConfig
 from convbki_core.devices import resolve_device
-from convbki_core.geometry.volume import WindowGeometry
+from convbki_core.geometry.grid import WindowGeometry
 from convbki_core.io.labels import load_label_map
 from convbki_core.memory.store import VoxelStore
 from convbki_core.paths import kernel_path

@@ -20,7 +20,7 @@ from convbki_core.io.map_file import MapSnapshot, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.memory.store import VoxelStore
 from convbki_core.paths import kernel_path
-from convbki_core.tools import evaluate, map_tool
+from convbki_core.tools import evaluate, map_merge, map_tool
 from convbki_core.tools.synth import main as synth
 
 REPO = Path(__file__).resolve().parents[2]
@@ -116,8 +116,8 @@ def test_merge_counts_the_prior_once(maps, tmp_path):
     """A plain sum of the halves (prior counted twice) is not the whole map: the test above can fail."""
     _, indices, _ = sorted_map(maps["whole"])
     parts = [read_map(maps[name])[1:] for name in ("first", "second")]
-    merged_indices, merged, shared = map_tool.merge_arrays(parts, PRIOR)
-    _, naive, _ = map_tool.merge_arrays(parts, 0.0)
+    merged_indices, merged, shared = map_merge.merge_arrays(parts, PRIOR)
+    _, naive, _ = map_merge.merge_arrays(parts, 0.0)
     np.testing.assert_array_equal(merged_indices, indices)
     assert shared > 0 and not np.allclose(naive, merged, rtol=1e-5, atol=0)
 
@@ -305,7 +305,9 @@ def test_evaluate_save_map_refused_up_front_and_never_left_by_a_failed_run(tmp_p
 def test_costmap_writes_the_grid_of_every_observed_column(maps, tmp_path, capsys):
     """The .npz holds column_costs of the map's voxels, cell for cell; the drive's road is
     mostly free for the car and its buildings lethal; the .png is a picture."""
-    from convbki_core.costmap.columns import column_costs, load_profile, rasterise
+    from convbki_core.costmap.columns import column_costs
+    from convbki_core.costmap.grid import rasterise
+    from convbki_core.costmap.profile import load_profile
     from convbki_core.io.labels import load_label_map
     from convbki_core.paths import traversability_profile
 
@@ -349,7 +351,7 @@ def test_costmap_refuses_a_bad_profile_in_one_line(maps, tmp_path, capsys):
 def test_evaluate_scores_the_costmap_against_the_ground_truth(tmp_path, capsys):
     """--costmap-report: the JSON has the map's and the baseline's group scores and planning
     check, their picture is written, and the scores are those of costmap_eval on the saved map."""
-    from convbki_core.costmap.columns import load_profile
+    from convbki_core.costmap.profile import load_profile
     from convbki_core.measures.costmap_eval import GroundTruthVoxels, grids_for, score_grid
     from convbki_core.paths import traversability_profile
 

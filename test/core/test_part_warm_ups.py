@@ -74,12 +74,15 @@ def test_each_part_compiles_its_own_kernels_on_a_scratch_window_and_then_mapping
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout.strip().splitlines()[-1])
     parts = report["parts"]
-    # The window's moves bring the window's and the store's kernels (slabs out and back).
-    assert {"memory.window", "memory.store"} <= set(parts["window"]), parts
+    # The window's moves bring the window's, its column classes' and the store's kernels (slabs out
+    # and back, the classes kept by column).
+    assert {"memory.window", "memory.column_classes", "memory.store"} <= set(parts["window"]), parts
     assert parts["voxelize"] == ["geometry.volume"], parts
     assert parts["update"] == ["inference.update"], parts
-    assert "free_space.rays" in parts["free"], parts
-    assert parts["forgetting"] == ["free_space.forgetting"], parts
+    # The rays' modules: the scan's rays, their walk, the update and the ground's surface.
+    assert {"free_space.scan_rays", "free_space.ray_walk", "free_space.update", "free_space.ground"} <= set(
+        parts["free"]), parts
+    assert parts["forgetting"] == ["free_space.host_forgetting"], parts
     assert report["untouched"] == [0, 0, True, 0], report["untouched"]
     assert report["new"] == {}, report["new"]
     assert report["mapped"] > 1000, report

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from free_space_helpers import BOUNDS
 from helpers import BUILDING, BUILDING_ACROSS, CAR, ROAD, cast
-from test_free_space import BOUNDS
 
 from convbki_core import ConvBKIMapper
 from convbki_core.config import MapperConfig

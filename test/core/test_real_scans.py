@@ -13,14 +13,14 @@ import pytest
 from helpers import real_sequence
 
 from convbki_core.config import DEFAULTS
-from convbki_core.costmap.columns import load_profile
+from convbki_core.costmap.profile import load_profile
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence, read_calibration, read_poses
-from convbki_core.geometry.volume import transform_points
+from convbki_core.geometry.grid import transform_points
 from convbki_core.measures.costmap_eval import GroundTruthVoxels, grids_for, planning_check, road_cells, score_grid
 from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.paths import kernel_path, traversability_profile
 from convbki_core.tools import label_noise
-from convbki_core.tools.evaluate import evaluate_kernel
+from convbki_core.tools.evaluate_run import evaluate_kernel
 
 STATIC = (13, 14, 15, 16, 18)  # building, fence, vegetation, trunk, pole: upright things that stand still
 

@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from convbki_core.io.labels import load_label_map
-from convbki_core.synth import traffic
+from convbki_core.synth import traffic, traffic_planner, traffic_varied
 from convbki_core.synth.drive import DriveConfig, _traffic, generate_drive
 from convbki_core.synth.lidar import EGO_BOXES
 from convbki_core.synth.movers import MOVING_RAW, load_sidecar
@@ -317,8 +317,8 @@ def _gaps_to_ego(mover, ego) -> np.ndarray:
 
 def test_cli_traffic_choices_are_the_planners():
     assert tuple(traffic.TRAFFIC) == TRAFFIC_CHOICES and TRAFFIC_CHOICES[0] == "classic"
-    assert set(traffic.BEHAVIOURS) < set(traffic.VARIED_BEHAVIOURS)
-    assert set(traffic.VARIED_BEHAVIOURS) - set(traffic.BEHAVIOURS) == set(NEW_BEHAVIOURS)
+    assert set(traffic_planner.BEHAVIOURS) < set(traffic_varied.VARIED_BEHAVIOURS)
+    assert set(traffic_varied.VARIED_BEHAVIOURS) - set(traffic_planner.BEHAVIOURS) == set(NEW_BEHAVIOURS)
 
 
 def test_classic_traffic_is_the_default(tmp_path):
@@ -338,15 +338,15 @@ def test_classic_traffic_is_the_default(tmp_path):
     assert plain == hashes(tmp_path / "classic")
     record = yaml.safe_load((tmp_path / "plain" / "sequences" / "00" / "synth.yaml").read_text())
     assert "moving_labels" not in record and "traffic" not in record["movers"]
-    assert list(record["movers"]["behaviours"]) == list(traffic.BEHAVIOURS)
+    assert list(record["movers"]["behaviours"]) == list(traffic_planner.BEHAVIOURS)
 
 
 def test_varied_traffic_has_every_behaviour(varied):
     scene, _ = varied
     behaviours = {m.behaviour for m in scene.movers}
     assert behaviours >= set(NEW_BEHAVIOURS)
-    assert behaviours <= set(traffic.VARIED_BEHAVIOURS)
-    assert behaviours & set(traffic.BEHAVIOURS)  # the classic behaviours are still drawn
+    assert behaviours <= set(traffic_varied.VARIED_BEHAVIOURS)
+    assert behaviours & set(traffic_planner.BEHAVIOURS)  # the classic behaviours are still drawn
     kinds = {b: {m.kind for m in scene.movers if m.behaviour == b} for b in NEW_BEHAVIOURS}
     assert kinds["stop-and-go"] <= {"car", "truck", "bus"} and kinds["kerb-cyclist"] == {"bicyclist"}
     assert kinds["sidewalk-pause"] == {"person"} and "bicyclist" not in kinds["close-pass"]
@@ -364,14 +364,14 @@ def test_stop_and_go_stands_still_then_drives_on(varied):
         runs = _still_runs(poses)
         assert len(runs) == 1
         first, last = runs[0]
-        low, high = traffic.STOP_SCANS if m.behaviour == "stop-and-go" else traffic.PAUSE_SCANS
+        low, high = traffic_varied.STOP_SCANS if m.behaviour == "stop-and-go" else traffic_varied.PAUSE_SCANS
         assert low <= last - first + 1 <= high + 1
         assert first >= 10 and last <= len(poses) - 11  # some motion shown on either side
         stop = poses[first, :2]
         assert np.linalg.norm(poses[first - 10, :2] - stop) > 0.2
         assert np.linalg.norm(poses[last + 10, :2] - stop) > 0.2
         speed = np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1) / 0.1
-        top = traffic.VEHICLES[m.kind][2][1] if m.kind != "person" else traffic.WALK_SPEED[1]
+        top = traffic_planner.VEHICLES[m.kind][2][1] if m.kind != "person" else traffic_planner.WALK_SPEED[1]
         assert speed.max() <= top + 1e-6 and speed[:first].min() > 0 and speed[last:].min() > 0
         checked += m.behaviour == "stop-and-go"
     assert checked >= 1
@@ -384,7 +384,7 @@ def test_kerb_cyclist_is_slow_and_steady(varied):
     for m in cyclists:
         poses = _shown(m)
         speed = np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1) / 0.1
-        low, high = traffic.KERB_CYCLIST_SPEED
+        low, high = traffic_varied.KERB_CYCLIST_SPEED
         assert low - 1e-6 <= speed.min() <= speed.max() <= high + 1e-6
         assert np.ptp(poses[:, 3]) == 0  # straight along its street
 
@@ -396,10 +396,11 @@ def test_movers_keep_clear_of_the_ego_vehicle(varied):
     for m in scene.movers:
         gaps = _gaps_to_ego(m, ego)
         if len(gaps):
-            assert gaps.min() >= traffic.EGO_MARGIN - 0.05  # per scan; the planner checks finer steps
+            assert gaps.min() >= traffic_planner.EGO_MARGIN - 0.05  # per scan; the planner checks finer steps
             nearest.setdefault(m.behaviour, []).append(gaps.min())
     close = nearest["close-pass"]
-    assert close and all(traffic.CLOSE_PASS_GAP[0] - 0.05 <= g <= traffic.CLOSE_PASS_GAP[1] + 0.05 for g in close)
+    low, high = traffic_varied.CLOSE_PASS_GAP
+    assert close and all(low - 0.05 <= g <= high + 0.05 for g in close)
 
 
 def test_stops_are_swept_space(varied):
@@ -450,15 +451,15 @@ def test_cli_varied_drive(tmp_path):
                  "--quiet"]) == 0
     seq = tmp_path / "sequences" / "00"
     side = load_sidecar(seq)["movers"]
-    assert {m["behaviour"] for m in side} <= set(traffic.VARIED_BEHAVIOURS)
+    assert {m["behaviour"] for m in side} <= set(traffic_varied.VARIED_BEHAVIOURS)
     stops = [m for m in side if m["behaviour"] == "stop-and-go"]
     assert stops
     for m in stops:
         runs = _still_runs(np.array(m["poses"]))
-        assert len(runs) == 1 and runs[0][1] - runs[0][0] + 1 >= traffic.STOP_SCANS[0]
+        assert len(runs) == 1 and runs[0][1] - runs[0][0] + 1 >= traffic_varied.STOP_SCANS[0]
     record = yaml.safe_load((seq / "synth.yaml").read_text())
     assert record["moving_labels"] is True and record["movers"]["traffic"] == "varied"
-    assert list(record["movers"]["behaviours"]) == list(traffic.VARIED_BEHAVIOURS)
+    assert list(record["movers"]["behaviours"]) == list(traffic_varied.VARIED_BEHAVIOURS)
     assert record["movers"]["behaviours"]["stop-and-go"] == len(stops)
     preds = np.concatenate([np.fromfile(seq / "predictions" / f"{k:06d}.label", np.uint32) for k in range(60)])
     assert np.isin(preds, MOVING).any()

@@ -20,7 +20,7 @@ from convbki_core.io.labels import load_label_map
 from convbki_core.measures.uncertainty import tempered_distribution
 from convbki_core.paths import kernel_path
 from convbki_core.tools import train
-from convbki_core.training import trainer
+from convbki_core.training import temperature_fit, validation
 from convbki_core.training.temperature import fit_input_temperature, input_nll, minimise_temperature
 
 BOUNDS = ((-3.0, -3.0, -1.5), (3.0, 3.0, 1.5))
@@ -214,10 +214,10 @@ SMALL_BOUNDS = ((-20.0, -12.0, -3.0), (20.0, 12.0, 4.0))
 @pytest.mark.parametrize(("sharpness", "direction"), [(1.0, "sharpen"), (4.0, "soften")])
 def test_the_map_fit_moves_the_temperature_the_right_way(tmp_path, sharpness, direction):
     dataset = write_probability_drive(tmp_path / "data", sharpness)
-    validator = trainer.Validator([dataset], [list(range(6, 12))],
+    validator = validation.Validator([dataset], [list(range(6, 12))],
                                   DEFAULTS.replace(device="cpu", forget_movers=False, local_bounds=SMALL_BOUNDS))
     config = ConvBKIKernel("compound", 20, 5, 0.2, ell=0.5).to_config()
-    fit = trainer.fit_temperature(validator, config, grid=5, golden_steps=5)
+    fit = temperature_fit.fit_temperature(validator, config, grid=5, golden_steps=5)
     assert fit.start_temperature == 1.0
     if direction == "sharpen":
         assert fit.temperature < 0.8
@@ -266,7 +266,7 @@ class CurvesValidator:
 @pytest.mark.parametrize("loss", [0.01, 0.05, None])
 def test_the_fit_costs_at_most_the_allowed_mIoU(loss):
     config = ConvBKIKernel("single", 3, 3, 0.2, ell=0.5).to_config()
-    fit = trainer.fit_temperature(CurvesValidator(), config, miou_loss=loss)
+    fit = temperature_fit.fit_temperature(CurvesValidator(), config, miou_loss=loss)
     assert fit.search.temperature == pytest.approx(0.3, rel=0.03)  # the lowest NLL without the bound
     if loss is None:
         assert fit.temperature == pytest.approx(0.3, rel=0.03)

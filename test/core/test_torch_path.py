@@ -170,8 +170,9 @@ def test_the_defaults_on_a_torch_device_equal_the_compiled_path_over_a_drive_wit
     every concentration within 1e-5 relative, every costmap cell, the same rule counts, and the
     records made where the window lives (the view's, and the updates' after every scan) equal
     to the compiled ones."""
-    from convbki_core.costmap.columns import grid_of_window, load_profile
     from convbki_core.costmap.device import device_window_grid
+    from convbki_core.costmap.profile import load_profile
+    from convbki_core.costmap.window_pass import grid_of_window
     from convbki_core.io.labels import load_label_map
 
     labels = load_label_map("semantic_kitti")

@@ -10,7 +10,7 @@ from kitti_fixture import write_drive
 
 from convbki_core.inference.kernels import ConvBKIKernel, load_kernel_file, save_kernel_file
 from convbki_core.tools import train
-from convbki_core.training import trainer
+from convbki_core.training import objective, samples, trainer, validation
 
 SMALL_WINDOW = ["--local-bounds", "-20", "-12", "-3", "20", "12", "4"]
 
@@ -40,7 +40,7 @@ def _scores_start_best(start, value_else):
 def test_a_start_kernel_that_is_already_best_is_written_back_unchanged(tmp_path, capsys, monkeypatch):
     write_drive(tmp_path / "data", "01", frames=14, seed=3)
     start_path, start = _start_file(tmp_path)
-    monkeypatch.setattr(trainer.Validator, "score", _scores_start_best(start, 0.5))
+    monkeypatch.setattr(validation.Validator, "score", _scores_start_best(start, 0.5))
     out = tmp_path / "k.yaml"
     code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05"))
     assert code == 0
@@ -56,14 +56,14 @@ def test_the_best_validated_kernel_is_written_and_free_ell_is_kept_by_default(tm
     write_drive(tmp_path / "data", "01", frames=14, seed=3)
     start_path, start = _start_file(tmp_path)
     scored = []  # (lengths, validation mIoU) of every kernel the trainer validated, in order
-    score = trainer.Validator.score
+    score = validation.Validator.score
 
     def spy_score(self, config):
         miou = score(self, config)
         scored.append(((list(config.ell_h), list(config.ell_z)), miou))
         return miou
 
-    monkeypatch.setattr(trainer.Validator, "score", spy_score)
+    monkeypatch.setattr(validation.Validator, "score", spy_score)
     out = tmp_path / "k.yaml"
     code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "2", "--lr", "0.05",
                                   "--validate-every", "3"))
@@ -98,21 +98,21 @@ def test_free_ell_is_learned_when_asked_and_written(tmp_path, capsys):
 
 @pytest.mark.parametrize("frames", [14, 40, 100, 253])
 def test_validation_frames_are_disjoint_from_training_frames(frames):
-    training, validation = trainer.split_validation([range(frames)])
-    held, used = set(validation[0]), set(training[0])
+    training, held_out = validation.split_validation([range(frames)])
+    held, used = set(held_out[0]), set(training[0])
     assert held and used and not held & used
-    assert len(held) <= trainer.VALIDATION_FRAMES
+    assert len(held) <= validation.VALIDATION_FRAMES
     # No training frame is a neighbour (within the gap) of a validation frame.
-    gap = trainer.VALIDATION_GAP if frames >= 2 * trainer.VALIDATION_BLOCK else 1  # short drives: shorter gap
+    gap = validation.VALIDATION_GAP if frames >= 2 * validation.VALIDATION_BLOCK else 1  # short drives: shorter gap
     assert min(abs(t - v) for t in used for v in held) > gap
     # Validation frames come in blocks of consecutive frames.
-    assert len(held) % trainer.VALIDATION_BLOCK == 0 or frames % trainer.VALIDATION_BLOCK
+    assert len(held) % validation.VALIDATION_BLOCK == 0 or frames % validation.VALIDATION_BLOCK
 
 
 def test_the_command_trains_and_validates_on_disjoint_frames(tmp_path, capsys, monkeypatch):
     write_drive(tmp_path / "data", "01", frames=14, seed=3)
     trained, validated = set(), set()
-    build, frame = trainer.SampleBuilder.build, trainer.Validator._frame
+    build, frame = samples.SampleBuilder.build, validation.Validator._frame
 
     def spy_build(self, number, dataset, position):
         trained.add(position)
@@ -122,8 +122,8 @@ def test_the_command_trains_and_validates_on_disjoint_frames(tmp_path, capsys, m
         validated.add(position)
         return frame(self, number, position)
 
-    monkeypatch.setattr(trainer.SampleBuilder, "build", spy_build)
-    monkeypatch.setattr(trainer.Validator, "_frame", spy_frame)
+    monkeypatch.setattr(samples.SampleBuilder, "build", spy_build)
+    monkeypatch.setattr(validation.Validator, "_frame", spy_frame)
     assert train.main(_train_args(tmp_path, tmp_path / "k.yaml", "--epochs", "1")) == 0
     assert trained and validated and not trained & validated
     # 14 frames, a short drive: blocks of 3 (the 4th validates), a gap of 1.
@@ -133,7 +133,7 @@ def test_the_command_trains_and_validates_on_disjoint_frames(tmp_path, capsys, m
 def test_strict_refuses_in_one_line_when_nothing_beats_the_start(tmp_path, capsys, monkeypatch):
     write_drive(tmp_path / "data", "01", frames=14, seed=3)
     start_path, start = _start_file(tmp_path)
-    monkeypatch.setattr(trainer.Validator, "score", _scores_start_best(start, 0.9))  # ties do not beat the start
+    monkeypatch.setattr(validation.Validator, "score", _scores_start_best(start, 0.9))  # ties do not beat the start
     out = tmp_path / "k.yaml"
     code = train.main(_train_args(tmp_path, out, "--init", str(start_path), "--epochs", "1", "--strict"))
     error = capsys.readouterr().err
@@ -171,7 +171,7 @@ def test_only_classes_under_the_point_floor_are_kept():
     counts = np.array([0, 40, 50, 0, 1000, 49])
     assert trainer.kept_classes(counts, 50, ignore=[0]).tolist() == [1, 3, 5]
     assert trainer.kept_classes(counts, 0, ignore=[0]).tolist() == []
-    weights = trainer.class_weights(counts)
+    weights = objective.class_weights(counts)
     assert weights[0] == weights[3] == 0 and weights[1] > weights[2] > weights[4] > 0
     assert weights[weights > 0].mean() == pytest.approx(1.0)
 
@@ -179,7 +179,7 @@ def test_only_classes_under_the_point_floor_are_kept():
 def test_a_class_under_the_point_floor_keeps_its_start_lengths_while_the_others_learn(tmp_path):
     write_drive(tmp_path / "data", "01", frames=8, seed=3)
     dataset = trainer.SemanticKittiSequence(tmp_path / "data", "01")
-    counts = trainer.class_counts([dataset], [range(8)], 20, dataset.label_map.ignore_classes)
+    counts = objective.class_counts([dataset], [range(8)], 20, dataset.label_map.ignore_classes)
     present = np.flatnonzero(counts)
     assert len(present) >= 3
     floor = int(np.sort(counts[present])[len(present) // 2])  # about half the classes fall under it

@@ -184,7 +184,7 @@ def test_soft_probabilities_spread_fractional_evidence():
 @pytest.mark.parametrize("filter_size", [3, 5, 7])
 def test_sparse_plan_equals_dense_layer_and_is_differentiable(kind, filter_size):
     """The training path (increment at chosen voxels) equals the dense convolution there."""
-    from convbki_core.geometry.volume import unravel_linear
+    from convbki_core.geometry.grid import unravel_linear
     from convbki_core.training.sparse_plan import SparsePlan
 
     rng = np.random.default_rng(filter_size * 7 + len(kind))

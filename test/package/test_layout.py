@@ -21,7 +21,8 @@ CORE_STAGES = ("geometry", "memory", "correction", "io", "inference", "free_spac
 # What every stage may use: the plumbing at the top of convbki_core.
 CORE_PLUMBING = {"compiled", "devices", "paths"}
 # The top of convbki_core: what a user imports, the composition and the plumbing; nothing else.
-CORE_TOP = {"__init__", "compiled", "devices", "paths", "config", "parts", "mapper", "offline", "warm_up"}
+CORE_TOP = {"__init__", "compiled", "devices", "paths", "config", "parts", "mapper", "map_contents", "offline",
+            "warm_up"}
 # Above every stage: data, the simulator, training and the programs.
 CORE_ABOVE = ("datasets", "synth", "training", "tools")
 # The node's parts, lowest first; each may use the node's top-level plumbing (params, settings,

@@ -182,8 +182,10 @@ def test_ament_index_finds_installed_package(
     require_current_install()
     repo_site = sysconfig.get_path("purelib", vars={"base": str(REPO / "install" / PACKAGE),
                                                     "platbase": str(REPO / "install" / PACKAGE)})
-    cached = {path.name.split(".")[0] for path in (Path(repo_site) / "convbki_core" / "__pycache__").glob("*.nbi")}
-    assert {"update", "volume", "free_space", "window", "store", "records", "statistics"} <= cached, cached
+    package = Path(repo_site) / "convbki_core"
+    cached = {f"{path.parent.parent.name}.{path.name.split('.')[0]}" for path in package.glob("*/__pycache__/*.nbi")}
+    assert {"inference.update", "geometry.volume", "free_space.ray_walk", "free_space.update", "memory.window",
+            "memory.store", "outputs.records", "inference.statistics"} <= cached, cached
 
     # With the install sourced, the installed copy of the code is what imports.
     where = subprocess.run(
@@ -360,13 +362,14 @@ def test_every_drop_reason_of_the_node_is_documented() -> None:
     import ast
 
     from convbki_ros.inputs import sync
-    from convbki_ros.mapping import mapping_thread as mapping
+    from convbki_ros.mapping import intake, update_thread
 
-    reasons = set(mapping.DROP_REASONS.values()) | {sync.NO_MOUNT, sync.NO_MAP_TRANSFORM}
-    for node in ast.walk(ast.parse(Path(mapping.__file__).read_text())):
-        if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "drop" and node.args \
-                and isinstance(node.args[0], ast.Constant):
-            reasons.add(node.args[0].value)
+    reasons = set(update_thread.DROP_REASONS.values()) | {sync.NO_MOUNT, sync.NO_MAP_TRANSFORM}
+    for module in (intake, update_thread):
+        for node in ast.walk(ast.parse(Path(module.__file__).read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "drop" and node.args \
+                    and isinstance(node.args[0], ast.Constant):
+                reasons.add(node.args[0].value)
     docs = (REPO / "docs" / "node.md").read_text()
     row = next(line for line in docs.splitlines() if line.startswith("| `dropped.<reason>` |"))
     listed = set(row.split("|")[2].split(":", 1)[1].replace("`", "").replace(" ", "").split(","))

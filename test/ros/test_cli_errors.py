@@ -1,46 +1,32 @@
-"""Every CLI on bad input: one line naming the file and the problem, exit code 2, no traceback,
-nothing of its own left behind (no report, labels, kernel file, bag, temp or staging file).
+"""Every CLI on a broken dataset or kernel file: one line naming the file and the problem, exit
+code 2, no traceback, nothing of its own left behind (no report, labels, kernel file, bag, temp or
+staging file), even when the failure comes part-way through the run.
 
 Most cases run the commands in-process through ``main(argv)`` (what the console scripts
 call); a few run them as real processes to show that no traceback reaches the terminal.
+Bad bags: test_cli_errors_bags.py; bad arguments and output targets: test_cli_errors_arguments.py.
+The dataset they damage (``clean_root``) is built once, in conftest.py.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 import yaml
-from kitti_fixture import write_drive
+from cli_helpers import one_line_error, tree
 
 from convbki_core.io.atomic import writer_tag
-from convbki_core.tools import bench, evaluate, train
-from convbki_core.tools import synth as synthetic
-from convbki_ros.tools import demo, kitti_to_bag, play_bag
+from convbki_core.tools import evaluate, train
+from convbki_ros.tools import kitti_to_bag
 
 REPO = Path(__file__).resolve().parents[2]
 SMALL_WINDOW = ["--local-bounds", "-8", "-8", "-2", "8", "8", "2", "--device", "cpu"]
-
-
-@pytest.fixture(scope="module")
-def clean_root(tmp_path_factory) -> Path:
-    """A 3-frame sequence 00 with ground truth, predictions and probabilities."""
-    root = tmp_path_factory.mktemp("clean") / "data"
-    write_drive(root, "00", frames=3)
-    folder = root / "sequences" / "00"
-    (folder / "probabilities").mkdir()
-    for scan in sorted((folder / "velodyne").iterdir()):
-        count = scan.stat().st_size // 16
-        np.save(folder / "probabilities" / f"{scan.stem}.npy", np.full((count, 20), 0.05, np.float16))
-    return root
 
 
 @pytest.fixture
@@ -49,30 +35,6 @@ def root(clean_root, tmp_path) -> Path:
     copy = tmp_path / "data"
     shutil.copytree(clean_root, copy)
     return copy
-
-
-def one_line_error(capsys, code: int, prog: str, *needles: str, after_progress: bool = False) -> str:
-    """The command's stderr is exactly one line ``prog: error: ...`` holding every needle.
-
-    ``after_progress``: the failure came part-way through, so a progress bar may precede it.
-    """
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert "Traceback" not in err
-    lines = err.strip().splitlines()
-    if after_progress:
-        assert all("%|" in line for line in lines[:-1]), err  # nothing but the bar before the error
-        lines = lines[-1:]
-    assert len(lines) == 1, err
-    assert lines[0].startswith(f"{prog}: error: "), lines[0]
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
-
-
-def tree(folder: Path) -> set[str]:
-    """Every path under ``folder`` (hidden ones too), relative."""
-    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
 
 
 def seq(root: Path) -> Path:
@@ -273,222 +235,6 @@ def test_evaluate_and_train_refuse_missing_output_folders(clean_root, tmp_path, 
     assert sorted(tmp_path.iterdir()) == []
 
 
-# ----------------------------------------------------------------------------- bags
-
-
-def _bag_from(root: Path, folder: Path) -> Path:
-    bag = folder / "bag"
-    assert kitti_to_bag.main(["--dataset", str(root), "--sequence", "0", "--out", str(bag), "--frames", "0:2"]) == 0
-    return bag
-
-
-@pytest.fixture(scope="module")
-def good_bag(clean_root, tmp_path_factory) -> Path:
-    return _bag_from(clean_root, tmp_path_factory.mktemp("bag"))
-
-
-def _not_bags(folder: Path, good: Path) -> dict[str, tuple[Path, str]]:
-    """Things given to play_bag as a bag, and what its one line must say."""
-    cases = {}
-    (folder / "empty").mkdir()
-    cases["empty folder"] = (folder / "empty", "no such bag")
-    (folder / "text.mcap").write_text("hello")
-    cases["text as mcap"] = (folder / "text.mcap", "cannot read the bag")
-    (folder / "text.db3").write_text("hello")
-    cases["text as sqlite"] = (folder / "text.db3", "cannot read the bag")
-    (folder / "notes.txt").write_text("hello")
-    cases["other file"] = (folder / "notes.txt", "cannot read the bag")
-    (folder / "yaml").mkdir()
-    (folder / "yaml" / "metadata.yaml").write_text("rosbag2_bagfile_information: [1\n")
-    cases["broken metadata"] = (folder / "yaml", "cannot read the bag")
-    no_storage = folder / "no_storage"
-    shutil.copytree(good, no_storage)
-    (no_storage / "bag.mcap").unlink()
-    cases["storage file missing"] = (no_storage, "cannot read the bag")
-    truncated = folder / "truncated"
-    shutil.copytree(good, truncated)
-    blob = (truncated / "bag.mcap").read_bytes()
-    (truncated / "bag.mcap").write_bytes(blob[: len(blob) // 2])
-    cases["truncated mcap"] = (truncated, "cannot read the bag")
-    return cases
-
-
-def test_play_bag_refuses_what_is_not_a_bag(good_bag, tmp_path, capsys):
-    for name, (path, message) in _not_bags(tmp_path, good_bag).items():
-        before = tree(tmp_path)
-        code = play_bag.main([str(path), "--wait-subscribers", "0"])
-        line = one_line_error(capsys, code, "play_bag", str(path), message)
-        assert tree(tmp_path) == before, name  # reading a bag writes nothing
-        assert len(line) < 400, line
-
-
-def test_play_bag_damaged_index_never_gives_a_traceback(good_bag, tmp_path, capsys):
-    """Bytes overwritten in the mcap's summary (its index): exit 2 with one line, or a clean replay.
-
-    rosbags trips over such damage with UnicodeDecodeError, OverflowError or MemoryError, at
-    open or while reading; play_bag must turn each into its one-line error.
-    """
-    blob = (good_bag / "bag.mcap").read_bytes()
-    rng = np.random.default_rng(3)
-    refused = 0
-    for trial in range(24):
-        damaged = tmp_path / f"d{trial}"
-        shutil.copytree(good_bag, damaged)
-        data = bytearray(blob)
-        at = int(rng.integers(len(data) - 1500, len(data) - 8))
-        data[at:at + 4] = rng.integers(0, 256, 4, dtype=np.uint8).tobytes()
-        (damaged / "bag.mcap").write_bytes(bytes(data))
-        code = play_bag.main([str(damaged), "--wait-subscribers", "0", "--rate", "1000"])
-        err = capsys.readouterr().err
-        assert "Traceback" not in err and code in (0, 2), err
-        if code == 2:
-            last = err.strip().splitlines()[-1]
-            assert last.startswith(f"play_bag: error: {damaged}: ") and "bag" in last, last
-            refused += 1
-        shutil.rmtree(damaged)
-    assert refused >= 3, refused  # the damage was real: some bags were refused
-
-
-# ----------------------------------------------------------------------------- synth, demo, arguments
-
-
-def test_synth_refuses_a_file_as_root_and_leaves_it(tmp_path, capsys):
-    target = tmp_path / "a_file"
-    target.write_text("mine")
-    code = synthetic.main(["--out", str(target), "--frames", "1", "--azimuth-steps", "64", "--quiet"])
-    one_line_error(capsys, code, "synth", "a_file", "not a folder")
-    code = synthetic.main(["--out", str(target / "inner"), "--frames", "1", "--azimuth-steps", "64", "--quiet"])
-    one_line_error(capsys, code, "synth", "a_file", "not a folder")
-    assert target.read_text() == "mine" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
-
-
-def test_synth_write_failure_is_one_line_exit_2_without_temp_files(tmp_path, capsys):
-    """A scan path taken by a folder makes the write fail part-way (after scan 0 was written)."""
-    seq_folder = tmp_path / "sequences" / "00"
-    (seq_folder / "velodyne" / "000001.bin").mkdir(parents=True)
-    code = synthetic.main(["--out", str(tmp_path), "--frames", "2", "--azimuth-steps", "64", "--beams", "8",
-                           "--noise-strength", "0.3", "--force", "--quiet"])
-    one_line_error(capsys, code, "synth", "000001.bin", after_progress=True)
-    assert not [p for p in tmp_path.rglob("*.tmp")]
-
-
-def test_bench_drive_folder_that_is_a_file(tmp_path, capsys):
-    target = tmp_path / "a_file"
-    target.write_text("mine")
-    code = bench.main(["--drive-dir", str(target), "--scans", "3", "--skip-ablation"])
-    one_line_error(capsys, code, "bench", "a_file", "not a folder")
-    assert target.read_text() == "mine" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
-
-
-def test_bench_without_convbki_ros_keeps_the_keys_and_says_why(monkeypatch):
-    """The core never imports convbki_ros: bench runs the ROS-side figures as a process and,
-    where convbki_ros is not there, reports them as not measured, under the keys bench_ros fills."""
-    from convbki_core.offline import paper_mapper
-    from convbki_ros.tools import bench_ros
-
-    assert bench.ROS_ENCODE_KEYS == bench_ros.ENCODE_KEYS and bench.ROS_SCAN_TO_MAP_KEYS == bench_ros.SCAN_TO_MAP_KEYS
-    assert set(bench_ros.START_KEYS) < set(bench.ROS_START_KEYS) <= set(bench.REPORTED)
-    rng = np.random.default_rng(0)
-    frame = SimpleNamespace(points=rng.uniform(-5, 5, (2000, 3)).astype(np.float32),
-                            remission=np.zeros(2000, np.float32), input_labels=rng.integers(1, 20, 2000),
-                            pose=np.eye(4))
-    mapper = paper_mapper(local_bounds=((-8.0, -8.0, -2.0), (8.0, 8.0, 2.0)))
-    mapper.integrate(frame.points, frame.input_labels, frame.pose)
-    assert tuple(bench_ros.encode_figures(mapper, 1)) == bench_ros.ENCODE_KEYS
-    assert tuple(bench_ros.scan_to_map_figures([frame], 1)) == bench_ros.SCAN_TO_MAP_KEYS
-
-    find_spec = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec",
-                        lambda name, *rest: None if name == "convbki_ros" else find_spec(name, *rest))
-    args = SimpleNamespace(skip_start=False, drive_dir="unused", scans=3, repeat=1, seed=5)
-    assert bench.ros_side_figures(args) == dict.fromkeys(bench.ROS_ENCODE_KEYS + bench.ROS_SCAN_TO_MAP_KEYS
-                                                          + bench.ROS_START_KEYS)
-    figures = {**dict.fromkeys(bench.REPORTED, 1.0), "machine": "test", **bench.ros_side_figures(args)}
-    rows = {line.split()[0]: line for line in bench.format_report(figures, []).splitlines()[3:] if line}
-    unmeasured = [key for key in bench.REPORTED if rows[key].endswith(bench.NOT_MEASURED)]
-    assert unmeasured == ["encode_ms_per_million", "scan_to_map_ms", *bench.ROS_START_KEYS]
-
-
-def test_bench_measures_the_ros_side_figures_in_a_process_of_their_own(tmp_path):
-    """With convbki_ros there, bench_ros runs as its own process on bench's drive and every
-    figure it owns comes back as a number."""
-    args = SimpleNamespace(skip_start=True, drive_dir=str(tmp_path / "drive"), scans=4, repeat=2, seed=5)
-    figures = bench.ros_side_figures(args)
-    assert set(figures) == set(bench.ROS_ENCODE_KEYS + bench.ROS_SCAN_TO_MAP_KEYS)
-    assert figures["encoded_voxels"] > 1000 and figures["encode_ms_per_million"] > 0 and figures["scan_to_map_ms"] > 0
-    # Given bench's own map of the drive, bench_ros encodes that map instead of mapping the drive again.
-    from convbki_core.offline import paper_mapper
-    from convbki_core.synth.cached_drive import ensure_drive
-
-    mapper = paper_mapper(local_bounds=((-8.0, -8.0, -2.0), (8.0, 8.0, 2.0)))
-    frame = ensure_drive(tmp_path / "drive", 4, 5)[0]
-    mapper.integrate(frame.points, frame.input_values, frame.pose)
-    mapper.save(tmp_path / "small.npz")
-    with_map = bench.ros_side_figures(args, tmp_path / "small.npz")
-    assert with_map["encoded_voxels"] == len(mapper.voxels()) != figures["encoded_voxels"]
-
-
-def test_demo_missing_dataset_creates_nothing(tmp_path, capsys):
-    code = demo.main(["--dataset", str(tmp_path / "nowhere"), "--sequence", "0", "--out", str(tmp_path / "demo")])
-    one_line_error(capsys, code, "demo", "nowhere", "dataset folder not found")
-    assert sorted(tmp_path.iterdir()) == []
-
-
-@pytest.mark.parametrize("module, argv", [
-    (evaluate, ["--dataset", "d", "--sequence", "x", "--report", "r.json"]),
-    (train, ["--dataset", "d", "--sequences", "0", "--out", "k.yaml", "--epochs", "0"]),
-    (train, ["--dataset", "d", "--sequences", "0", "--out", "k.yaml", "--min-class-points", "-1"]),
-    (kitti_to_bag, ["--dataset", "d", "--sequence", "0", "--out", "b", "--frames", "5:2"]),
-    (play_bag, ["bag", "--rate", "-1"]),
-    (demo, ["--frames", "0"]),
-    (synthetic, ["--out", "x", "--frames", "-2"]),
-    (evaluate, ["--no-such-flag"]),
-])
-def test_bad_arguments_are_one_line_exit_2(module, argv, capsys, tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)
-    with pytest.raises(SystemExit) as exit_info:
-        module.main(argv)
-    assert exit_info.value.code == 2
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and ": error: " in lines[0] and "Traceback" not in err, err
-    assert sorted(tmp_path.iterdir()) == []
-
-
-def _missing_devices() -> list:
-    """--device values this machine lacks, with what the one line must name."""
-    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    no_cuda = pytest.mark.skipif(count > 0, reason="this machine has a CUDA device, so --device cuda is valid here")
-    return [pytest.param("cuda", ("'cuda' requested", "has no CUDA device", "use device auto or cpu"), marks=no_cuda),
-            pytest.param(f"cuda:{count}", (f"'cuda:{count}' requested",)),
-            pytest.param("tpu", ("unknown device 'tpu'", "use auto, cpu or cuda[:N]"))]
-
-
-@pytest.mark.parametrize("device, needles", _missing_devices())
-def test_evaluate_refuses_a_device_it_cannot_use_before_any_work(clean_root, tmp_path, capsys, device, needles):
-    before = tree(tmp_path)
-    with pytest.raises(SystemExit) as exit_info:  # refused while the arguments are parsed
-        evaluate.main(["--dataset", str(clean_root), "--sequence", "0", "--report", str(tmp_path / "r.json"),
-                       "--write-labels", str(tmp_path / "out"), "--quiet", "--device", device])
-    one_line_error(capsys, exit_info.value.code, "evaluate", "argument --device:", *needles)
-    assert tree(tmp_path) == before
-
-
-@pytest.mark.parametrize("device, needles", _missing_devices())
-@pytest.mark.parametrize("module, argv", [
-    (train, ["--dataset", "d", "--sequences", "0", "--out", "k.yaml"]),
-    (bench, []),
-])
-def test_train_and_bench_refuse_a_device_they_cannot_use_before_any_work(module, argv, device, needles, capsys,
-                                                                          tmp_path, monkeypatch):
-    """Both run on CUDA when asked (``--device cuda``); a device this machine lacks is one line, exit 2."""
-    monkeypatch.chdir(tmp_path)
-    with pytest.raises(SystemExit) as exit_info:
-        module.main([*argv, "--device", device])
-    one_line_error(capsys, exit_info.value.code, module.PROG, "argument --device:", *needles)
-    assert sorted(tmp_path.iterdir()) == []
-
-
 # ----------------------------------------------------------------------------- real processes
 
 
@@ -519,18 +265,6 @@ def test_processes_print_one_line_and_no_traceback(root, tmp_path):
         assert len(lines) == 1 and lines[0].startswith(f"{prog}: error: "), result.stderr
         assert all(needle in lines[0] for needle in needles), lines[0]
     assert tree(tmp_path) == before
-
-
-def test_bench_never_overwrites_a_dataset_it_did_not_write(tmp_path, capsys):
-    """A folder of real scans without poses.txt (a velodyne-only download) is refused, not resimulated."""
-    velodyne = tmp_path / "kitti" / "sequences" / "00" / "velodyne"
-    velodyne.mkdir(parents=True)
-    for number in range(3):
-        (velodyne / f"{number:06d}.bin").write_bytes(np.zeros(16, np.float32).tobytes())
-    before = tree(tmp_path / "kitti")
-    code = bench.main(["--drive-dir", str(tmp_path / "kitti"), "--scans", "3", "--skip-ablation"])
-    one_line_error(capsys, code, "bench", "not a synthetic drive")
-    assert tree(tmp_path / "kitti") == before
 
 
 def test_outputs_committed_survive_a_later_failure(tmp_path):

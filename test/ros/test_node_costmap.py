@@ -4,7 +4,8 @@
 import numpy as np
 from mapper_rig import BOUNDS, POSE, Rig
 
-from convbki_core.costmap.columns import column_costs, rasterise
+from convbki_core.costmap.columns import column_costs
+from convbki_core.costmap.grid import rasterise
 from convbki_core.io.labels import load_label_map
 from convbki_core.io.map_file import read_map
 from convbki_ros.outputs.costmap import profile_of, rolling_geometry, whole_grid

@@ -7,7 +7,8 @@ voxels, and the map's version, which every change of the map bumps) are equal be
 after, and the latest /semantic_map is byte for byte the one before. Every rig first
 integrates a good cloud, so "the map did not change" is a check that can fail. To keep the
 time down, one node takes many cases in sequence; at the end its map must still save and
-load.
+load. (The reset options and autosave: test_node_resets.py; bad map files at start:
+test_node_bad_map_files.py.)
 """
 
 import array
@@ -15,9 +16,6 @@ import os
 import re
 import resource
 import shutil
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,18 +25,16 @@ from mapper_rig import (
     POINTS,
     SECOND,
     TRANSLATION,
-    WAIT,
     Rig,
     Stats,
+    close_together,
     cloud,
     expect_file_holds,
     fields,
     odometry,
     offline_map,
 )
-from ros_helpers import IMPORT_LOG, domain_id, split_import_log, start
 
-from convbki_core.io.atomic import writer_tag
 from convbki_core.io.labels import load_label_map
 from convbki_ros.inputs.cloud_decoding import decode_cloud
 
@@ -102,15 +98,28 @@ def expect_dropped(rig: Rig, baseline: Baseline, messages: list, warning: str, r
 
 
 @pytest.fixture(scope="module")
-def rig(tmp_path_factory):
-    """One node with the default robustness parameters, holding one good scan."""
-    rig = Rig(tmp_path_factory.mktemp("robust"), prefix=WITHOUT_PERMISSION_OVERRIDE)
+def nodes(tmp_path_factory):
+    """The module's two nodes, started side by side: "robust" takes the bad inputs in sequence (a
+    cloud waits 0.5 s for its pose and 0.3 s for its TF before it is dropped: the default
+    robustness parameters but for these waits, which only the cases that time out sit through),
+    "partial" maps the partial clouds from an empty map. Both report every 0.05 s."""
+    nodes = {"robust": Rig(tmp_path_factory.mktemp("robust"), "-p", "pose_wait_timeout:=0.5",
+                           "-p", "transform_timeout:=0.3", prefix=WITHOUT_PERMISSION_OVERRIDE,
+                           diagnostics_period=0.05, wait=False),
+             "partial": Rig(tmp_path_factory.mktemp("partial"), diagnostics_period=0.05, wait=False)}
     try:
-        rig.integrate_good_cloud()
-        yield rig
+        yield nodes
     finally:
-        output = rig.close()
-        assert "Traceback" not in output, output
+        outputs = close_together(*nodes.values())
+    assert not any("Traceback" in output for output in outputs), outputs
+
+
+@pytest.fixture(scope="module")
+def rig(nodes):
+    """The node with the default robustness parameters, holding one good scan."""
+    rig = nodes["robust"].wait_ready()
+    rig.integrate_good_cloud()
+    return rig
 
 
 def test_malformed_clouds_are_dropped_with_one_warning_each(rig):
@@ -186,7 +195,7 @@ def test_malformed_clouds_are_dropped_with_one_warning_each(rig):
          r"dropping empty cloud stamped [\d.]+ s \(width 0 x height 1\)", "empty")
     # A frame TF has never heard of: it may still come, so the cloud waits transform_timeout.
     case(lambda t: cloud(t, frame="camera"), r"dropping cloud stamped [\d.]+ s in frame 'camera' after waiting "
-         r"transform_timeout = 1 s \(no mount\): no mount in TF \(frames 'velo_link' and 'camera' are unknown\); "
+         r"transform_timeout = 0\.3 s \(no mount\): no mount in TF \(frames 'velo_link' and 'camera' are unknown\); "
          r"publish it on /tf_static or set base_to_sensor", "no mount")
     assert rig_alive(rig)
 
@@ -289,11 +298,11 @@ def test_clouds_lagging_the_odometry_by_seconds_are_mapped(rig):
     rig.stamp = lagged + 2 * SECOND
 
 
-def test_clouds_with_some_bad_points_or_big_endian_bytes_map_like_their_good_points(tmp_path_factory):
+def test_clouds_with_some_bad_points_or_big_endian_bytes_map_like_their_good_points(nodes):
     """NaN/inf points, unknown label ids and probability rows that are negative, NaN or sum to
     zero are warned about and left out; a big-endian cloud is read as such. The map equals the
     offline mapper's for the good points alone, and it saves and loads."""
-    rig = Rig(tmp_path_factory.mktemp("partial"))
+    rig = nodes["partial"].wait_ready()
     try:
         rig.integrate_good_cloud()
         count = len(POINTS)
@@ -408,253 +417,3 @@ def test_a_save_into_a_read_only_folder_answers_why(rig):
     assert not failed.success and failed.message == f"could not save {rig.map_file}: Permission denied"
     assert rig.map_file.read_bytes() == before
     assert rig.integrate_good_cloud().integrated > 0
-
-
-# ----------------------------------------------------------------------------- node B: resets
-
-
-def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp_path):
-    rig = Rig(tmp_path, "-p", "on_pose_jump:=reset", "-p", "reset_on_stamp_backwards:=true",
-              "-p", "odometry_timeout:=1.0", "-p", "autosave_period:=1.0")
-    try:
-        # Clouds and no odometry at all: a warning every odometry_timeout, and nothing mapped.
-        mark = rig.log.mark()
-        warning = r"\[WARN\].*no odometry at all on /odom for [\d.]+ s while clouds arrive on /cloud_in"
-        sent = rig.stats().scans_in
-        for _ in range(int(WAIT / 0.2)):  # clouds keep coming until the warning came twice
-            if len(rig.log.find(warning, mark)) >= 2:
-                break
-            rig.publish(cloud(rig.next_stamp(0.1)))
-            sent += 1
-            # The next cloud once the node has counted this one (a /diagnostics report, every 0.2 s, says so).
-            rig.wait_stats(lambda s, sent=sent: s.scans_in == sent)
-        assert len(rig.log.find(warning, mark)) == 2, rig.log.text(mark)
-        assert rig.wait_stats(lambda s: s.level == 2).integrated == 0  # ERROR on /diagnostics
-        stats = rig.wait_stats(lambda s: s.dropped == s.scans_in)
-        assert stats.integrated == 0 and stats.voxels == 0 and stats.reasons.get("no pose", 0) > 0, stats
-
-        # Autosave writes the map when it has changed (nothing was saved while it was empty).
-        assert not rig.map_file.exists()
-        mark = rig.log.mark()
-        stats = rig.integrate_good_cloud()
-        assert stats.voxels == len(offline_map(1))
-        assert rig.probe.spin_until(rig.map_file.exists, WAIT), "autosave never wrote the map file"
-        expect_file_holds(rig.map_file, offline_map(1))  # saves are atomic: a file that exists is complete
-        rig.wait_log(rf"autosave: saved {stats.voxels} voxels to {re.escape(str(rig.map_file))}", mark)
-        autosaved = rig.map_file.read_bytes()
-
-        # A pose jump resets the map; mapping resumes at the new pose.
-        mark = rig.log.mark()
-        far = TRANSLATION + [0.0, 80.0, 0.0]
-        rig.publish(odometry(rig.next_stamp(), translation=far))
-        rig.wait_log(r"\[WARN\].*odometry jumped 80.00 m in 1.00 s .*map reset \(on_pose_jump reset\)", mark)
-        assert rig.wait_stats(lambda s: s.voxels == 0).integrated == stats.integrated
-        rig.map_message(0)
-        assert rig.integrate_good_cloud(translation=far).voxels > 0
-
-        # An outage (no odometry for 30 s, then a pose 80 m on) is named so, and keeps the map.
-        mark = rig.log.mark()
-        for _ in range(3):  # odometry at its usual pace first (one a second here)
-            rig.integrate_good_cloud(translation=far)
-        rig.next_stamp(29.0)
-        on = far + [0.0, 80.0, 0.0]
-        after_outage = rig.integrate_good_cloud(translation=on)
-        rig.wait_log(r"\[WARN\].*odometry outage of 30.0 s \(none stamped between [\d.]+ s and [\d.]+ s\); the pose "
-                     r"after it is 80.00 m away \(max_pose_jump = 10.0 m\): map kept", mark)
-        assert after_outage.voxels > 0 and "jumped" not in rig.log.text(mark)
-
-        # Time going backwards resets the map too.
-        mark = rig.log.mark()
-        rig.stamp -= 100 * SECOND
-        rig.publish(odometry(rig.next_stamp()))
-        rig.wait_log(r"\[WARN\].*time went backwards by 9\d\.\d+ s .*map reset \(reset_on_stamp_backwards\)", mark)
-        rig.wait_stats(lambda s: s.voxels == 0)
-        rig.map_message(0)
-        final = rig.integrate_good_cloud()
-        rig.integrate_good_cloud()
-        assert final.voxels == stats.voxels
-
-        # The resets were not a request to write the file: autosave keeps the map saved before them,
-        # and /diagnostics says this map is not saved.
-        unsaved = rig.wait_stats(lambda s: s.level == 1 and "not saved automatically" in s.message)
-        assert "a reset when time went back" in unsaved.message, unsaved
-        assert rig.map_file.read_bytes() == autosaved
-
-        # on_pose_jump new_file: the map so far goes to a segment file (a new one, as map_file holds
-        # evidence this map lacks), and the new segment's map will be saved to the next.
-        assert all(result.successful for result in rig.set_parameters(on_pose_jump="new_file"))
-        assert not rig.set_parameters(on_pose_jump="split")[0].successful
-        mark = rig.log.mark()
-        jumped = TRANSLATION + [0.0, -80.0, 0.0]
-        rig.publish(odometry(rig.next_stamp(), translation=jumped))
-        segment, following = (rig.map_file.with_name(f"map.segment-{n}.npz") for n in (2, 3))
-        rig.wait_log(rf"\[WARN\].*odometry jumped 80.00 m in 1.00 s .*the map so far \({final.voxels} voxels\) is "
-                     rf"being saved to {re.escape(str(segment))}; a new map starts for the new segment, saved to "
-                     rf"{re.escape(str(following))} \(map_file is now .*\(on_pose_jump new_file\)", mark)
-        rig.wait_log(rf"saved the segment before the jump, {final.voxels} voxels, to {re.escape(str(segment))}", mark)
-        expect_file_holds(segment, offline_map(2))
-        assert rig.parameter("map_file") == str(following)
-        assert rig.wait_stats(lambda s: s.voxels == 0).integrated == final.integrated + 1
-
-        # SIGTERM (what a supervisor sends) saves the new segment's map to the map_file now in use:
-        # autosave is turned off first, so only the save on shutdown can write it.
-        assert all(result.successful for result in rig.set_parameters(autosave_period=0.0))
-        last = rig.integrate_good_cloud(translation=jumped)
-        autosaved_segment = following.read_bytes() if following.exists() else b""  # the segment's empty start
-        rig.process.send_signal(signal.SIGTERM)
-        assert rig.process.wait(timeout=WAIT) == 0
-    finally:
-        output = rig.close()
-    assert "Traceback" not in output and "[ERROR]" not in output, output
-    assert f"on shutdown: saved {last.voxels} voxels to {following}" in output, output
-    assert following.read_bytes() != autosaved_segment
-    expect_file_holds(following, offline_map(1, translation=jumped))
-    assert rig.map_file.read_bytes() == autosaved  # the file saved before the resets was never overwritten
-    expect_file_holds(rig.map_file, offline_map(1))
-
-
-# ----------------------------------------------------------------------------- node C, D: bad map files
-
-
-SET_ASIDE_NAME = r"\d{8}T\d{6}Z(?:-\d+)?"  # <map_file>.<why>-<UTC time>[-N]
-
-
-def refused_start(domain: int, *parameters: str):
-    """A node started with ``parameters`` that must refuse to start: (exit code, its output, the
-    modules it imported before the error line)."""
-    process = start("convbki_ros.main", domain, "--ros-args", "-p", "device:=cpu", *parameters, env=IMPORT_LOG)
-    try:
-        code = process.wait(timeout=60)
-        output, imported = split_import_log(process.communicate()[0])
-    finally:
-        if process.poll() is None:
-            process.kill()
-    return code, output, imported
-
-
-def test_bad_map_files_met_in_three_starts_are_each_set_aside_under_a_name_of_their_own(tmp_path):
-    good = tmp_path / "good.npz"
-    offline_map(1).save(good)
-    folder = tmp_path / "robot"
-    map_file = folder / "maps" / "map.npz"
-    map_file.parent.mkdir(parents=True)
-    random_bytes = np.random.default_rng(3).integers(0, 256, 4096, dtype=np.uint8).tobytes()
-    foreign = tmp_path / "foreign.npz"
-    np.savez(foreign, points=np.zeros((10, 3)))  # a valid archive, not a map
-    bad_files = {"truncated": good.read_bytes()[: good.stat().st_size // 2], "random bytes": random_bytes,
-                 "foreign": foreign.read_bytes()}
-
-    # Refusing (refuse_bad_map_file): exit 2 naming the file and the problem, before the mapper is
-    # loaded (Python's import log before the error line), and the file as it was.
-    map_file.write_bytes(bad_files["foreign"])
-    code, output, imported = refused_start(domain_id(), "-p", f"map_file:={map_file}",
-                                           "-p", "refuse_bad_map_file:=true")
-    assert code == 2, output
-    assert "torch" not in imported, "the unreadable map file was refused only after the mapper was loaded"
-    assert re.search(rf"mapper: error: {re.escape(str(map_file))}: not a ConvBKI map file .*"
-                     r"\(refuse_bad_map_file is true: not starting\)", output), output
-    assert "Traceback" not in output and map_file.read_bytes() == bad_files["foreign"]
-
-    # Not refusing, three starts, each meeting another bad file: each start says so, starts empty,
-    # and its first save moves the bad file to a name of its own (said in the log), never over
-    # the one set aside before.
-    # What saves killed by an earlier run left (removed at start: this node's own kind of temporary
-    # file, of processes that are gone) and what is not theirs (kept).
-    dead = subprocess.Popen([sys.executable, "-c", "pass"])
-    dead.wait()
-    killed_saves = [map_file.parent / f".map.npz.{writer_tag(dead.pid)}.x1.tmp",
-                    map_file.parent / f".map.npz.prev.{writer_tag(dead.pid)}.x2.tmp"]
-    not_theirs = [map_file.parent / f".other.npz.{writer_tag(dead.pid)}.x3.tmp",  # another file's
-                  map_file.parent / f".map.npz.{writer_tag(os.getpid())}.x4.tmp",  # a live process's
-                  map_file.parent / f".map.npz.{dead.pid}.0badc0de.x5.tmp",  # another host's (NFS)
-                  map_file.parent / "map.npz.tmp"]  # the user's
-    for path in killed_saves + not_theirs:
-        path.write_bytes(b"\0" * 1000)
-    set_aside: dict[str, Path] = {}
-    for kind, content in bad_files.items():
-        map_file.write_bytes(content)
-        rig = Rig(folder, map_file=map_file)
-        try:
-            if kind == "truncated":
-                names = ", ".join(path.name for path in killed_saves)
-                assert rig.log.find(r"\[INFO\].*removed 2 temporary file\(s\) of killed saves beside map_file "
-                                    rf"\(0\.0 MB\): {re.escape(names)}"), rig.log.text()
-                assert not any(path.exists() for path in killed_saves) and all(path.exists() for path in not_theirs)
-            assert re.search(rf"\[ERROR\].*{re.escape(str(map_file))}: not a (readable )?ConvBKI map file.*starting "
-                             rf"with an EMPTY map.*the first save moves it to {re.escape(str(map_file))}\.unreadable-"
-                             r"<UTC time>", rig.log.text()), rig.log.text()
-            assert rig.stats().voxels == 0
-            if kind == "truncated":  # one start maps too: SIGTERM then saves what changed since the save
-                rig.integrate_good_cloud()
-            saved = rig.call("save_map")
-            assert saved.success, saved.message
-            moved = rig.wait_log(rf"\[WARN\].*moved the unreadable map file {re.escape(str(map_file))} to "
-                                 rf"({re.escape(str(map_file))}\.unreadable-{SET_ASIDE_NAME})$", 0)
-            set_aside[kind] = Path(moved[0].group(1))
-            if kind == "truncated":
-                final = rig.integrate_good_cloud()
-                rig.process.send_signal(signal.SIGTERM)
-            else:
-                rig.process.send_signal(signal.SIGINT)
-            assert rig.process.wait(timeout=WAIT) == 0
-        finally:
-            output = rig.close()
-        assert "Traceback" not in output, output
-        if kind == "truncated":
-            assert f"on shutdown: saved {final.voxels} voxels to {map_file} (the file before kept as map.npz.prev)" \
-                in output, output
-            expect_file_holds(map_file, offline_map(2))
-    assert len(set(set_aside.values())) == 3
-    for kind, content in bad_files.items():
-        assert set_aside[kind].read_bytes() == content, kind
-
-
-def test_a_map_of_another_set_up_stops_the_start_and_two_mistaken_restarts_lose_no_map(tmp_path):
-    """A valid 0.2 m map, a start with resolution 0.4 by mistake, then the defaults again: each
-    mistaken start is refused with what differs, and with map_file_mismatch set_aside neither
-    the 0.2 m map nor the 0.4 m map made meanwhile is lost."""
-    folder = tmp_path / "robot"
-    map_file = folder / "maps" / "map.npz"
-    map_file.parent.mkdir(parents=True)
-    offline_map(1).save(map_file)
-    fine_map = map_file.read_bytes()
-
-    # The mistake: refused at once, naming what differs and the two ways out; the map as it was.
-    code, output, imported = refused_start(domain_id(), "-p", f"map_file:={map_file}", "-p", "resolution:=0.4")
-    assert code == 2 and "torch" not in imported, output
-    assert re.search(rf"mapper: error: map_file {re.escape(str(map_file))} holds a map of another set-up "
-                     r"\(resolution 0\.2 m in the file, 0\.4 m here\); to load it, start with -p resolution:=0\.2; "
-                     r"to start a new map, set map_file to another file \(or map_file_mismatch:=set_aside",
-                     output), output
-    assert output.count("mapper: error:") == 1 and "Traceback" not in output
-    assert map_file.read_bytes() == fine_map
-
-    kept = []
-    for parameters in (("-p", "resolution:=0.4"), ()):
-        rig = Rig(folder, *parameters, "-p", "map_file_mismatch:=set_aside", map_file=map_file)
-        try:
-            assert re.search(r"\[ERROR\].*holds a map of another set-up \(resolution 0\.[24] m in the file, "
-                             r"0\.[24] m here\); starting with an EMPTY map \(map_file_mismatch is set_aside\)",
-                             rig.log.text()), rig.log.text()
-            assert rig.stats().voxels == 0
-            rig.integrate_good_cloud()
-            rig.process.send_signal(signal.SIGINT)  # saves on shutdown: the file is moved aside first
-            assert rig.process.wait(timeout=WAIT) == 0
-        finally:
-            output = rig.close()
-        moved = re.search(rf"\[WARN\].*moved the map file of another set-up {re.escape(str(map_file))} to "
-                          rf"({re.escape(str(map_file))}\.other-setup-{SET_ASIDE_NAME})\n", output)
-        assert moved, output
-        kept.append(Path(moved.group(1)))
-        if not parameters:
-            break
-        coarse_map = map_file.read_bytes()
-        # The defaults again, before the user notices the parameter: refused too, now the file is 0.4 m.
-        code, output, _ = refused_start(domain_id(), "-p", f"map_file:={map_file}")
-        assert code == 2 and "(resolution 0.4 m in the file, 0.2 m here); to load it, start with -p " \
-            "resolution:=0.4" in output, output
-    # Both maps are in the folder, byte for byte, where the lines said; map_file holds the new 0.2 m map.
-    assert kept[0] != kept[1]
-    assert kept[0].read_bytes() == fine_map and kept[1].read_bytes() == coarse_map
-    expect_file_holds(map_file, offline_map(1))
-    assert sorted(path.name for path in map_file.parent.iterdir()) == sorted(["map.npz", *(p.name for p in kept)])

@@ -19,8 +19,8 @@ TESTS = Path(__file__).resolve().parent
 STARTUP = "test_node_startup.py::test_every_bad_start_is_one_line_and_exit_2 via BAD_STARTS"  # refused values
 MAP_SETTINGS = "test_node_parameters.py::test_map_settings_at_start_shape_the_map_and_its_outputs"
 RUN_TIME = "test_node_parameters.py::test_queue_timing_and_robustness_settings_at_start_and_at_run_time"
-RESETS = "test_node_robustness.py::test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm"
-UNREADABLE = "test_node_robustness.py::test_bad_map_files_met_in_three_starts_are_each_set_aside_under_a_name_of_" \
+RESETS = "test_node_resets.py::test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm"
+UNREADABLE = "test_node_bad_map_files.py::test_bad_map_files_met_in_three_starts_are_each_set_aside_under_a_name_of_" \
     "their_own"
 OVERRIDES = "test_node_startup.py::test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_effect"
 CORRECTED = "test_node_corrections.py::test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scratch"
@@ -79,7 +79,7 @@ SET_AT_START = {
     "reset_on_stamp_backwards": RESETS,
     "odometry_timeout": RESETS,
     "refuse_bad_map_file": UNREADABLE,
-    "map_file_mismatch": "test_node_robustness.py::test_a_map_of_another_set_up_stops_the_start_and_two_mistaken_" \
+    "map_file_mismatch": "test_node_bad_map_files.py::test_a_map_of_another_set_up_stops_the_start_and_two_mistaken_" \
                          "restarts_lose_no_map",
     "scan_log": MAP_SETTINGS,
     "scan_log_scans": CORRECTED + " via start_node",

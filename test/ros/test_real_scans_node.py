@@ -24,8 +24,10 @@ def input_grid(dataset, grid) -> np.ndarray:
     """The input segmentation's own car costmap on the cells of ``grid`` (an OccupancyGrid): its
     labels of every scan's points counted per voxel and costed without a margin, as
     ``evaluate --costmap-report`` scores it."""
-    from convbki_core.costmap.columns import column_costs, load_profile, rasterise
-    from convbki_core.geometry.volume import transform_points
+    from convbki_core.costmap.columns import column_costs
+    from convbki_core.costmap.grid import rasterise
+    from convbki_core.costmap.profile import load_profile
+    from convbki_core.geometry.grid import transform_points
     from convbki_core.measures.costmap_eval import GroundTruthVoxels, truth_profile
     from convbki_core.paths import traversability_profile
 

@@ -29,7 +29,8 @@ from convbki_core.paths import kernel_path
 from convbki_core.outputs.records import change_records, packed_palette, view_records
 from convbki_core.outputs.shown_map import ShownMap
 from convbki_core.warm_up import warm_up
-from convbki_core.costmap.columns import grid_of_window, load_profile
+from convbki_core.costmap.profile import load_profile
+from convbki_core.costmap.window_pass import grid_of_window
 from convbki_core.paths import traversability_profile
 from convbki_ros.outputs.cloud_encoding import encode_cloud
 from convbki_ros.inputs.cloud_decoding import decode_cloud
@@ -234,8 +235,9 @@ def test_the_warm_up_runs_where_no_temporary_folder_can_be_made(tmp_path):
     assert result.returncode == 0, result.stderr
     outcome = json.loads(result.stdout.strip().splitlines()[-1])
     modules = {name.rsplit(".", 1)[0] for name in outcome["warmed"]}
-    assert {"convbki_core.inference.update", "convbki_core.free_space.rays", "convbki_core.memory.window",
-            "convbki_core.memory.store", "convbki_core.costmap.columns", "convbki_core.outputs.records",
+    assert {"convbki_core.inference.update", "convbki_core.free_space.update", "convbki_core.memory.window",
+            "convbki_core.memory.column_classes", "convbki_core.memory.store", "convbki_core.costmap.columns",
+            "convbki_core.costmap.window_pass", "convbki_core.outputs.records",
     } <= modules, modules
     assert outcome["no_scratch"] and len(outcome["warmed"]) >= 20, outcome
     assert outcome["mapping"] == [] and outcome["files"] == [], outcome

@@ -1,5 +1,8 @@
-"""kitti_to_bag and play_bag on real files and real DDS: bags read back with rosbags, replays
-received by an rclpy subscriber in this process while play_bag runs as a subprocess."""
+"""play_bag on real DDS: bags made by kitti_to_bag replayed while an rclpy subscriber in this
+process receives them (order, stamps, /clock, remaps, converted messages, pacing by stamps,
+Ctrl-C, a subscriber that goes away), paced to the mapper node's progress and stopped and
+resumed, the pacer's count of clouds DDS lost, and the rosbags -> rclpy converter that the
+replay falls back on. The ``dataset`` fixture is test/ros/conftest.py's."""
 
 from __future__ import annotations
 
@@ -13,214 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
-from kitti_fixture import pose_about_z, write_sequence
-from ros_helpers import Probe, domain_id, odometry_to_pose
+from bag_fixture import EPOCH_NS, TIMES, convert
+from ros_helpers import Probe, domain_id
 
 from convbki_ros.inputs.cloud_decoding import decode_cloud
-from convbki_ros.inputs.transforms import stamp_to_ns, transform_to_pose
-from convbki_ros.tools import kitti_to_bag, play_bag
+from convbki_ros.inputs.transforms import stamp_to_ns
+from convbki_ros.tools import node_pacing, play_bag
+from convbki_ros.tools.bag_reading import rclpy_message_class, to_rclpy
 
 REPO = Path(__file__).resolve().parents[2]
-EPOCH_NS = 1_700_000_000_000_000_000
-TIMES = [0.0, 0.1037, 0.2071, 0.3109]
-FRAME_SIZES = [300, 301, 280, 333]
-TOPICS = {"/kitti/velo/pointcloud": "sensor_msgs/msg/PointCloud2", "/kitti/odom": "nav_msgs/msg/Odometry",
-          "/tf": "tf2_msgs/msg/TFMessage", "/tf_static": "tf2_msgs/msg/TFMessage"}
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory):
-    """A 4-frame sequence 08: first pose not identity, raw ids with instance bits, probabilities."""
-    root = tmp_path_factory.mktemp("kitti")
-    rng = np.random.default_rng(8)
-    frames, poses, probabilities = [], [], []
-    for number, size in enumerate(FRAME_SIZES):
-        points = rng.normal(scale=8.0, size=(size, 3)).astype(np.float32)
-        truth = rng.choice([10, 40, 50, 70], size).astype(np.uint32)
-        predicted = rng.choice([10, 40, 48, 50, 252], size).astype(np.uint32) | (rng.integers(0, 9, size) << 16).astype(
-            np.uint32)
-        frames.append((points, truth, predicted))
-        poses.append(pose_about_z(0.3 + 0.05 * number, [5.0 + number, -2.0 + 0.5 * number, 0.25]))
-        p = rng.random((size, 20))
-        probabilities.append(p / p.sum(axis=1, keepdims=True))
-    write_sequence(root, "08", frames, poses, times=TIMES, probabilities=probabilities)
-    return root, frames, probabilities
-
-
-def convert(*argv: str) -> int:
-    return kitti_to_bag.main([str(a) for a in argv])
-
-
-def read_bag(path: Path):
-    """{topic: [(timestamp, message)]} and the connections, read with rosbags."""
-    from rosbags.rosbag2 import Reader
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS2_JAZZY)
-    messages: dict[str, list] = {}
-    with Reader(path) as reader:
-        connections = {c.topic: c for c in reader.connections}
-        order = []
-        for connection, timestamp, data in reader.messages():
-            messages.setdefault(connection.topic, []).append(
-                (timestamp, store.deserialize_cdr(data, connection.msgtype)))
-            order.append((timestamp, connection.topic))
-    return messages, connections, order
-
-
-@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
-def test_kitti_to_bag_round_trip(dataset, tmp_path: Path, storage: str, capsys) -> None:
-    from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-
-    root, frames, _ = dataset
-    out = tmp_path / "nested" / "bag"
-    assert convert("--dataset", root, "--sequence", "8", "--out", out, "--storage", storage) == 0
-    summary = capsys.readouterr().out
-    assert f"{out}" in summary and "4 frames" in summary and "/kitti/velo/pointcloud" in summary
-    assert sorted(p.name for p in out.parent.iterdir()) == ["bag"]  # no staging folder left behind
-
-    messages, connections, order = read_bag(out)
-    assert {topic: c.msgtype for topic, c in connections.items()} == TOPICS
-    assert {topic: len(m) for topic, m in messages.items()} == {**dict.fromkeys(TOPICS, 4), "/tf_static": 1}
-    expected_stamps = [EPOCH_NS + round(t * 1e9) for t in TIMES]
-    # the mount once, first; per frame: /tf, then odometry, then the cloud, all at the frame's stamp
-    assert [topic for _, topic in order] == ["/tf_static", *["/tf", "/kitti/odom", "/kitti/velo/pointcloud"] * 4]
-    assert [t for t, _ in order] == [expected_stamps[0], *[s for s in expected_stamps for _ in range(3)]]
-
-    sequence = SemanticKittiSequence(root, "08")
-    _, static_message = messages["/tf_static"][0]
-    (mount,) = static_message.transforms
-    assert (mount.header.frame_id, mount.child_frame_id) == ("camera_gray_left", "velo_link")
-    assert np.allclose(transform_to_pose(mount), sequence.calibration, atol=1e-12)  # calib.txt's Tr
-    for number, (points, _, predicted) in enumerate(frames):
-        timestamp, cloud = messages["/kitti/velo/pointcloud"][number]
-        assert timestamp == expected_stamps[number] == stamp_to_ns(cloud.header.stamp)
-        assert cloud.header.frame_id == "velo_link" and cloud.height == 1 and cloud.is_dense
-        assert [f.name for f in cloud.fields] == ["x", "y", "z", "intensity", "label"]
-        decoded = decode_cloud(cloud)
-        assert decoded.points.tobytes() == points.tobytes()
-        assert np.array_equal(decoded.labels, predicted.astype(np.int64))  # raw words, instance bits kept
-        assert decoded.raw_label_dtype == np.uint32
-        assert np.array_equal(decoded.intensity, np.full(len(points), 0.5, np.float32))
-
-        timestamp, odom = messages["/kitti/odom"][number]
-        assert timestamp == stamp_to_ns(odom.header.stamp)
-        assert (odom.header.frame_id, odom.child_frame_id) == ("map", "velo_link")
-        assert np.allclose(odometry_to_pose(odom), sequence[number].pose, atol=1e-12)
-        _, tf_message = messages["/tf"][number]
-        (transform,) = tf_message.transforms
-        assert (transform.header.frame_id, transform.child_frame_id) == ("map", "camera_gray_left")
-        assert stamp_to_ns(transform.header.stamp) == timestamp
-        # the vehicle's pose times the mount is the LiDAR's pose, as the odometry has it
-        assert np.allclose(transform_to_pose(transform) @ transform_to_pose(mount), sequence[number].pose,
-                           atol=1e-9)
-
-    metadata = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-    assert metadata["version"] == 9
-    assert metadata["storage_identifier"] == storage
-    assert metadata["message_count"] == 13
-    assert metadata["starting_time"]["nanoseconds_since_epoch"] == expected_stamps[0]
-    assert metadata["duration"]["nanoseconds"] == expected_stamps[-1] - expected_stamps[0]
-    assert all((out / name).is_file() for name in metadata["relative_file_paths"])
-    topics = {t["topic_metadata"]["name"]: t for t in metadata["topics_with_message_count"]}
-    assert {name: t["topic_metadata"]["type"] for name, t in topics.items()} == TOPICS
-    for name, entry in topics.items():
-        assert entry["message_count"] == (1 if name == "/tf_static" else 4)
-        assert entry["topic_metadata"]["serialization_format"] == "cdr"
-        assert entry["topic_metadata"]["type_description_hash"].startswith("RIHS01_")
-        (qos,) = entry["topic_metadata"]["offered_qos_profiles"]
-        durability = "transient_local" if name == "/tf_static" else "volatile"
-        assert (qos["reliability"], qos["durability"], qos["history"]) == ("reliable", durability, "keep_last")
-
-
-def test_kitti_to_bag_of_a_partial_sequence_uses_pose_k_for_scan_k(dataset, tmp_path: Path, capsys) -> None:
-    """Scans 1 and 2 of the 4 beside the whole poses.txt and times.txt: the bag carries their own
-    poses and stamps, and one line says how many poses were not used."""
-    import shutil
-
-    from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-
-    root, frames, _ = dataset
-    partial = tmp_path / "partial"
-    shutil.copytree(root / "sequences" / "08", partial / "sequences" / "08")
-    for sub in ("velodyne", "labels", "predictions", "probabilities"):
-        for path in (partial / "sequences" / "08" / sub).iterdir():
-            if int(path.stem) not in (1, 2):
-                path.unlink()
-    out = tmp_path / "bag"
-    assert convert("--dataset", partial, "--sequence", "08", "--out", out) == 0
-    assert f"kitti_to_bag: note: {partial / 'sequences' / '08' / 'poses.txt'}: 4 poses for 2 numbered scans: row k " \
-        "used for scan k, 2 not used" in capsys.readouterr().err
-    messages, _, _ = read_bag(out)
-    whole = SemanticKittiSequence(root, "08")
-    odometry = messages["/kitti/odom"]
-    assert [timestamp for timestamp, _ in odometry] == [EPOCH_NS + round(TIMES[k] * 1e9) for k in (1, 2)]
-    for (_, odom), number in zip(odometry, (1, 2), strict=True):
-        assert np.allclose(odometry_to_pose(odom), whole[number].pose, atol=1e-12)
-    clouds = [decode_cloud(cloud).points for _, cloud in messages["/kitti/velo/pointcloud"]]
-    assert [points.tobytes() for points in clouds] == [frames[k][0].tobytes() for k in (1, 2)]
-
-
-def test_kitti_to_bag_probabilities_and_frames(dataset, tmp_path: Path) -> None:
-    root, frames, probabilities = dataset
-    out = tmp_path / "probs"
-    assert convert("--dataset", root, "--sequence", "08", "--out", out, "--probabilities-dir", "probabilities",
-                   "--frames", "1:3") == 0
-    messages, _, _ = read_bag(out)
-    clouds = messages["/kitti/velo/pointcloud"]
-    assert [t for t, _ in clouds] == [EPOCH_NS + round(t * 1e9) for t in TIMES[1:3]]
-    for (_, cloud), number in zip(clouds, [1, 2]):
-        names = [f.name for f in cloud.fields]
-        assert names == ["x", "y", "z", "intensity"] + [f"prob_{k}" for k in range(20)]
-        decoded = decode_cloud(cloud, 20)
-        assert decoded.points.tobytes() == frames[number][0].tobytes()
-        # the dataset stores float16; the bag carries exactly their float32 values
-        assert np.array_equal(decoded.probabilities, probabilities[number].astype(np.float16).astype(np.float32))
-        assert decoded.labels is None
-
-
-def test_kitti_to_bag_errors(dataset, tmp_path: Path, capsys) -> None:
-    root, _, _ = dataset
-    assert convert("--dataset", tmp_path / "missing", "--sequence", "8", "--out", tmp_path / "a") == 2
-    error = capsys.readouterr().err.strip().splitlines()
-    assert len(error) == 1 and error[0].startswith("kitti_to_bag: error:") and "missing" in error[0]
-    assert not (tmp_path / "a").exists()
-
-    assert convert("--dataset", root, "--sequence", "8", "--out", tmp_path / "b", "--predictions-dir", "nope") == 2
-    assert "nope" in capsys.readouterr().err
-
-    existing = tmp_path / "existing"
-    existing.mkdir()
-    (existing / "keep.txt").write_text("mine")
-    assert convert("--dataset", root, "--sequence", "8", "--out", existing) == 2
-    error = capsys.readouterr().err.strip().splitlines()
-    assert error == [f"kitti_to_bag: error: {existing} exists (use --force to replace it)"]
-    assert (existing / "keep.txt").read_text() == "mine"
-    assert convert("--dataset", root, "--sequence", "8", "--out", existing, "--force", "--frames", "0:2") == 0
-    assert not (existing / "keep.txt").exists() and (existing / "metadata.yaml").is_file()
-    assert yaml.safe_load((existing / "metadata.yaml").read_text())["rosbag2_bagfile_information"][
-        "message_count"] == 7  # 2 frames of 3 messages, and the mount once on /tf_static
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["existing"]  # no staging or old-bag folders left
-
-
-def test_kitti_to_bag_failure_midway_leaves_nothing(dataset, tmp_path: Path, capsys) -> None:
-    """A frame that cannot be read after others were written: exit 2, no bag, no partial folder."""
-    import shutil
-
-    root = tmp_path / "broken"
-    shutil.copytree(dataset[0], root)
-    (root / "sequences" / "08" / "predictions" / "000002.label").write_bytes(b"\0" * 8)  # 2 labels for 280 points
-    assert convert("--dataset", root, "--sequence", "8", "--out", tmp_path / "bag") == 2
-    error = capsys.readouterr().err.strip().splitlines()[-1]
-    assert error.startswith("kitti_to_bag: error:") and "000002.label" in error
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken"]
-
-
-def test_kitti_to_bag_module_entry_point(tmp_path: Path) -> None:
-    result = subprocess.run([sys.executable, "-m", "convbki_ros.tools.kitti_to_bag",
-                             "--dataset", str(tmp_path / "none"), "--sequence", "0", "--out", str(tmp_path / "bag")],
-                            capture_output=True, text=True, cwd=REPO, timeout=60, stdin=subprocess.DEVNULL)
-    assert result.returncode == 2
-    assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
 def test_to_rclpy_equals_rclpy_deserialisation(dataset, tmp_path: Path) -> None:
@@ -238,8 +42,8 @@ def test_to_rclpy_equals_rclpy_deserialisation(dataset, tmp_path: Path) -> None:
         for connection, _, data in reader.messages():
             if connection.msgtype.startswith("tf2_msgs/"):
                 continue  # no rclpy package for it in the PyPI wheels
-            cls = play_bag.rclpy_message_class(connection.msgtype)
-            converted = play_bag.to_rclpy(store.deserialize_cdr(data, connection.msgtype), cls)
+            cls = rclpy_message_class(connection.msgtype)
+            converted = to_rclpy(store.deserialize_cdr(data, connection.msgtype), cls)
             assert converted == deserialize_message(bytes(data), cls)
             # (bytes may differ in CDR alignment padding, which rosbags leaves uninitialised)
             assert deserialize_message(serialize_message(converted), cls) == converted
@@ -487,12 +291,12 @@ def test_the_pacer_gives_up_clouds_the_node_never_received_and_says_how_many(mon
     # Once the pacer waits for the rest: the node got 1 of the 4, and keeps reporting the same counts.
     keep_reporting = threading.Thread(target=lambda: [report(11) for _ in iter(lambda: stop.wait(0.05), True)])
     try:
-        pacer = play_bag.NodePacer(player.node, "/convbki_mapper")
+        pacer = node_pacing.NodePacer(player.node, "/convbki_mapper")
         assert player.spin_until(lambda: reports.get_subscription_count() > 0, 20)
         report(10)
         assert pacer.wait_for_node(20.0, lambda: True) and pacer.baseline.scans_in == 10
         clock = Clock()
-        monkeypatch.setattr(play_bag, "time", clock)
+        monkeypatch.setattr(node_pacing, "time", clock)
         pacer.sent(4)
         keep_reporting.start()
         started = clock.now
@@ -503,5 +307,5 @@ def test_the_pacer_gives_up_clouds_the_node_never_received_and_says_how_many(mon
             keep_reporting.join()
         player.close()
         mapper.close()
-    assert pacer.lost == 3 and pacer.missing == 3 and clock.now - started >= play_bag.LOST_AFTER_S
+    assert pacer.lost == 3 and pacer.missing == 3 and clock.now - started >= node_pacing.LOST_AFTER_S
     assert line.startswith("/convbki_mapper received 1 of 4 clouds, integrated 1, dropped 0")

@@ -1,0 +1,124 @@
+"""The mapper's side of a SLAM's corrections: the scan log's segments and the corrected map.
+
+``MapCorrections`` is a mixin of ``convbki_core.mapper.ConvBKIMapper``: its methods read and
+write the mapper's own state (its store, window, scan log and change bookkeeping) as the
+mapper's other methods do, so they stay methods of the mapper (the node and the tools call
+them on it) rather than functions handed a mapper. It never imports the mapper (the stages
+below it do not know it): a corrected map is a new mapper of the same class (``type(self)``).
+What the replay is and why it is exact: ``replay``.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Self
+
+import numpy as np
+
+from convbki_core.correction.replay import CorrectionResult, continue_correction, pose_displacement
+from convbki_core.correction.scan_log import ScanLog, Segment
+from convbki_core.geometry.grid import check_pose
+
+
+class MapCorrections:
+    """The scan log and corrections (a SLAM moved poses): a log segment's base, the map
+    restarted where the map changed other than by a scan, which scans a correction moves,
+    the corrected map, and a new mapper started from a segment."""
+
+    def base_copy(self):
+        """The map as it is now, as a store of its own (a log segment's base): the global
+        store's chunks shared, the window's voxels written into it. Returns (store, the memory
+        it takes beside the map's store: about the window's voxels)."""
+        base = self.store.copy()
+        base.write(*self.window.items())
+        return base, base.bytes_not_shared_with(self.store)
+
+    def _begin_log_segment(self) -> None:
+        self.scan_log.refresh_base_bytes(self.store)  # the bound counts what the older bases own by now
+        base, nbytes = self.base_copy()
+        self.scan_log.begin_segment(base, self.sensor_position, nbytes)
+
+    def _restart_log(self, why: str) -> None:
+        """The map changed other than by a scan (a load, a forgotten box): a correction can
+        reach back to here only, from the map as it is now; ``why`` the scans before cannot move."""
+        if self.scan_log is not None:
+            base, nbytes = self.base_copy()
+            self.scan_log.restart(base, self.sensor_position, nbytes, self.scans_integrated, why)
+
+    def plan_correction(self, poses: dict[int, np.ndarray], tolerance: float = 0.0, reach: float | None = None,
+                        log: ScanLog | None = None) -> tuple[dict[int, np.ndarray], int, float]:
+        """Which logged scans a correction moves: of ``poses`` (corrected map <- sensor poses by
+        the drive's scan index), those still in the log whose points within ``reach`` m (default:
+        the window's half extent) move by ``tolerance`` m or more; ``log``: a copy of this
+        mapper's log taken earlier (default: the log). Returns (moves, scans left alone, the
+        largest displacement of a sensor in m)."""
+        log = self.scan_log if log is None else log
+        if log is None:
+            raise ValueError("this mapper keeps no scan log: nothing can be moved")
+        reach = float(np.max(np.abs(self.geometry.bounds_max))) if reach is None else reach
+        logged = dict(log.scans())
+        moves, skipped, largest = {}, 0, 0.0
+        for index, pose in poses.items():
+            if index not in logged:
+                continue
+            pose = check_pose(pose)
+            if pose_displacement(logged[index].pose, pose, reach) < tolerance:
+                skipped += 1
+                continue
+            moves[index] = pose
+            largest = max(largest, float(np.linalg.norm(pose[:3, 3] - logged[index].pose[:3, 3])))
+        return moves, skipped, largest
+
+    def corrected(self, poses: dict[int, np.ndarray], tolerance: float = 0.0, until: int | None = None,
+                  reuse: Self | None = None, log: ScanLog | None = None
+                  ) -> tuple[Self, CorrectionResult]:
+        """This map as it would be had the logged scans been integrated at corrected poses
+        (``poses``: map <- sensor by the drive's scan index; scans no longer logged, or moved by
+        less than ``tolerance`` m, are left alone), and what that took. The map is not changed:
+        a new mapper maps every logged scan again, in the order they came, from the base of the
+        log's segment that holds the first moved one (``correction``), up to scan ``until``
+        (exclusive; default: every logged scan). ``reuse``: a mapper of the same set-up to map
+        into instead of a new one (the one a correction replaced: its window is already in
+        memory, where a new window's pages cost more than the scans). ``log``: a copy of this
+        mapper's log (``ScanLog.copy``) to read instead of the log, so that this mapper may go
+        on mapping meanwhile (the node's live scans). Returns (the new mapper, or this one when
+        nothing moves; the result)."""
+        started = time.perf_counter()
+        log = self.scan_log if log is None else log
+        moves, skipped, largest = self.plan_correction(poses, tolerance, log=log)
+        result = CorrectionResult(scans=len(moves), largest_move=largest, skipped=skipped)
+        if not moves:
+            result.seconds = time.perf_counter() - started
+            return self, result
+        segment = log.segment_for(min(moves))
+        new = reuse if reuse is not None and reuse is not self else type(self)(self.config, self.layer.kernel)
+        new.frame_id = self.frame_id
+        new.start_from(segment, log)
+        replayed = continue_correction(new, log, moves, segment.first_index, until)
+        result.replayed = replayed
+        result.seconds = time.perf_counter() - started
+        return new, result
+
+    def start_from(self, segment, log: ScanLog) -> None:
+        """Make this (new) mapper the map as it was when ``segment`` of ``log`` began: its base,
+        and the log's segments before it (a correction maps the scans from there again)."""
+        if self.scans_integrated or len(self) or self.sensor_position is not None:
+            self._clear()  # a fresh mapper is already empty: its window is not filled twice
+        if segment.base is not None:
+            self.store = segment.base.copy()
+            self.window.store = self.store
+        self.scans_integrated = segment.first_index
+        if segment.base_position is not None:
+            self.sensor_position = np.asarray(segment.base_position, np.float64).copy()
+            self.window.move_to(self.geometry.origin_for(self.sensor_position))
+        self._everything_changed = True
+        self._removed = []
+        self._replaced_keys = None
+        if self.scan_log is not None:
+            older = [s for s in log.segments() if s.first_index < segment.first_index]
+            self.scan_log.frozen, self.scan_log.frozen_stamp_ns = log.frozen, log.frozen_stamp_ns
+            self.scan_log.frozen_why = log.frozen_why
+            self.scan_log.calibration = log.calibration
+            self.scan_log.replace_from(0, [*older, Segment(segment.first_index, segment.base, segment.base_position,
+                                                           segment.base_bytes)])
+
