@@ -54,23 +54,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-import torch
-
 from convbki_core.io.atomic import atomic_write_bytes
-from convbki_core.synth.cached_drive import ensure_drive
-from convbki_core.tools.bench_figures import (
-    ablation,
-    correction_figures,
-    costmap_figures,
-    dense_reference_figure,
-    drive_figures,
-    free_space_figure,
-    large_map_ratio,
-    map_memory_bytes,
-    points_sweep,
-    probabilities_figure,
-    publish_figures,
-)
 from convbki_core.tools.cli import UserError, device_arg, positive, run
 
 PROG = "bench"
@@ -211,6 +195,25 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _bench_with_scratch(args: argparse.Namespace, scratch: Path) -> int:
+    # The method (torch, numba) loads here, once the arguments are read: --help and a wrong flag
+    # answer at once.
+    import torch
+
+    from convbki_core.synth.cached_drive import ensure_drive
+    from convbki_core.tools.bench_figures import (
+        ablation,
+        correction_figures,
+        costmap_figures,
+        dense_reference_figure,
+        drive_figures,
+        free_space_figure,
+        large_map_ratio,
+        map_memory_bytes,
+        points_sweep,
+        probabilities_figure,
+        publish_figures,
+    )
+
     torch.set_num_threads(os.cpu_count() or 1)
     dataset = ensure_drive(Path(args.drive_dir), args.scans, args.seed, on_simulate=lambda: print(
         f"{PROG}: simulating a {args.scans}-scan drive into {args.drive_dir} (cached for later runs)",

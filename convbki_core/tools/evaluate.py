@@ -24,13 +24,6 @@ from pathlib import Path
 
 from convbki_core.config import DEFAULTS, UPDATE_PATHS
 from convbki_core.datasets import DatasetError, parse_frames
-from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
-from convbki_core.free_space.clamping import check_limit
-from convbki_core.geometry.volume import tempers
-from convbki_core.io.atomic import atomic_write_bytes
-from convbki_core.io.kernel_file import load_kernel_file
-from convbki_core.measures.metrics import ConfusionMatrix
-from convbki_core.measures.uncertainty import CalibrationStats
 from convbki_core.tools.cli import (
     NewOutputs,
     UserError,
@@ -42,8 +35,6 @@ from convbki_core.tools.cli import (
     sequence_arg,
     window_bounds,
 )
-from convbki_core.tools.evaluate_report import build_report, print_summary, save_pictures, write_costmap_report
-from convbki_core.tools.evaluate_run import drift_study_of, evaluate_kernel
 
 PROG = "evaluate"
 
@@ -139,6 +130,18 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _evaluate_into(args: argparse.Namespace, outputs: NewOutputs) -> int:
+    # The method (torch, numba) loads here, once the arguments are read: --help and a wrong flag
+    # answer at once.
+    from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+    from convbki_core.free_space.clamping import check_limit
+    from convbki_core.geometry.volume import tempers
+    from convbki_core.io.atomic import atomic_write_bytes
+    from convbki_core.io.kernel_file import load_kernel_file
+    from convbki_core.measures.metrics import ConfusionMatrix
+    from convbki_core.measures.uncertainty import CalibrationStats
+    from convbki_core.tools.evaluate_report import build_report, print_summary, save_pictures, write_costmap_report
+    from convbki_core.tools.evaluate_run import drift_study_of, evaluate_kernel
+
     kernels = args.kernel or [str(DEFAULTS.kernel_path())]
     for kernel_file in kernels:
         load_kernel_file(kernel_file)  # fail before any work on a bad kernel file

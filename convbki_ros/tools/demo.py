@@ -32,7 +32,6 @@ import numpy as np
 from convbki_core.config import MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.geometry.grid import transform_points
-from convbki_core.mapper import ConvBKIMapper
 from convbki_core.measures.metrics import ConfusionMatrix
 from convbki_core.measures.trails import SweptSpace
 from convbki_core.paths import config_dir, kernel_path
@@ -61,6 +60,8 @@ def run_module(module: str, *args: str) -> None:
 def score_final_map(map_file: Path, dataset: SemanticKittiSequence) -> dict:
     """Input and final-map scores over every point of the drive (points without map evidence keep the input
     label), and the map's trail voxels where the ground truth marks moving objects."""
+    from convbki_core.mapper import ConvBKIMapper  # torch loads for the scoring only
+
     mapper = ConvBKIMapper(MapperConfig.paper(device="cpu", free_space=True), kernel_path("semantic_kitti_compound"))
     mapper.load(map_file)
     swept = SweptSpace(mapper.resolution)
