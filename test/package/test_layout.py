@@ -116,3 +116,57 @@ def test_the_core_tests_run_without_ros() -> None:
         names = _imports(path)
         assert not any(name.split(".")[0] in ("rclpy", "convbki_ros", "ros_helpers", "mapper_rig")
                        for name in names), path
+
+
+def test_the_architecture_drawing_matches_the_folders() -> None:
+    """docs/architecture.md's drawing of the modules lists exactly the modules on disk (a
+    package's ``__init__.py`` is implied by its folder line), so a newcomer can trust it."""
+    text = (REPO / "docs" / "architecture.md").read_text()
+    drawing = text.split("## Layout\n", 1)[1].split("```\n", 2)[1]
+    drawn, folders = set(), []
+    for line in drawing.splitlines():
+        name = line.strip().split(" ")[0]
+        depth = (len(line) - len(line.lstrip())) // 2
+        folders = folders[:depth]
+        if name.endswith("/"):
+            folders.append(name.rstrip("/"))
+            drawn.add("/".join([*folders, "__init__.py"]))
+        elif name.endswith(".py"):
+            drawn.add("/".join([*folders, name]))
+    on_disk = {str(path.relative_to(REPO)) for package in ("convbki_core", "convbki_ros")
+               for path in (REPO / package).rglob("*.py")}
+    assert drawn == on_disk, {"not drawn": sorted(on_disk - drawn), "not on disk": sorted(drawn - on_disk)}
+
+
+def _defined_names(module: str) -> set[str]:
+    """The names a module defines at its top (functions, classes, assignments), read from its source."""
+    path = REPO.joinpath(*module.split(".")).with_suffix(".py")
+    names = set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names.update(target.id for target in targets if isinstance(target, ast.Name))
+    return names
+
+
+def test_the_public_api_table_names_where_each_name_is_defined() -> None:
+    """Each row of docs/architecture.md's public API table names a module that defines what it
+    lists; a name said to be importable from ``convbki_core`` is in its table of public names."""
+    import re
+
+    text = (REPO / "docs" / "architecture.md").read_text()
+    table = text.split("### The public Python API\n", 1)[1].split("\n\n", 2)[1]
+    rows = [line for line in table.splitlines() if line.startswith("| `")]
+    assert len(rows) >= 10
+    public = ast.literal_eval(re.search(r"_PUBLIC = (\{.*?\})", (REPO / "convbki_core" / "__init__.py").read_text(),
+                                        re.S).group(1))
+    for row in rows:
+        names_cell, where = row.split("|")[1:3]
+        names = re.findall(r"`(\w+)`", names_cell)
+        modules = re.findall(r"`(convbki_core[\w.]*)`", where)
+        defining = modules[-1]
+        assert set(names) <= _defined_names(defining), row
+        if modules[0] == "convbki_core":
+            assert all(f"convbki_core.{public[name]}" == defining for name in names), row
