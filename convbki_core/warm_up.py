@@ -114,12 +114,28 @@ def throwaway_mapper(config: MapperConfig, kernel, rules: bool = True) -> ConvBK
     return ConvBKIMapper(small, kernel)
 
 
-# The parts compiled aside when the cache is cold, by the module that holds their kernels.
-_ASIDE_MODULES = ("free_space", "forgetting")
+# The parts compiled aside when the cache is cold: the modules that hold their kernels.
+_ASIDE_MODULES = ("convbki_core.free_space.scan_rays", "convbki_core.free_space.ray_walk",
+                  "convbki_core.free_space.update", "convbki_core.free_space.ground",
+                  "convbki_core.free_space.host_forgetting")
 
 
-def _cached(folder: str, module: str) -> bool:
-    return any(Path(folder).rglob(f"{module}.*.nbi"))
+def aside_parts_cached() -> bool:
+    """Whether numba's cache holds the kernels of every module compiled aside. numba keeps a
+    module's kernels beside it, or in a folder of its own under ``NUMBA_CACHE_DIR``: each
+    module's own compiled functions say where (``cache_path``)."""
+    from importlib import import_module
+
+    from numba.core.dispatcher import Dispatcher
+
+    for name in _ASIDE_MODULES:
+        module = import_module(name)
+        folders = {Path(value._cache.cache_path) for value in vars(module).values()
+                   if isinstance(value, Dispatcher) and value.__module__ == name}
+        stem = name.rsplit(".", 1)[1]
+        if not folders or not all(any(folder.glob(f"{stem}.*.nbi")) for folder in folders):
+            return False
+    return True
 
 
 def _compile_aside(config: MapperConfig, kernel) -> subprocess.Popen | None:
@@ -127,7 +143,7 @@ def _compile_aside(config: MapperConfig, kernel) -> subprocess.Popen | None:
     (``warm_parts_aside``), or None: the cache is off or already holds them, or the
     configuration cannot be handed over."""
     folder = kernel_cache().folder
-    if folder is None or all(_cached(folder, module) for module in _ASIDE_MODULES):
+    if folder is None or aside_parts_cached():
         return None
     try:
         payload = pickle.dumps((config, kernel))

@@ -3,6 +3,7 @@
 scans of every kind of input compiles nothing more in the parts' modules."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -86,3 +87,16 @@ def test_each_part_compiles_its_own_kernels_on_a_scratch_window_and_then_mapping
     assert report["untouched"] == [0, 0, True, 0], report["untouched"]
     assert report["new"] == {}, report["new"]
     assert report["mapped"] > 1000, report
+
+
+def test_the_parts_are_compiled_aside_only_when_the_cache_lacks_their_kernels(tmp_path):
+    """The warm-up compiles free space and the movers' rules in a second process only when the
+    cache lacks their kernels. After a warm-up every module compiled aside is found cached (numba
+    keeps each stage's kernels beside that stage's modules); in an empty cache folder none is."""
+    check = "from convbki_core import warm_up as w; {}print(w.aside_parts_cached())"
+    warm = subprocess.run([sys.executable, "-c", check.format("w.warm_up(); ")], cwd=REPO, capture_output=True,
+                          text=True, timeout=600)
+    cold = subprocess.run([sys.executable, "-c", check.format("")], cwd=REPO, capture_output=True, text=True,
+                          timeout=600, env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)})
+    assert warm.returncode == 0 and warm.stdout.split()[-1] == "True", warm.stderr
+    assert cold.returncode == 0 and cold.stdout.split()[-1] == "False", cold.stderr
