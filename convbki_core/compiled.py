@@ -54,6 +54,11 @@ class KernelCache:
 
     folder: str | None
     note: str | None = None
+    shown: str | None = None  # how the place reads in a log line, where it is not one folder
+
+    @property
+    def place(self) -> str | None:
+        return self.shown or self.folder
 
 
 def _writable(folder: Path) -> bool:
@@ -93,8 +98,8 @@ def _choose_cache() -> KernelCache:
             return KernelCache(given)
         problems.append(f"{CACHE_VARIABLE}={given} is not writable")
     beside = Path(__file__).resolve().parent / "__pycache__"
-    if _writable(beside):
-        return KernelCache(str(beside))
+    if _writable(beside):  # numba then keeps each module's kernels beside it, in its stage's __pycache__
+        return KernelCache(str(beside), shown=f"{beside.parent}/**/__pycache__")
     user = Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)
     if _writable(user):
         return KernelCache(str(user))

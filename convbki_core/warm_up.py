@@ -70,7 +70,7 @@ class WarmUpReport:
     threading_layer: str | None
 
     def line(self) -> str:
-        where = f"cached in {self.cache.folder}" if self.cache.folder else "not cached"
+        where = f"cached in {self.cache.place}" if self.cache.folder else "not cached"
         layer = f", threading layer {self.threading_layer}" if self.threading_layer else ""
         return f"compiled kernels ready in {self.seconds:.1f} s ({where}{layer})"
 
