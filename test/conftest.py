@@ -1,7 +1,10 @@
-"""Shared test settings: hypothesis profiles sized for a 2-core CI machine."""
+"""Shared test settings: hypothesis profiles sized for a 2-core CI machine; fixtures more than
+one folder's tests build (once per run)."""
 
 import os
+from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile("ci", deadline=None, max_examples=25, derandomize=True,
@@ -9,3 +12,46 @@ settings.register_profile("ci", deadline=None, max_examples=25, derandomize=True
 settings.register_profile("dev", deadline=None, max_examples=25, suppress_health_check=[HealthCheck.too_slow])
 settings.register_profile("thorough", deadline=None, max_examples=500, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "dev"))
+
+
+# The drift drive that test_correction.py (core) and test_node_corrections.py (ROS) both map:
+# 40 scans of 16 beams, odometry 8 degrees per 100 m and 1 % off, the SLAM closing the loop
+# before scan DRIFT_CLOSURE, moving traffic. Built once per test run, read only by its users.
+DRIFT_FRAMES, DRIFT_CLOSURE = 40, 25
+
+
+@pytest.fixture(scope="session")
+def drift_drive(tmp_path_factory) -> Path:
+    """The dataset root (sequence 00) of the shared drift drive."""
+    from convbki_core.tools import synth
+
+    root = tmp_path_factory.mktemp("drift_drive")
+    assert synth.main(["--out", str(root), "--sequence", "00", "--frames", str(DRIFT_FRAMES), "--seed", "24",
+                       "--speed", "15", "--beams", "16", "--azimuth-steps", "500", "--drift", "8", "--drift-scale",
+                       "0.01", "--loop-closure", str(DRIFT_CLOSURE), "--movers", "6", "--quiet"]) == 0
+    return root
+
+
+@pytest.fixture(scope="session")
+def real_noisy(tmp_path_factory):
+    """``real_noisy(*sequences)``: the root of a dataset holding those real SemanticKITTI
+    sequences with ``label_noise``'s input segmentation (its defaults: seed 0, mIoU 0.55), each
+    written once per run whichever test asks first (test/core/test_real_scans.py; the same input
+    as test/ros/test_real_scans_node.py's). Skips the test where the real scans are absent."""
+    root = tmp_path_factory.mktemp("real_noisy")
+    written: set[str] = set()
+
+    def noisy(*sequences: str) -> Path:
+        from helpers import real_sequence
+
+        from convbki_core.tools import label_noise
+
+        for sequence in sequences:
+            source = real_sequence(sequence)
+            if sequence not in written:
+                assert label_noise.main(["--dataset", str(source), "--sequence", sequence, "--out", str(root),
+                                         "--quiet"]) == 0
+                written.add(sequence)
+        return root
+
+    return noisy

@@ -151,7 +151,11 @@ class Rig:
         self._reads_odometry = odometry
         self._closed = False
         if wait:
-            self.wait_ready()
+            try:
+                self.wait_ready()
+            except BaseException:
+                self.close()  # no node left running when it never became ready
+                raise
 
     def wait_ready(self) -> "Rig":
         """Wait until the node is ready and its inputs are matched (done by the constructor
@@ -268,18 +272,6 @@ class Rig:
             self._closed = True
             self.probe.close()
         return self.log.close()
-
-
-def started_together(*rigs: Rig) -> tuple[Rig, ...]:
-    """``rigs`` made with ``wait=False`` (their nodes starting side by side), once each is ready;
-    all of them closed if one is not."""
-    try:
-        for rig in rigs:
-            rig.wait_ready()
-    except BaseException:
-        close_together(*rigs)
-        raise
-    return rigs
 
 
 def close_together(*rigs: Rig) -> list[str]:

@@ -56,6 +56,12 @@ def domain_id() -> int:
     return 1 + (os.getpid() * 13 + next(_domains)) % 100
 
 
+def selected_tests(request) -> set[str]:
+    """The names (with their parameters) of this run's selected tests (after -k, -m, node ids) in
+    the module of ``request``: what a module fixture that starts their slow parts together starts."""
+    return {item.name for item in request.session.items if item.path == request.path}
+
+
 def stale_install(root: Path = REPO) -> str | None:
     """The first package file whose copy in ``root``/install (what `source install/setup.bash`
     runs: colcon copies the sources) differs from the tree's, or None when the install is current.

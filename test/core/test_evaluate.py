@@ -165,7 +165,7 @@ def test_train_writes_a_kernel_that_lowers_the_loss(tmp_path, capsys, kind):
     write_drive(tmp_path / "data", "01", frames=8, seed=3)
     out = tmp_path / f"{kind}.yaml"
     code = train.main(["--dataset", str(tmp_path / "data"), "--sequences", "01", "--kernel", kind, "--out", str(out),
-                       "--frames-per-sample", "3", "--epochs", "3", "--lr", "0.05", "--quiet",
+                       "--frames-per-sample", "3", "--epochs", "3", "--lr", "0.05", "--quiet", *SMALL_WINDOW,
                        "--min-class-points", "0"])  # a tiny drive: every class is under the default floor
     assert code == 0
     config = kernel_from_file(out).to_config()

@@ -51,8 +51,7 @@ def test_fast_path_equals_dense_reference(seed, kind, filter_size, probabilities
         assert a.new_voxels == b.new_voxels
     got, want = voxel_dict(fast), voxel_dict(dense)
     assert set(got) == set(want)
-    for key, alpha in want.items():
-        np.testing.assert_allclose(got[key], alpha, rtol=1e-5)
+    np.testing.assert_allclose(np.array([got[key] for key in want]), np.array(list(want.values())), rtol=1e-5)
     probe = rng.uniform(-2, 2, (300, 3)) + position
     # Equal labels wherever the two largest concentrations are farther apart than the paths'
     # rounding (a near tie, within the tolerance above, may fall either way).
@@ -88,8 +87,8 @@ def test_rolling_window_matches_a_dict_of_voxels(seed):
                                                   np.concatenate([in_window[1], stored[1]]))}
         assert len(everything) == len(in_window[0]) + len(stored[0]), "a voxel may live in one place only"
         assert set(everything) == set(naive)
-        for key, alpha in naive.items():
-            np.testing.assert_allclose(everything[key], alpha, rtol=1e-6)
+        np.testing.assert_allclose(np.array([everything[key] for key in naive]), np.array(list(naive.values())),
+                                   rtol=1e-6)
     assert window.count() + len(store) == len(naive)
 
 

@@ -56,8 +56,7 @@ def voxel_dict(mapper):
 def assert_same_maps(a, b, rtol=1e-5):
     da, db = voxel_dict(a), voxel_dict(b)
     assert set(da) == set(db)
-    for key in da:
-        np.testing.assert_allclose(da[key], db[key], rtol=rtol)
+    np.testing.assert_allclose(np.array([da[key] for key in da]), np.array([db[key] for key in da]), rtol=rtol)
 
 
 def test_paper_window_geometry():
@@ -452,9 +451,9 @@ def test_forget_box_removes_exactly_the_voxels_whose_centres_lie_in_it(update_pa
     assert set(map(tuple, forgotten.tolist())) == inside and len(forgotten) == len(inside)
     after = voxel_dict(mapper)
     assert set(after) == set(before) - inside
-    for key in after:  # untouched: as before, and as the map that never forgot holds them
-        np.testing.assert_array_equal(after[key], before[key])
-        np.testing.assert_allclose(after[key], kept[key], rtol=1e-5)
+    untouched = np.array([after[key] for key in after])  # as before, and as the map that never forgot holds them
+    np.testing.assert_array_equal(untouched, np.array([before[key] for key in after]))
+    np.testing.assert_allclose(untouched, np.array([kept[key] for key in after]), rtol=1e-5)
     # What the outputs learn: the forgotten voxels left the map, and no change brings one back.
     changes = mapper.take_changes()
     assert set(map(tuple, changes.removed.tolist())) == inside

@@ -131,7 +131,7 @@ def test_an_old_kernel_file_without_a_temperature_loads_as_one(tmp_path):
     assert "temperature" not in yaml.safe_load(shipped.read_text())
     config = load_kernel_file(shipped)
     assert config.temperature is None
-    assert ConvBKIMapper(MapperConfig.paper(device="cpu"), shipped).temperature is None
+    assert ConvBKIMapper(MapperConfig.paper(local_bounds=BOUNDS, device="cpu"), shipped).temperature is None
     save_kernel_file(config, tmp_path / "again.yaml")  # and written back, still without one
     assert "temperature" not in yaml.safe_load((tmp_path / "again.yaml").read_text())
 

@@ -2,7 +2,8 @@
 process receives them (order, stamps, /clock, remaps, converted messages, pacing by stamps,
 Ctrl-C, a subscriber that goes away), paced to the mapper node's progress and stopped and
 resumed, the pacer's count of clouds DDS lost, and the rosbags -> rclpy converter that the
-replay falls back on. The ``dataset`` fixture is test/ros/conftest.py's."""
+replay falls back on. The ``dataset`` fixture is test/ros/conftest.py's; most replays of the
+selected tests run side by side (``replays``), each on a ROS domain of its own."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bag_fixture import EPOCH_NS, TIMES, convert
-from ros_helpers import Probe, domain_id
+from ros_helpers import Probe, domain_id, selected_tests
 
 from convbki_ros.inputs.cloud_decoding import decode_cloud
 from convbki_ros.inputs.transforms import stamp_to_ns
@@ -116,13 +117,15 @@ def _playing(bag: Path, domain: int, *args: str):
             process.communicate()
 
 
-@pytest.mark.parametrize("mode", ["raw", "deserialize"])
-def test_play_bag_publishes_everything_in_order(dataset, tmp_path: Path, monkeypatch, mode: str) -> None:
-    root, frames, _ = dataset
-    bag = tmp_path / "bag"
-    assert convert("--dataset", root, "--sequence", "8", "--out", bag) == 0
+# The replays below mostly wait (a player's start and DDS discovery, the acknowledgements it
+# waits for at the end, a 21 s stop): each runs on a ROS domain of its own, and the ``replays``
+# fixture runs those of the selected tests side by side, each test then checking its own.
+
+
+def _in_order(bag: Path, mode: str) -> tuple[subprocess.Popen, str, Listener]:
+    """play_bag at 4x with /clock to a listener: raw, or (``deserialize``) converted messages under
+    our --remap and a ROS remap rule. The player, its stderr, and what the listener received."""
     domain = domain_id()
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     if mode == "raw":
         cloud_topic, odom_topic = "/kitti/velo/pointcloud", "/kitti/odom"
         extra = ["--clock", "--rate", "4"]
@@ -138,29 +141,13 @@ def test_play_bag_publishes_everything_in_order(dataset, tmp_path: Path, monkeyp
             _, stderr = process.communicate(timeout=30)
     finally:
         listener.close()
-    assert process.returncode == 0, stderr
-    assert "Traceback" not in stderr and "skipping" not in stderr
-    stamps = [EPOCH_NS + round(t * 1e9) for t in TIMES]
-    assert [stamp_to_ns(m.transforms[0].header.stamp) for m in listener.tf] == stamps
-    assert [(m.transforms[0].header.frame_id, m.transforms[0].child_frame_id) for m in listener.tf_static] == [
-        ("camera_gray_left", "velo_link")]
-    assert [stamp_to_ns(m.header.stamp) for m in listener.clouds] == stamps
-    assert [stamp_to_ns(m.header.stamp) for m in listener.odoms] == stamps
-    assert listener.clocks == stamps  # one /clock per bag timestamp, in order
-    for cloud, (points, _, predicted) in zip(listener.clouds, frames):
-        decoded = decode_cloud(cloud)
-        assert decoded.points.tobytes() == points.tobytes()
-        assert np.array_equal(decoded.labels, predicted.astype(np.int64))
+    return process, stderr, listener
 
 
-def test_play_bag_paces_by_stamps_and_stops_on_ctrl_c(dataset, tmp_path: Path) -> None:
+def _interrupted(bag: Path) -> tuple[subprocess.Popen, str]:
+    """play_bag at rate 0.01 (the 4 frames would take ~31 s), SIGINT once the first cloud has arrived."""
     import signal
 
-    root, _, _ = dataset
-    bag = tmp_path / "bag"
-    assert convert("--dataset", root, "--sequence", "8", "--out", bag) == 0
-    # rate 0.01: the 4 frames would take ~31 s; SIGINT once the first cloud has arrived must end
-    # it with 0, before the next stamp is due.
     from sensor_msgs.msg import PointCloud2
 
     domain = domain_id()
@@ -173,69 +160,23 @@ def test_play_bag_paces_by_stamps_and_stops_on_ctrl_c(dataset, tmp_path: Path) -
             _, stderr = process.communicate(timeout=30)  # a bound for a hung player, not a measurement
     finally:
         probe.close()
-    assert process.returncode == 0
-    # Only the first timestamp's messages (/tf_static, /tf, odometry, cloud) were due: pacing by the
-    # stamps. Ctrl-C may land while that stamp's messages are still going out (the cloud can arrive
-    # before its publish call returns), so the count is at most 4; without pacing all 13 would be
-    # out by then.
-    assert "Traceback" not in stderr
-    sent = int(re.search(r"interrupted after (\d+) messages", stderr).group(1))
-    assert sent <= 4, stderr
+    return process, stderr
 
 
-def test_play_bag_bad_input_is_one_line(tmp_path: Path) -> None:
-    assert play_bag.main([str(tmp_path / "nothing")]) == 2
-    not_a_bag = tmp_path / "folder"
-    not_a_bag.mkdir()
-    result = subprocess.run([sys.executable, "-m", "convbki_ros.tools.play_bag", str(not_a_bag)], capture_output=True,
-                            text=True, cwd=REPO, timeout=60, stdin=subprocess.DEVNULL)
-    assert result.returncode == 2
-    assert result.stderr.strip().splitlines() == [
-        f"play_bag: error: {not_a_bag}: no such bag (a rosbag2 folder with metadata.yaml, or a .mcap/.db3 file)"]
-
-
-def test_play_bag_says_so_when_a_subscriber_goes_away(dataset, tmp_path: Path) -> None:
-    """A subscriber that leaves during the replay did not get the rest: exit 1, the topic and the count."""
-    root, _, _ = dataset
-    bag = tmp_path / "bag"
-    assert convert("--dataset", root, "--sequence", "8", "--out", bag) == 0
-    domain = domain_id()
-    listener = Listener(domain, "/kitti/velo/pointcloud", "/kitti/odom")
-    try:
-        # rate 0.1: the 4 stamps are 1 s apart, time enough to see the subscription go.
-        with _playing(bag, domain, "--rate", "0.1", "--wait-subscribers", "20") as process:
-            listener.spin_until(lambda: len(listener.clouds) >= 1, timeout=40)
-            assert listener.clouds, "the first cloud never arrived"
-            for subscription in list(listener.node.subscriptions):
-                if subscription.topic_name == "/kitti/velo/pointcloud":
-                    listener.node.destroy_subscription(subscription)
-            _, stderr = process.communicate(timeout=60)
-    finally:
-        listener.close()
-    assert process.returncode == play_bag.NOT_DELIVERED, stderr
-    assert "Traceback" not in stderr
-    gone = re.search(r"play_bag: error: /kitti/velo/pointcloud: 1 subscriber\(s\) went away after message (\d) "
-                     r"of 4: what they had not acknowledged was not delivered", stderr)
-    assert gone and 1 <= int(gone.group(1)) <= 2, stderr
-    assert "/kitti/odom: " not in stderr.split("published", 1)[1]  # the odometry's subscriber stayed
-
-
-def test_a_paced_replay_and_a_paused_player_lose_nothing(dataset, tmp_path: Path) -> None:
-    """The mapper node, then play_bag --wait-for-node at full speed, then play_bag stopped (SIGSTOP)
-    for longer than Fast DDS's default participant lease (20 s) and resumed: every cloud integrated,
-    and the player never lost sight of the node."""
+def _paced_and_paused(bag: Path, folder: Path) -> None:
+    """The checks of test_a_paced_replay_and_a_paused_player_lose_nothing, in the order they happen."""
     import signal
 
     from mapper_rig import Rig
 
-    root, _, _ = dataset
-    bag = tmp_path / "bag"
-    assert convert("--dataset", root, "--sequence", "8", "--out", bag) == 0
     remaps = ["--remap", "/kitti/velo/pointcloud:=/cloud_in", "--remap", "/kitti/odom:=/odom"]
-    rig = Rig(tmp_path, "-p", "pose_wait_timeout:=0.0", "-p", "save_on_shutdown:=false",
-              "-p", "stamp_backwards_tolerance:=1000000.0", watch_map=False)
+    # /diagnostics every 0.05 s: what the pacer and the test read the node's progress from.
+    rig = Rig(folder, "-p", "pose_wait_timeout:=0.0", "-p", "save_on_shutdown:=false",
+              "-p", "stamp_backwards_tolerance:=1000000.0", watch_map=False, diagnostics_period=0.05, wait=False)
     try:
+        # The player starts while the node does: --wait-for-node waits until the node reports.
         with _playing(bag, rig.domain, "--wait-for-node", *remaps) as process:
+            rig.wait_ready()
             _, stderr = process.communicate(timeout=120)
         assert process.returncode == 0, stderr
         assert "play_bag: /convbki_mapper received 4 of 4 clouds, integrated 4, dropped 0 in " in stderr, stderr
@@ -260,6 +201,122 @@ def test_a_paced_replay_and_a_paused_player_lose_nothing(dataset, tmp_path: Path
         assert rig.wait_stats(lambda s: s.integrated == 8).dropped == 0
     finally:
         rig.close()
+
+
+REPLAYS = {  # test: its replay, given the bag and a folder of its own
+    "test_play_bag_publishes_everything_in_order[raw]": lambda bag, _: _in_order(bag, "raw"),
+    "test_play_bag_publishes_everything_in_order[deserialize]": lambda bag, _: _in_order(bag, "deserialize"),
+    "test_play_bag_paces_by_stamps_and_stops_on_ctrl_c": lambda bag, _: _interrupted(bag),
+    "test_a_paced_replay_and_a_paused_player_lose_nothing": _paced_and_paused,
+}
+
+
+@pytest.fixture(scope="module")
+def bag(dataset, tmp_path_factory) -> Path:
+    """The 4-frame sequence as a bag, which the replays only read."""
+    root, _, _ = dataset
+    path = tmp_path_factory.mktemp("bag") / "bag"
+    assert convert("--dataset", root, "--sequence", "8", "--out", path) == 0
+    return path
+
+
+@pytest.fixture(scope="module")
+def replays(request, bag, tmp_path_factory):
+    """``replays(test name)``: what that test's replay returned (its failure raised), once it is done.
+    The replays of every selected test of this module start together, each in a thread; one not
+    started yet starts when asked for."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # for the listeners' contexts
+    pool = ThreadPoolExecutor(max_workers=len(REPLAYS))
+    running = {}
+
+    def replay(test: str):
+        if test not in running:
+            running[test] = pool.submit(REPLAYS[test], bag, tmp_path_factory.mktemp("replay"))
+        return running[test].result()
+
+    for test in REPLAYS.keys() & selected_tests(request):
+        running[test] = pool.submit(REPLAYS[test], bag, tmp_path_factory.mktemp("replay"))
+    yield replay
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
+@pytest.mark.parametrize("mode", ["raw", "deserialize"])
+def test_play_bag_publishes_everything_in_order(dataset, replays, request, mode: str) -> None:
+    _, frames, _ = dataset
+    process, stderr, listener = replays(request.node.name)
+    assert process.returncode == 0, stderr
+    assert "Traceback" not in stderr and "skipping" not in stderr
+    stamps = [EPOCH_NS + round(t * 1e9) for t in TIMES]
+    assert [stamp_to_ns(m.transforms[0].header.stamp) for m in listener.tf] == stamps
+    assert [(m.transforms[0].header.frame_id, m.transforms[0].child_frame_id) for m in listener.tf_static] == [
+        ("camera_gray_left", "velo_link")]
+    assert [stamp_to_ns(m.header.stamp) for m in listener.clouds] == stamps
+    assert [stamp_to_ns(m.header.stamp) for m in listener.odoms] == stamps
+    assert listener.clocks == stamps  # one /clock per bag timestamp, in order
+    for cloud, (points, _, predicted) in zip(listener.clouds, frames):
+        decoded = decode_cloud(cloud)
+        assert decoded.points.tobytes() == points.tobytes()
+        assert np.array_equal(decoded.labels, predicted.astype(np.int64))
+
+
+def test_play_bag_paces_by_stamps_and_stops_on_ctrl_c(replays, request) -> None:
+    # SIGINT once the first cloud has arrived must end it with 0, before the next stamp is due.
+    process, stderr = replays(request.node.name)
+    assert process.returncode == 0
+    # Only the first timestamp's messages (/tf_static, /tf, odometry, cloud) were due: pacing by the
+    # stamps. Ctrl-C may land while that stamp's messages are still going out (the cloud can arrive
+    # before its publish call returns), so the count is at most 4; without pacing all 13 would be
+    # out by then.
+    assert "Traceback" not in stderr
+    sent = int(re.search(r"interrupted after (\d+) messages", stderr).group(1))
+    assert sent <= 4, stderr
+
+
+def test_play_bag_bad_input_is_one_line(tmp_path: Path) -> None:
+    assert play_bag.main([str(tmp_path / "nothing")]) == 2
+    not_a_bag = tmp_path / "folder"
+    not_a_bag.mkdir()
+    result = subprocess.run([sys.executable, "-m", "convbki_ros.tools.play_bag", str(not_a_bag)], capture_output=True,
+                            text=True, cwd=REPO, timeout=60, stdin=subprocess.DEVNULL)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"play_bag: error: {not_a_bag}: no such bag (a rosbag2 folder with metadata.yaml, or a .mcap/.db3 file)"]
+
+
+def test_play_bag_says_so_when_a_subscriber_goes_away(bag: Path) -> None:
+    """A subscriber that leaves during the replay did not get the rest: exit 1, the topic and the count.
+    (Not among the replays run side by side: play_bag counts a departure only after it has counted
+    the subscriber once, which it does right after publishing the first cloud; a player slowed by
+    processes starting beside it can look only after the listener has left, and see no departure.)"""
+    domain = domain_id()
+    listener = Listener(domain, "/kitti/velo/pointcloud", "/kitti/odom")
+    try:
+        # rate 0.1: the 4 stamps are 1 s apart, time enough to see the subscription go.
+        with _playing(bag, domain, "--rate", "0.1", "--wait-subscribers", "20") as process:
+            listener.spin_until(lambda: len(listener.clouds) >= 1, timeout=40)
+            assert listener.clouds, "the first cloud never arrived"
+            for subscription in list(listener.node.subscriptions):
+                if subscription.topic_name == "/kitti/velo/pointcloud":
+                    listener.node.destroy_subscription(subscription)
+            _, stderr = process.communicate(timeout=60)
+    finally:
+        listener.close()
+    assert process.returncode == play_bag.NOT_DELIVERED, stderr
+    assert "Traceback" not in stderr
+    gone = re.search(r"play_bag: error: /kitti/velo/pointcloud: 1 subscriber\(s\) went away after message (\d) "
+                     r"of 4: what they had not acknowledged was not delivered", stderr)
+    assert gone and 1 <= int(gone.group(1)) <= 2, stderr
+    assert "/kitti/odom: " not in stderr.split("published", 1)[1]  # the odometry's subscriber stayed
+
+
+def test_a_paced_replay_and_a_paused_player_lose_nothing(replays, request) -> None:
+    """The mapper node, then play_bag --wait-for-node at full speed, then play_bag stopped (SIGSTOP)
+    for longer than Fast DDS's default participant lease (20 s) and resumed: every cloud integrated,
+    and the player never lost sight of the node. (The checks are in ``_paced_and_paused``, which
+    runs beside the other replays: most of its time is the stop.)"""
+    replays(request.node.name)
 
 
 def test_the_pacer_gives_up_clouds_the_node_never_received_and_says_how_many(monkeypatch):

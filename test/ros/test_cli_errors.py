@@ -238,10 +238,22 @@ def test_evaluate_and_train_refuse_missing_output_folders(clean_root, tmp_path, 
 # ----------------------------------------------------------------------------- real processes
 
 
-def _run(module: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+def _start(module: str, *args: str, cwd: Path) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
-    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=120, stdin=subprocess.DEVNULL)
+    return subprocess.Popen([sys.executable, "-m", module, *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL)
+
+
+def _finished(processes: list[subprocess.Popen]) -> list[subprocess.CompletedProcess]:
+    """What each of ``processes`` printed, once they have ended (all killed if one takes too long)."""
+    try:
+        outputs = [process.communicate(timeout=120) for process in processes]
+        return [subprocess.CompletedProcess(p.args, p.returncode, *out) for p, out in zip(processes, outputs)]
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
 
 
 def test_processes_print_one_line_and_no_traceback(root, tmp_path):
@@ -251,13 +263,16 @@ def test_processes_print_one_line_and_no_traceback(root, tmp_path):
     kernel.write_text("kernel: single\nresolution: 0.2\nfilter_size: 4\nnum_classes: 20\nell: 0.3\n")
     (tmp_path / "text.mcap").write_text("not a bag")
     before = tree(tmp_path)
-    runs = [
-        (_run("convbki_core.tools.evaluate", "--dataset", str(root), "--sequence", "0", "--kernel", str(kernel),
-              "--report", "r.json", cwd=tmp_path), "evaluate", "even.yaml", "filter_size"),
-        (_run("convbki_core.tools.train", "--dataset", str(root), "--sequences", "0", "--out", "k.yaml", cwd=tmp_path),
-         "train", "000002.label", "2 labels for"),
-        (_run("convbki_ros.tools.play_bag", "text.mcap", cwd=tmp_path), "play_bag", "text.mcap", "cannot read the bag"),
+    # The three run side by side (each mostly imports, on one core).
+    started = [
+        (_start("convbki_core.tools.evaluate", "--dataset", str(root), "--sequence", "0", "--kernel", str(kernel),
+                "--report", "r.json", cwd=tmp_path), "evaluate", "even.yaml", "filter_size"),
+        (_start("convbki_core.tools.train", "--dataset", str(root), "--sequences", "0", "--out", "k.yaml",
+                cwd=tmp_path), "train", "000002.label", "2 labels for"),
+        (_start("convbki_ros.tools.play_bag", "text.mcap", cwd=tmp_path), "play_bag", "text.mcap",
+         "cannot read the bag"),
     ]
+    runs = [(result, *rest) for result, (_, *rest) in zip(_finished([run[0] for run in started]), started)]
     for result, prog, *needles in runs:
         assert result.returncode == 2, result.stderr
         assert "Traceback" not in result.stderr + result.stdout

@@ -22,15 +22,22 @@ REPORTS_AFTER_THE_END = 5
 COLD_START_LIMIT = 600  # seconds a cold node may take to compile before it says ready, on a loaded machine
 
 
-@pytest.fixture(scope="module")
-def bag(tmp_path_factory):
-    """A 40-scan drive with movers (32 beams, about 25,000 points a scan) and its bag."""
-    root = tmp_path_factory.mktemp("first_contact")
+def _drive_and_bag(root):
     assert synth(["--out", str(root / "data"), "--sequence", "00", "--frames", str(FRAMES), "--seed", "4",
                   "--beams", "32", "--azimuth-steps", "900", "--movers", "6", "--noise-strength", "0.35",
                   "--quiet"]) == 0
     assert kitti_to_bag(["--dataset", str(root / "data"), "--sequence", "00", "--out", str(root / "bag")]) == 0
     return root / "bag"
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    """A 40-scan drive with movers (32 beams, about 25,000 points a scan) and its bag, made in a
+    thread while the first test's node starts (``bag.result()`` waits for it)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        yield pool.submit(_drive_and_bag, tmp_path_factory.mktemp("first_contact"))
 
 
 class Replay:
@@ -57,10 +64,11 @@ class Replay:
         self.domain, self.bag = domain, bag
 
     def play_when_ready(self, ready_within: float) -> None:
+        bag = self.bag.result()  # made while the node starts (a few seconds; the node takes longer)
         assert self.log.wait_for(r"mapper ready", timeout=ready_within), self.log.text()
         # --wait-for-inputs: the first message goes out once the node's readers have matched the
         # player's writers (a fixed grace lost the first odometry on a loaded machine).
-        player = start("convbki_ros.tools.play_bag", self.domain, self.bag, "--wait-for-inputs")
+        player = start("convbki_ros.tools.play_bag", self.domain, bag, "--wait-for-inputs")
         # The probe spins while the bag plays, so no report is lost to a full reader queue.
         assert self.probe.spin_until(lambda: player.poll() is not None, 120), "play_bag did not finish"
         output = player.communicate()[0]
@@ -71,10 +79,16 @@ class Replay:
         during = [stats for stats in map(Stats.parse, self.diagnostics) if 0 < stats.scans_in < FRAMES]
         assert during and all(stats.publishers == {"cloud_in": 1, "odom": 1} for stats in during), during
 
-    def reports_after_the_end(self, count: int) -> list[Stats]:
-        wanted = self.reports_at_the_end + count
-        assert self.probe.spin_until(lambda: len(self.diagnostics) >= wanted, 60), "too few /diagnostics reports"
-        return [Stats.parse(report) for report in self.diagnostics[self.reports_at_the_end:wanted]]
+    def reports_after_the_end(self, count: int, until) -> list[Stats]:
+        """The first ``count`` reports after the bag's end, or those up to the first that ``until``
+        accepts (the later ones would not change what a test reads)."""
+        def after() -> list[Stats]:
+            return [Stats.parse(report) for report in self.diagnostics[self.reports_at_the_end:][:count]]
+
+        assert self.probe.spin_until(lambda: len(after()) == count or any(map(until, after())), 60), \
+            "too few /diagnostics reports"
+        reports = after()
+        return reports[:next((n + 1 for n, stats in enumerate(reports) if until(stats)), len(reports))]
 
     def close(self) -> tuple[int, str]:
         if self.process.poll() is None:
@@ -90,7 +104,7 @@ def test_a_node_without_compiled_kernels_keeps_up_with_a_bag_played_the_moment_i
     replay = Replay(tmp_path, bag, env={"NUMBA_CACHE_DIR": str(cache), "NUMBA_DEBUG_CACHE": "1"})
     try:
         replay.play_when_ready(ready_within=COLD_START_LIMIT)
-        after = replay.reports_after_the_end(REPORTS_AFTER_THE_END)
+        after = replay.reports_after_the_end(REPORTS_AFTER_THE_END, lambda stats: stats.integrated == FRAMES)
         current = [stats for stats in after if stats.integrated == FRAMES]
         assert current, f"{REPORTS_AFTER_THE_END} reports after the bag ended the node had integrated " \
                         f"{after[-1].integrated} of {FRAMES} scans: {after[-1]}"

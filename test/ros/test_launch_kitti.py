@@ -83,24 +83,30 @@ def test_a_kitti_bag_through_ros2_launch_and_play_bag_maps_from_tf(tmp_path):
     from sensor_msgs.msg import PointCloud2
 
     maps = probe.subscribe(PointCloud2, "/semantic_map", latched=True)
+    player = None
     try:
-        player = subprocess.run(
+        player = subprocess.Popen(
             [sys.executable, "-m", "convbki_ros.tools.play_bag", str(bag), "--clock", "--wait-for-node"], cwd=REPO,
-            env=ros_env(domain), stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=240)
-        assert player.returncode == 0, player.stderr
-        assert "/convbki_mapper received 4 of 4 clouds, integrated 4, dropped 0" in player.stderr, player.stderr
-
+            env=ros_env(domain), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # The map expected, made while the launch starts and the player waits for its node.
         label_map = load_label_map("semantic_kitti")
         expected = node_default_mapper(local_bounds=(BOUNDS[:3], BOUNDS[3:]))
         sequence = SemanticKittiSequence(tmp_path / "kitti", "08")
         for number, (points, _, predicted) in enumerate(frames):
             expected.integrate(points, label_map.to_learning(predicted), sequence[number].pose)
         voxels = len(shown_voxels(expected)[0])
+
+        _, stderr = player.communicate(timeout=240)
+        assert player.returncode == 0, stderr
+        assert "/convbki_mapper received 4 of 4 clouds, integrated 4, dropped 0" in stderr, stderr
         assert probe.spin_until(lambda: maps and maps[-1].width == voxels, WAIT), \
             f"/semantic_map has {maps[-1].width if maps else None} voxels, expected {voxels}"
         assert maps[-1].header.frame_id == "map"
         assert_same_voxels(maps[-1], expected)
     finally:
+        if player is not None and player.poll() is None:  # a check failed before it ended
+            player.kill()
+            player.communicate()
         probe.close()
         if launch.poll() is None:
             os.killpg(launch.pid, signal.SIGINT)

@@ -41,9 +41,11 @@ def offline_map(root):
 
 
 def start_mapper(domain, tmp_path, *parameters):
+    """The node on the bag's topics; its /diagnostics every 0.05 s, which the player's
+    --wait-for-inputs waits for."""
     return start("convbki_ros.main", domain, "--ros-args", "-r", "cloud_in:=/kitti/velo/pointcloud",
                  "-r", "odom:=/kitti/odom", "-p", f"local_bounds:={BOUNDS}", "-p", "publish_period:=0.3",
-                 "-p", "map_period:=0.3",
+                 "-p", "map_period:=0.3", "-p", "diagnostics_period:=0.05",
                  "-p", f"map_file:={tmp_path / 'map.npz'}", "-p", "device:=cpu", *parameters)
 
 
@@ -122,7 +124,7 @@ def test_node_maps_a_bag_like_the_offline_mapper_and_serves_its_map(drive, tmp_p
 
 def test_sigint_stops_the_node_cleanly_and_saves_nothing_when_told_not_to(tmp_path):
     # A map that changed, so that the default (save_on_shutdown true) would write map_file.
-    rig = Rig(tmp_path, "-p", "save_on_shutdown:=false")
+    rig = Rig(tmp_path, "-p", "save_on_shutdown:=false", diagnostics_period=0.05)
     try:
         assert rig.integrate_good_cloud().voxels > 0
         rig.process.send_signal(signal.SIGINT)

@@ -23,10 +23,14 @@ from convbki_core.io.atomic import writer_tag
 SET_ASIDE_NAME = r"\d{8}T\d{6}Z(?:-\d+)?"  # <map_file>.<why>-<UTC time>[-N]
 
 
-def refused_start(domain: int, *parameters: str):
-    """A node started with ``parameters`` that must refuse to start: (exit code, its output, the
-    modules it imported before the error line)."""
-    process = start("convbki_ros.main", domain, "--ros-args", "-p", "device:=cpu", *parameters, env=IMPORT_LOG)
+def start_refused(*parameters: str) -> subprocess.Popen:
+    """A node started with ``parameters`` that must refuse to start (``refused`` reads how): it
+    runs beside a test's other nodes, as it needs no map file but its own."""
+    return start("convbki_ros.main", domain_id(), "--ros-args", "-p", "device:=cpu", *parameters, env=IMPORT_LOG)
+
+
+def refused(process: subprocess.Popen):
+    """(exit code, output, the modules imported before the error line) of a ``start_refused``."""
     try:
         code = process.wait(timeout=60)
         output, imported = split_import_log(process.communicate()[0])
@@ -49,15 +53,12 @@ def test_bad_map_files_met_in_three_starts_are_each_set_aside_under_a_name_of_th
                  "foreign": foreign.read_bytes()}
 
     # Refusing (refuse_bad_map_file): exit 2 naming the file and the problem, before the mapper is
-    # loaded (Python's import log before the error line), and the file as it was.
-    map_file.write_bytes(bad_files["foreign"])
-    code, output, imported = refused_start(domain_id(), "-p", f"map_file:={map_file}",
-                                           "-p", "refuse_bad_map_file:=true")
-    assert code == 2, output
-    assert "torch" not in imported, "the unreadable map file was refused only after the mapper was loaded"
-    assert re.search(rf"mapper: error: {re.escape(str(map_file))}: not a ConvBKI map file .*"
-                     r"\(refuse_bad_map_file is true: not starting\)", output), output
-    assert "Traceback" not in output and map_file.read_bytes() == bad_files["foreign"]
+    # loaded (Python's import log before the error line), and the file as it was. A file of its
+    # own, so that this start runs while the first of the starts below comes up.
+    refused_file = tmp_path / "refused" / "map.npz"
+    refused_file.parent.mkdir()
+    refused_file.write_bytes(bad_files["foreign"])
+    refusing = start_refused("-p", f"map_file:={refused_file}", "-p", "refuse_bad_map_file:=true")
 
     # Not refusing, three starts, each meeting another bad file: each start says so, starts empty,
     # and its first save moves the bad file to a name of its own (said in the log), never over
@@ -77,8 +78,16 @@ def test_bad_map_files_met_in_three_starts_are_each_set_aside_under_a_name_of_th
     set_aside: dict[str, Path] = {}
     for kind, content in bad_files.items():
         map_file.write_bytes(content)
-        rig = Rig(folder, map_file=map_file)
+        rig = Rig(folder, map_file=map_file, diagnostics_period=0.05)
         try:
+            if refusing is not None:
+                code, output, imported = refused(refusing)
+                refusing = None
+                assert code == 2, output
+                assert "torch" not in imported, "the unreadable map file was refused only after the mapper was loaded"
+                assert re.search(rf"mapper: error: {re.escape(str(refused_file))}: not a ConvBKI map file .*"
+                                 r"\(refuse_bad_map_file is true: not starting\)", output), output
+                assert "Traceback" not in output and refused_file.read_bytes() == bad_files["foreign"]
             if kind == "truncated":
                 names = ", ".join(path.name for path in killed_saves)
                 assert rig.log.find(r"\[INFO\].*removed 2 temporary file\(s\) of killed saves beside map_file "
@@ -120,23 +129,31 @@ def test_a_map_of_another_set_up_stops_the_start_and_two_mistaken_restarts_lose_
     folder = tmp_path / "robot"
     map_file = folder / "maps" / "map.npz"
     map_file.parent.mkdir(parents=True)
-    offline_map(1).save(map_file)
+    one_scan = offline_map(1)
+    one_scan.save(map_file)
     fine_map = map_file.read_bytes()
 
+    # Each refused start runs while the set_aside start after it comes up: that one leaves the file
+    # alone until it saves (at Ctrl-C, once the refused start has ended).
     # The mistake: refused at once, naming what differs and the two ways out; the map as it was.
-    code, output, imported = refused_start(domain_id(), "-p", f"map_file:={map_file}", "-p", "resolution:=0.4")
-    assert code == 2 and "torch" not in imported, output
-    assert re.search(rf"mapper: error: map_file {re.escape(str(map_file))} holds a map of another set-up "
-                     r"\(resolution 0\.2 m in the file, 0\.4 m here\); to load it, start with -p resolution:=0\.2; "
-                     r"to start a new map, set map_file to another file \(or map_file_mismatch:=set_aside",
-                     output), output
-    assert output.count("mapper: error:") == 1 and "Traceback" not in output
-    assert map_file.read_bytes() == fine_map
-
+    refusing = start_refused("-p", f"map_file:={map_file}", "-p", "resolution:=0.4")
     kept = []
     for parameters in (("-p", "resolution:=0.4"), ()):
-        rig = Rig(folder, *parameters, "-p", "map_file_mismatch:=set_aside", map_file=map_file)
+        rig = Rig(folder, *parameters, "-p", "map_file_mismatch:=set_aside", map_file=map_file,
+                  diagnostics_period=0.05)
         try:
+            code, output, imported = refused(refusing)
+            if parameters:
+                assert code == 2 and "torch" not in imported, output
+                assert re.search(rf"mapper: error: map_file {re.escape(str(map_file))} holds a map of another "
+                                 r"set-up \(resolution 0\.2 m in the file, 0\.4 m here\); to load it, start with -p "
+                                 r"resolution:=0\.2; to start a new map, set map_file to another file \(or "
+                                 r"map_file_mismatch:=set_aside", output), output
+                assert output.count("mapper: error:") == 1 and "Traceback" not in output
+                assert map_file.read_bytes() == fine_map
+            else:  # the defaults again, before the user notices the parameter: refused too, the file now 0.4 m
+                assert code == 2 and "(resolution 0.4 m in the file, 0.2 m here); to load it, start with -p " \
+                    "resolution:=0.4" in output, output
             assert re.search(r"\[ERROR\].*holds a map of another set-up \(resolution 0\.[24] m in the file, "
                              r"0\.[24] m here\); starting with an EMPTY map \(map_file_mismatch is set_aside\)",
                              rig.log.text()), rig.log.text()
@@ -153,12 +170,9 @@ def test_a_map_of_another_set_up_stops_the_start_and_two_mistaken_restarts_lose_
         if not parameters:
             break
         coarse_map = map_file.read_bytes()
-        # The defaults again, before the user notices the parameter: refused too, now the file is 0.4 m.
-        code, output, _ = refused_start(domain_id(), "-p", f"map_file:={map_file}")
-        assert code == 2 and "(resolution 0.4 m in the file, 0.2 m here); to load it, start with -p " \
-            "resolution:=0.4" in output, output
+        refusing = start_refused("-p", f"map_file:={map_file}")
     # Both maps are in the folder, byte for byte, where the lines said; map_file holds the new 0.2 m map.
     assert kept[0] != kept[1]
     assert kept[0].read_bytes() == fine_map and kept[1].read_bytes() == coarse_map
-    expect_file_holds(map_file, offline_map(1))
+    expect_file_holds(map_file, one_scan)
     assert sorted(path.name for path in map_file.parent.iterdir()) == sorted(["map.npz", *(p.name for p in kept)])

@@ -23,7 +23,6 @@ from convbki_core.io.map_file import MapSnapshot, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.outputs.records import RECORD, apply_records, packed_palette, records_from_alpha
 from convbki_core.paths import config_dir
-from convbki_core.tools import synth
 from convbki_ros.inputs.transforms import poses_to_path
 from convbki_ros.tools.kitti_to_bag import EPOCH_NS
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
@@ -34,13 +33,12 @@ LABELS = load_label_map("semantic_kitti")
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
-    """A small drift drive with moving traffic and its bags: the whole drive, and the scans before
-    the loop closes."""
+def drive(drift_drive, tmp_path_factory):
+    """The small drift drive with moving traffic (``drift_drive``, test/conftest.py: 40 scans, the
+    loop closed before scan 25, which test_correction.py maps too) as ``data`` and its bags: the
+    whole drive, and the scans before the loop closes."""
     root = tmp_path_factory.mktemp("drift")
-    assert synth.main(["--out", str(root / "data"), "--sequence", "00", "--frames", str(FRAMES), "--seed", "24",
-                       "--speed", "15", "--beams", "16", "--azimuth-steps", "500", "--drift", "8", "--drift-scale",
-                       "0.01", "--loop-closure", str(CLOSURE), "--movers", "6", "--quiet"]) == 0
+    (root / "data").symlink_to(drift_drive, target_is_directory=True)
     assert kitti_to_bag(["--dataset", str(root / "data"), "--sequence", "00", "--out", str(root / "bag")]) == 0
     assert kitti_to_bag(["--dataset", str(root / "data"), "--sequence", "00", "--frames", f"0:{CLOSURE}",
                          "--out", str(root / "before")]) == 0
@@ -104,9 +102,12 @@ def same_records(got: dict, want: dict) -> bool:
 
 
 def start_node(domain: int, tmp_path, setup: str, *parameters: str):
+    # Updates every 0.2 s (the stream a subscriber rebuilds the map from, in many steps); the
+    # whole map (some 200,000 records, which the node builds and the probe reads each time) once a
+    # second: the last one comes at most a second after the map's last change.
     return start("convbki_ros.main", domain, "--ros-args", "--params-file", config_dir() / "mapper.yaml",
                  "-r", "cloud_in:=/kitti/velo/pointcloud", "-r", "odom:=/kitti/odom", "-p", "device:=cpu",
-                 "-p", f"local_bounds:={BOUNDS}", "-p", "publish_period:=0.2", "-p", "map_period:=0.2",
+                 "-p", f"local_bounds:={BOUNDS}", "-p", "publish_period:=0.2", "-p", "map_period:=1.0",
                  "-p", "diagnostics_period:=0.2", "-p", "map_frame:=map", "-p", f"free_space:={setup != 'paper'}",
                  "-p", "correction_tolerance:=0.0", *parameters)
 
@@ -134,13 +135,6 @@ def test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scrat
 
     dataset = SemanticKittiSequence(drive / "data", "00")
     closure = read_loop_closure(dataset)
-    want = shown_records(expected_map(setup, dataset, closure, FRAMES))
-    uncorrected = ConvBKIMapper(node_config(setup).replace(scan_log=False))
-    for k in range(FRAMES):
-        frame = dataset[k]
-        uncorrected.integrate(frame.points, frame.input_labels,
-                              as_sent(closure.correction_at(k)) @ as_sent(closure.odometry[k]))
-    assert len(shown_records(uncorrected).keys() - want.keys()) > 1000  # without correction: streets twice
 
     # A bounded log: it reaches back over the loop when it closes (scan 25), and the oldest scans
     # are frozen by the end of the drive (scan 40). In megabytes (the scans and the map as it was
@@ -166,6 +160,15 @@ def test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scrat
         maps = probe.subscribe(PointCloud2, "/semantic_map", latched=True)
         updates = probe.subscribe(PointCloud2, "/semantic_map/updates", depth=1000)
         reports = probe.subscribe(DiagnosticArray, "/diagnostics")
+        # What the node should hold, worked out while it starts (imports, kernels) and DDS matches
+        # the probe to it: nothing is played before the match below.
+        want = shown_records(expected_map(setup, dataset, closure, FRAMES))
+        uncorrected = ConvBKIMapper(node_config(setup).replace(scan_log=False))
+        for k in range(FRAMES):
+            frame = dataset[k]
+            uncorrected.integrate(frame.points, frame.input_labels,
+                                  as_sent(closure.correction_at(k)) @ as_sent(closure.odometry[k]))
+        assert len(shown_records(uncorrected).keys() - want.keys()) > 1000  # without correction: streets twice
         # The node sends updates only to the listeners it has found: the probe must be matched to it
         # before the first scan, and spin while the bag plays (a reader keeps `depth` messages).
         assert probe.spin_until(lambda: probe.matched("/semantic_map", "/semantic_map/updates", "/diagnostics")
@@ -223,6 +226,9 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
     # The first run maps the scans before the loop closes and saves them, with their log, on shutdown.
     first_run = NodeLog(start_node(domain, tmp_path, "defaults", "-p", f"map_file:={map_file}"))
     player = start("convbki_ros.tools.play_bag", domain, drive / "before", "--wait-for-node")
+    # The map the second run must end with (the same as a correction without the restart: the
+    # scans at their corrected poses), worked out while the first run starts and maps.
+    want = shown_records(expected_map("defaults", dataset, closure, CLOSURE))
     assert player.wait(timeout=120) == 0, stop(player)
     probe = Probe(domain)
     try:
@@ -280,9 +286,8 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
             assert log.wait_for(said, mark, 60), log.text(mark)
         saved = probe.call(Trigger, "/convbki_mapper/save_map")
         assert saved.success, saved.message
-        # The same map as a correction without the restart: the scans at their corrected poses.
+        # The same map as a correction without the restart (``want``).
         metadata, indices, alpha = read_map(map_file)
-        want = shown_records(expected_map("defaults", dataset, closure, CLOSURE))
         got = records_from_alpha(indices, alpha, metadata["resolution"], packed_palette(LABELS.colors))
         got = {(float(r["x"]), float(r["y"]), float(r["z"])): r for r in got[got["label"] != 0]}
         assert same_records(got, want)

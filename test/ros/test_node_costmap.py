@@ -29,7 +29,7 @@ def test_the_costmap_topic_and_service_equal_the_offline_grids(tmp_path):
     from nav_msgs.msg import OccupancyGrid
     from nav_msgs.srv import GetMap
 
-    rig = Rig(tmp_path, "-p", "costmap_size:=20.0")
+    rig = Rig(tmp_path, "-p", "costmap_size:=20.0", diagnostics_period=0.05)
     grids = rig.probe.subscribe(OccupancyGrid, "/semantic_map/costmap", latched=True)
     profile = profile_of(Params(costmap_profile="car"), load_label_map("semantic_kitti").class_names)
     try:

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mapper_rig import BOUNDS, TRANSLATION, WAIT, Rig, expect_file_holds, offline_map
-from ros_helpers import IMPORT_LOG, NodeLog, Probe, domain_id, split_import_log, start
+from mapper_rig import BOUNDS, TRANSLATION, WAIT, Rig, close_together, expect_file_holds, offline_map
+from ros_helpers import IMPORT_LOG, NodeLog, domain_id, split_import_log, start
 
 from convbki_core.config import MapperConfig
 from convbki_core.mapper import ConvBKIMapper
@@ -26,23 +26,45 @@ NEEDS_READ_ONLY = pytest.mark.skipif(os.geteuid() == 0 and not WITHOUT_PERMISSIO
                                      reason="root writes into read-only folders, and setpriv is not here to stop that")
 
 
+@pytest.fixture(scope="module")
+def nodes(tmp_path_factory):
+    """The nodes of three tests below, started side by side (each test takes its own): "reset"
+    (nobody watches its map), "new folder" (its map_file in a folder that does not exist yet) and
+    "refusing writes" (a saved map in a folder that the test makes read-only under it)."""
+    new_folder, refusing_writes = tmp_path_factory.mktemp("new_folder"), tmp_path_factory.mktemp("refusing_writes")
+    saved = refusing_writes / "maps" / "map.npz"
+    saved.parent.mkdir()
+    offline_map(1).save(saved)
+    rigs = {"reset": Rig(tmp_path_factory.mktemp("reset"), watch_map=False, diagnostics_period=0.05, wait=False),
+            "new folder": Rig(new_folder, map_file=new_folder / "new" / "maps" / "map.npz", diagnostics_period=0.05,
+                              wait=False),
+            "refusing writes": Rig(refusing_writes, map_file=saved, prefix=WITHOUT_PERMISSION_OVERRIDE,
+                                   diagnostics_period=0.05, wait=False)}
+    yield rigs
+    close_together(*rigs.values())
+
+
 def shown_voxels(mapper: ConvBKIMapper):
     """Centres of the voxels the node publishes (expected class other than 0, free space)."""
     voxels = mapper.voxels()
     return voxels.centres[voxels.label != 0]
 
 
-def first_map_of_a_late_subscriber(domain: int):
-    """The first /semantic_map a subscriber that arrives now receives (the latched sample)."""
+def first_map_of_a_late_subscriber(rig: Rig):
+    """The first /semantic_map a subscriber that arrives now receives (the latched sample): a
+    reader made now in the rig's probe (whose participant DDS knows already), removed after, so
+    that nobody listens again."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
-    late = Probe(domain, name="late_joiner")
+    received: list = []
+    late = rig.probe.node.create_subscription(PointCloud2, "/semantic_map", received.append, QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
     try:
-        received = late.subscribe(PointCloud2, "/semantic_map", latched=True)
-        assert late.spin_until(lambda: received, WAIT), "a late subscriber got no map"
+        assert rig.probe.spin_until(lambda: received, WAIT), "a late subscriber got no map"
         return received[0]
     finally:
-        late.close()
+        rig.probe.node.destroy_subscription(late)
 
 
 def points_of(msg) -> np.ndarray:
@@ -50,33 +72,33 @@ def points_of(msg) -> np.ndarray:
     return data[:, :3]
 
 
-def test_reset_then_ctrl_c_keeps_the_saved_map_and_late_subscribers_get_the_current_map(tmp_path):
-    rig = Rig(tmp_path, watch_map=False)
+def test_reset_then_ctrl_c_keeps_the_saved_map_and_late_subscribers_get_the_current_map(nodes):
     shown = len(shown_voxels(offline_map(1)))
+    rig = nodes["reset"].wait_ready()
     try:
         stats = rig.integrate_good_cloud()
         saved = rig.call("save_map")
         assert saved.success, saved.message
         before = rig.map_file.read_bytes()
-        assert first_map_of_a_late_subscriber(rig.domain).width == shown
+        assert first_map_of_a_late_subscriber(rig).width == shown
         # Nobody listens now. A reset says what it forgot and that the saved file is kept.
         published = rig.stats().maps_published
         reset = rig.call("reset")
         assert reset.success and reset.message == f"map reset: forgot {stats.voxels} voxels; {rig.map_file} keeps " \
             "the map as it was until ~/save_map writes this one there", reset.message
         rig.wait_stats(lambda s: s.voxels == 0 and s.maps_published > published)
-        assert first_map_of_a_late_subscriber(rig.domain).width == 0  # the map as it is, not as it was
+        assert first_map_of_a_late_subscriber(rig).width == 0  # the map as it is, not as it was
 
         # The map grows while nobody listens: the latched map follows it.
         published = rig.stats().maps_published
         after = rig.integrate_good_cloud()
         rig.wait_stats(lambda s: s.maps_published > published)
-        assert first_map_of_a_late_subscriber(rig.domain).width == shown
+        assert first_map_of_a_late_subscriber(rig).width == shown
         # A filter that hides every voxel, set while nobody listens: a late subscriber gets it applied.
         published = rig.stats().maps_published
         assert rig.set_parameters(max_variance=1e-9)[0].successful
         rig.wait_stats(lambda s: s.maps_published > published)
-        assert first_map_of_a_late_subscriber(rig.domain).width == 0
+        assert first_map_of_a_late_subscriber(rig).width == 0
         assert rig.set_parameters(max_variance=0.0)[0].successful
 
         # This map is not saved by itself, and /diagnostics says so.
@@ -105,7 +127,7 @@ def test_load_map_clear_box_and_a_run_time_map_file_show_in_the_published_map(tm
                   kernel_path("semantic_kitti_compound")).save(other_resolution)
     read_only = tmp_path / "read_only"
     read_only.mkdir(mode=0o555)
-    rig = Rig(tmp_path, map_file=start_file, prefix=WITHOUT_PERMISSION_OVERRIDE)
+    rig = Rig(tmp_path, map_file=start_file, prefix=WITHOUT_PERMISSION_OVERRIDE, diagnostics_period=0.05)
     try:
         assert rig.log.find(rf"loaded {len(original)} voxels from {re.escape(str(start_file))}")
         # Before any odometry, the view shows the loaded map around the sensor position the file recorded.
@@ -175,9 +197,9 @@ def start_node(domain: int, map_file: Path, *parameters: str, env: dict | None =
                  "-p", f"map_file:={map_file}", *parameters, prefix=WITHOUT_PERMISSION_OVERRIDE, env=env)
 
 
-def test_a_map_file_in_a_missing_folder_gets_its_folder_and_the_map(tmp_path):
-    map_file = tmp_path / "new" / "maps" / "map.npz"
-    rig = Rig(tmp_path, map_file=map_file)
+def test_a_map_file_in_a_missing_folder_gets_its_folder_and_the_map(nodes):
+    rig = nodes["new folder"].wait_ready()
+    map_file = rig.map_file
     try:
         assert rig.log.find(rf"made the folder {re.escape(str(map_file.parent))} for map_file")
         final = rig.integrate_good_cloud()
@@ -199,11 +221,13 @@ def test_a_map_file_in_a_read_only_folder_is_refused_at_start_and_the_file_kept(
     try:
         # Python's import log (before the error line): the folder is checked before torch is loaded.
         node = start_node(domain_id(), folder / "map.npz", env=IMPORT_LOG)
-        logged = node.communicate(timeout=120)[0]
-        # Only reading it (no save by itself) is fine: a warning, and the node starts.
+        # Only reading it (no save by itself) is fine: a warning, and the node starts (beside the other).
         reading = NodeLog(start_node(domain_id(), folder / "map.npz", "-p", "save_on_shutdown:=false"))
-        assert reading.wait_for("mapper ready", timeout=60), reading.text()
-        seen = reading.close()
+        try:
+            logged = node.communicate(timeout=120)[0]
+            assert reading.wait_for("mapper ready", timeout=60), reading.text()
+        finally:
+            seen = reading.close()
         assert reading.process.returncode == 0, seen
     finally:
         folder.chmod(0o755)
@@ -247,15 +271,13 @@ def fill(disk: Path, leave: int) -> None:
 
 
 @NEEDS_READ_ONLY
-def test_a_folder_that_refuses_writes_after_the_start_fails_every_save_and_keeps_the_file(tmp_path):
+def test_a_folder_that_refuses_writes_after_the_start_fails_every_save_and_keeps_the_file(nodes):
     """The full disk's errors while mapping and at shutdown, with no mount: the folder passes the
     check at start, then refuses writes (made read-only under the running node): every save
     fails and says why, shutdown exits 1, and the file and the folder stay as they were."""
-    map_file = tmp_path / "maps" / "map.npz"
-    map_file.parent.mkdir()
-    offline_map(1).save(map_file)
-    before = map_file.read_bytes()
-    rig = Rig(tmp_path, map_file=map_file, prefix=WITHOUT_PERMISSION_OVERRIDE)
+    rig = nodes["refusing writes"].wait_ready()
+    map_file = rig.map_file
+    before = map_file.read_bytes()  # as the fixture saved it before the start
     try:
         rig.integrate_good_cloud(translation=TRANSLATION + [6.0, 0.0, 0.0])
         map_file.parent.chmod(0o555)
@@ -291,7 +313,7 @@ def test_a_map_file_on_a_full_disk_is_refused_at_start_and_an_error_while_mappin
     # Room for the check at start, not for a map: mapping goes on, every save fails and says why.
     (small_disk / "filler").unlink()
     fill(small_disk, leave=64 * 1024)
-    rig = Rig(tmp_path, map_file=map_file)
+    rig = Rig(tmp_path, map_file=map_file, diagnostics_period=0.05)
     try:
         assert rig.log.find(r"\[WARN\].*MB free on its disk, less than the .* MB of the map there")
         rig.integrate_good_cloud(translation=TRANSLATION + [6.0, 0.0, 0.0])

@@ -6,7 +6,18 @@ odometry is the LiDAR's own pose, with the mount from ``base_to_sensor`` or from
 """
 
 import numpy as np
-from mapper_rig import BOUNDS, LABELS, POINTS, Rig, cloud, expect_file_holds, node_default_mapper, odometry
+import pytest
+from mapper_rig import (
+    BOUNDS,
+    LABELS,
+    POINTS,
+    Rig,
+    close_together,
+    cloud,
+    expect_file_holds,
+    node_default_mapper,
+    odometry,
+)
 
 from convbki_core.geometry.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
 from convbki_core.io.labels import load_label_map
@@ -57,17 +68,30 @@ def assert_same_voxels(msg, expected: ConvBKIMapper) -> None:
     np.testing.assert_array_equal(got.labels[order_got], labels[order_want])
 
 
-def test_a_lidar_on_a_mount_maps_like_odometry_of_the_lidar_itself(tmp_path):
+@pytest.fixture(scope="module")
+def nodes(tmp_path_factory):
+    """The module's nodes, started side by side (each test takes its own): "on base" (namespaced
+    /robot1, the mount from base_to_sensor), "on lidar" (map_frame the odometry's own) and "no
+    mount" (the default parameters: no base_to_sensor)."""
+    folder = tmp_path_factory.mktemp("frames")
+    mount = [*MOUNT_TRANSLATION, *MOUNT_QUATERNION]
+    nodes = {"on base": Rig(folder / "base", "-p", f"base_to_sensor:={[float(v) for v in mount]}",
+                            namespace="/robot1", diagnostics_period=0.05, wait=False),
+             "on lidar": Rig(folder / "lidar", "-p", "map_frame:=map", diagnostics_period=0.05, wait=False),
+             "no mount": Rig(folder / "no_mount", diagnostics_period=0.05, wait=False)}
+    yield nodes
+    close_together(*nodes.values())
+
+
+def test_a_lidar_on_a_mount_maps_like_odometry_of_the_lidar_itself(nodes):
     """Node A (namespaced /robot1): odometry of base_link, the mount from base_to_sensor.
     Node B: odometry of the LiDAR itself, map_frame the odometry's own (no TF needed). Both
     maps equal the offline map."""
-    mount = [*MOUNT_TRANSLATION, *MOUNT_QUATERNION]
-    on_base = Rig(tmp_path / "base", "-p", f"base_to_sensor:={[float(v) for v in mount]}", namespace="/robot1")
-    on_lidar = Rig(tmp_path / "lidar", "-p", "map_frame:=map")
+    expected = expected_map()  # while the nodes start
+    on_base, on_lidar = nodes["on base"].wait_ready(), nodes["on lidar"].wait_ready()
     try:
         drive(on_base, "base_link", BASE_POSES)
         drive(on_lidar, "lidar_top", [base @ MOUNT for base in BASE_POSES])
-        expected = expected_map()
         for rig in (on_base, on_lidar):
             msg = rig.map_message(len(shown_voxels(expected)[0]))
             assert msg.header.frame_id == "map"  # the odometry's frame
@@ -79,16 +103,16 @@ def test_a_lidar_on_a_mount_maps_like_odometry_of_the_lidar_itself(tmp_path):
         report = on_base.diagnostics[-1].status[0]
         assert report.name == "/robot1/convbki_mapper: mapping" and report.level == b"\x00", report
     finally:
-        outputs = [rig.close() for rig in (on_base, on_lidar)]
+        outputs = close_together(on_base, on_lidar)
     assert not any("Traceback" in output for output in outputs), outputs
 
 
-def test_the_mount_from_tf_static_gives_the_same_map(tmp_path):
+def test_the_mount_from_tf_static_gives_the_same_map(nodes):
     """No base_to_sensor: the mount published once on /tf_static (transient local, before the
     first cloud) places the clouds as the parameter does."""
     from convbki_ros.inputs.transforms import pose_to_transform_stamped
 
-    rig = Rig(tmp_path)
+    rig = nodes["no mount"].wait_ready()
     try:
         rig.publish_tf(pose_to_transform_stamped(MOUNT, 0, "base_link", "lidar_top"), static=True)
         assert rig.log.find("sensor mount from TF")

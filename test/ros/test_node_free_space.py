@@ -3,7 +3,8 @@ that see through its place. A subscriber that applies semantic_map/updates recei
 for its voxels and ends with no car voxel, like semantic_map itself."""
 
 import numpy as np
-from mapper_rig import WAIT, Rig, fields
+import pytest
+from mapper_rig import WAIT, Rig, close_together, fields
 from test_node_updates import records_of, shown
 
 from convbki_core.outputs.records import apply_records
@@ -30,12 +31,24 @@ def street(with_car: bool) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(parts).astype(np.float32), np.concatenate(labels).astype(np.uint32)
 
 
-def test_the_rays_empty_a_car_that_has_gone_and_the_updates_say_so(tmp_path):
+@pytest.fixture(scope="module")
+def nodes(tmp_path_factory):
+    """The module's nodes, started side by side (each test takes its own): "rays" (free space
+    on: the node's default), and moving_labels True and False."""
+    folder = tmp_path_factory.mktemp("free_space")
+    nodes = {"rays": Rig(folder / "rays", diagnostics_period=0.05, wait=False),
+             **{moving_labels: Rig(folder / str(moving_labels), "-p", f"moving_labels:={str(moving_labels).lower()}",
+                                   diagnostics_period=0.05, wait=False) for moving_labels in (True, False)}}
+    yield nodes
+    close_together(*nodes.values())
+
+
+def test_the_rays_empty_a_car_that_has_gone_and_the_updates_say_so(nodes):
     from sensor_msgs.msg import PointCloud2
 
     from convbki_ros.outputs.cloud_encoding import encode_cloud
 
-    rig = Rig(tmp_path)  # free space on: the node's default
+    rig = nodes["rays"].wait_ready()
     try:
         updates = rig.probe.subscribe(PointCloud2, "/semantic_map/updates")
         rebuilt: dict = {}
@@ -86,7 +99,7 @@ def test_the_rays_empty_a_car_that_has_gone_and_the_updates_say_so(tmp_path):
     assert "Traceback" not in output, output
 
 
-def test_points_labelled_moving_stay_out_of_the_map_unless_moving_labels_is_off(tmp_path):
+def test_points_labelled_moving_stay_out_of_the_map_unless_moving_labels_is_off(nodes):
     """A multi-scan network's moving-car label (raw 252) on the car's points: with the default
     moving_labels the node's map never holds the car (no trail, whatever rays follow), nor its
     half the network called "truck" without marking it as moving; with moving_labels:=false the
@@ -102,9 +115,9 @@ def test_points_labelled_moving_stay_out_of_the_map_unless_moving_labels_is_off(
     left = car & (points[:, 1] > 0.0)
     labels = np.where(left, 18, np.where(car, 252, labels)).astype(np.uint32)
     counts = {}
-    for moving_labels in (True, False):
-        rig = Rig(tmp_path / str(moving_labels), "-p", f"moving_labels:={str(moving_labels).lower()}")
-        try:
+    rigs = nodes[True].wait_ready(), nodes[False].wait_ready()
+    try:
+        for moving_labels, rig in zip((True, False), rigs, strict=True):
             for scan in range(2):
                 stamp = rig.next_stamp()
                 rig.publish(odometry(stamp), encode_cloud(stamp, "velo_link", fields(points, labels)))
@@ -116,8 +129,8 @@ def test_points_labelled_moving_stay_out_of_the_map_unless_moving_labels_is_off(
             label = alpha.argmax(axis=1)
             counts[moving_labels] = (int(np.count_nonzero(np.isin(label, [CAR, TRUCK]))),
                                      int(np.count_nonzero(label == 13)))
-        finally:
-            output = rig.close()
-        assert "Traceback" not in output, output
+    finally:
+        outputs = close_together(*rigs)
+    assert not any("Traceback" in output for output in outputs), outputs
     assert counts[True][0] == 0 and counts[True][1] > 100, counts  # no car; the house is there
     assert counts[False][0] > 100, counts

@@ -50,8 +50,12 @@ def test_map_settings_at_start_shape_the_map_and_its_outputs(tmp_path):
     rig = Rig(tmp_path, "-p", "update_path:=dense", "-p", "prior:=0.01", "-p", "max_concentration:=20.0",
               "-p", "forget_movers:=false", "-p", "max_variance:=0.05", "-p", "input_qos:=sensor_data",
               "-p", "publish_local:=false", "-p", f"ply_file:={ply}", "-p", "costmap_max_cells:=10",
-              "-p", "scan_log:=false")
+              "-p", "scan_log:=false", diagnostics_period=0.05, wait=False)
     try:
+        # The maps offline, while the node starts: with these settings, and with each of them at its default.
+        expected = offline(**MAP_OPTIONS)
+        with_default = {name: offline(**{**MAP_OPTIONS, name: default}) for name, default in DEFAULT_OPTIONS.items()}
+        rig.wait_ready()
         node = rig.probe.node
         for topic in ("/cloud_in", "/odom"):  # sensor_data: the node reads its inputs best effort
             def info(topic=topic) -> list:
@@ -67,7 +71,6 @@ def test_map_settings_at_start_shape_the_map_and_its_outputs(tmp_path):
             rig.wait_stats(lambda s, scan=scan: s.integrated == scan + 1)
 
         # The dense path maps what the fast path maps offline, with this prior, clamping and no movers' rules.
-        expected = offline(**MAP_OPTIONS)
         assert rig.call("save_map").success
         metadata, indices, alpha = read_map(rig.map_file)
         order = np.lexsort(indices.T)
@@ -75,8 +78,8 @@ def test_map_settings_at_start_shape_the_map_and_its_outputs(tmp_path):
         assert metadata["prior"] == 0.01, metadata
         assert read_map(rig.map_file, with_scan_log=True)[0]["scan_log"] is None  # scan_log false: none kept
         assert same_map(got, expected)
-        for name, default in DEFAULT_OPTIONS.items():  # each setting made a difference
-            assert not same_map(got, offline(**{**MAP_OPTIONS, name: default})), name
+        for name in DEFAULT_OPTIONS:  # each setting made a difference
+            assert not same_map(got, with_default[name]), name
 
         # max_variance 0.05: the published map and the PLY export hold the confident voxels only.
         voxels = expected[0].voxels()
@@ -144,10 +147,13 @@ def counts(values: dict) -> tuple[int, int, int]:
     return int(values["scans_in"]), int(values["dropped"]), int(values["queue"])
 
 
-def wait_reports(rig: Rig, number: int) -> None:
-    """Let ``number`` more /diagnostics reports pass (0.2 s each): time as the node counts it."""
+PERIOD = 0.05  # the /diagnostics period of the node below: its reports are the test's clock
+
+
+def wait_reports(rig: Rig, seconds: float) -> None:
+    """Let ``seconds`` pass as the node counts them: its /diagnostics reports, one each PERIOD."""
     seen = len(rig.diagnostics)
-    assert rig.probe.spin_until(lambda: len(rig.diagnostics) >= seen + number, WAIT)
+    assert rig.probe.spin_until(lambda: len(rig.diagnostics) >= seen + round(seconds / PERIOD), WAIT)
 
 
 def test_queue_timing_and_robustness_settings_at_start_and_at_run_time(tmp_path):
@@ -155,7 +161,8 @@ def test_queue_timing_and_robustness_settings_at_start_and_at_run_time(tmp_path)
 
     rig = Rig(tmp_path, "-p", "cloud_queue_size:=3", "-p", "cloud_queue_megabytes:=0.002",
               "-p", "pose_wait_timeout:=0.0", "-p", "odometry_timeout:=3600.0", "-p", "max_points_per_cloud:=100",
-              "-p", "local_period:=1000.0", "-p", "stamp_backwards_tolerance:=5.0", "-p", "max_pose_jump:=0.0")
+              "-p", "local_period:=1000.0", "-p", "stamp_backwards_tolerance:=5.0", "-p", "max_pose_jump:=0.0",
+              diagnostics_period=PERIOD)
     try:
         local = rig.probe.subscribe(PointCloud2, "/semantic_map/local")
         updates = rig.probe.subscribe(PointCloud2, "/semantic_map/updates")
@@ -187,19 +194,20 @@ def test_queue_timing_and_robustness_settings_at_start_and_at_run_time(tmp_path)
             if rig.log.find(r"\[WARN\].*no odometry at all on /odom", mark):
                 break
             rig.publish(tiny_cloud(rig.next_stamp(0.1)))
-            wait_reports(rig, 1)  # the pace of the clouds
+            wait_reports(rig, PERIOD)  # the pace of the clouds
         rig.wait_log(r"\[WARN\].*no odometry at all on /odom", mark)
         assert rig.set_parameters(odometry_timeout=5.0)[0].successful
 
-        # -- diagnostics_period at run time: no reports for six counter lines (0.2 s each), then again.
+        # -- diagnostics_period at run time: no reports for six counter lines (0.1 s each, 12 reports
+        # before), then again.
         mark = rig.log.mark()
-        assert all(result.successful for result in rig.set_parameters(diagnostics_period=1000.0, stats_period=0.2))
-        rig.wait_log(r"parameter stats_period is now 0.2", mark)
+        assert all(result.successful for result in rig.set_parameters(diagnostics_period=1000.0, stats_period=0.1))
+        rig.wait_log(r"parameter stats_period is now 0.1", mark)
         seen = len(rig.diagnostics)
         rig.wait_log(r"scans in \d+, integrated", mark, count=6)
         assert len(rig.diagnostics) - seen <= 1, len(rig.diagnostics) - seen  # one may have been on its way
-        assert all(result.successful for result in rig.set_parameters(diagnostics_period=0.2, stats_period=10.0))
-        wait_reports(rig, 3)
+        assert all(result.successful for result in rig.set_parameters(diagnostics_period=PERIOD, stats_period=10.0))
+        wait_reports(rig, 3 * PERIOD)  # three reports
 
         # -- max_points_per_cloud 100 drops the good cloud on arrival; 0 lifts the limit.
         stamp = rig.next_stamp()
@@ -210,23 +218,23 @@ def test_queue_timing_and_robustness_settings_at_start_and_at_run_time(tmp_path)
 
         # -- local_period 1000 s: the first window is sent, none after it; 0: after every update.
         assert rig.probe.spin_until(lambda: len(local) == 1, WAIT)
-        wait_reports(rig, 8)  # 1.6 s: the default 0.5 s would have passed three times
+        wait_reports(rig, 1.0)  # the default 0.5 s would have passed twice
         sent = len(updates)
         rig.integrate_good_cloud()
         assert rig.probe.spin_until(lambda: len(updates) > sent, WAIT)  # the scan's updates
-        wait_reports(rig, 3)
+        wait_reports(rig, 0.6)
         assert len(local) == 1
         assert rig.set_parameters(local_period=0.0)[0].successful
         rig.integrate_good_cloud()
         assert rig.probe.spin_until(lambda: len(local) >= 2, WAIT)  # the window held back, and this scan's
-        wait_reports(rig, 3)
+        wait_reports(rig, 0.6)
         windows = len(local)
         # publish_local false at run time: updates, no window.
         assert rig.set_parameters(publish_local=False)[0].successful
         sent = len(updates)
         rig.integrate_good_cloud()
         assert rig.probe.spin_until(lambda: len(updates) > sent, WAIT)
-        wait_reports(rig, 3)
+        wait_reports(rig, 0.6)
         assert len(local) == windows
 
         # -- stamp_backwards_tolerance 5 s: odometry 2.5 s older than the newest is not time going back.

@@ -1,7 +1,7 @@
 """The mapper node's resets and saves over a run, over DDS, in a separate process.
 
 One node with the reset options on (on_pose_jump reset, reset_on_stamp_backwards) and autosave
-every second: clouds with no odometry at all are warned about and not mapped; autosave writes
+every 0.5 s: clouds with no odometry at all are warned about and not mapped; autosave writes
 the map when it changed; a pose jump and time going backwards reset the map, an odometry outage
 keeps it; on_pose_jump new_file saves the map so far to a segment file of its own; SIGTERM saves
 the map to the map_file in use.
@@ -14,9 +14,17 @@ from mapper_rig import SECOND, TRANSLATION, WAIT, Rig, cloud, expect_file_holds,
 
 
 def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp_path):
+    # Short periods where the test waits for them: the warnings, the autosave, clouds without
+    # odometry waiting to be dropped (0.5 s each); reports every 0.05 s.
     rig = Rig(tmp_path, "-p", "on_pose_jump:=reset", "-p", "reset_on_stamp_backwards:=true",
-              "-p", "odometry_timeout:=1.0", "-p", "autosave_period:=1.0")
+              "-p", "odometry_timeout:=0.5", "-p", "autosave_period:=0.5", "-p", "pose_wait_timeout:=0.5",
+              diagnostics_period=0.05, wait=False)
     try:
+        # What the files must hold, computed while the node starts: one scan, two, one at the pose after a jump.
+        jumped = TRANSLATION + [0.0, -80.0, 0.0]
+        one_scan, two_scans, one_jumped = offline_map(1), offline_map(2), offline_map(1, translation=jumped)
+        rig.wait_ready()
+
         # Clouds and no odometry at all: a warning every odometry_timeout, and nothing mapped.
         mark = rig.log.mark()
         warning = r"\[WARN\].*no odometry at all on /odom for [\d.]+ s while clouds arrive on /cloud_in"
@@ -26,7 +34,7 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
                 break
             rig.publish(cloud(rig.next_stamp(0.1)))
             sent += 1
-            # The next cloud once the node has counted this one (a /diagnostics report, every 0.2 s, says so).
+            # The next cloud once the node has counted this one (a /diagnostics report says so).
             rig.wait_stats(lambda s, sent=sent: s.scans_in == sent)
         assert len(rig.log.find(warning, mark)) == 2, rig.log.text(mark)
         assert rig.wait_stats(lambda s: s.level == 2).integrated == 0  # ERROR on /diagnostics
@@ -37,9 +45,9 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
         assert not rig.map_file.exists()
         mark = rig.log.mark()
         stats = rig.integrate_good_cloud()
-        assert stats.voxels == len(offline_map(1))
+        assert stats.voxels == len(one_scan)
         assert rig.probe.spin_until(rig.map_file.exists, WAIT), "autosave never wrote the map file"
-        expect_file_holds(rig.map_file, offline_map(1))  # saves are atomic: a file that exists is complete
+        expect_file_holds(rig.map_file, one_scan)  # saves are atomic: a file that exists is complete
         rig.wait_log(rf"autosave: saved {stats.voxels} voxels to {re.escape(str(rig.map_file))}", mark)
         autosaved = rig.map_file.read_bytes()
 
@@ -85,14 +93,13 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
         assert all(result.successful for result in rig.set_parameters(on_pose_jump="new_file"))
         assert not rig.set_parameters(on_pose_jump="split")[0].successful
         mark = rig.log.mark()
-        jumped = TRANSLATION + [0.0, -80.0, 0.0]
         rig.publish(odometry(rig.next_stamp(), translation=jumped))
         segment, following = (rig.map_file.with_name(f"map.segment-{n}.npz") for n in (2, 3))
         rig.wait_log(rf"\[WARN\].*odometry jumped 80.00 m in 1.00 s .*the map so far \({final.voxels} voxels\) is "
                      rf"being saved to {re.escape(str(segment))}; a new map starts for the new segment, saved to "
                      rf"{re.escape(str(following))} \(map_file is now .*\(on_pose_jump new_file\)", mark)
         rig.wait_log(rf"saved the segment before the jump, {final.voxels} voxels, to {re.escape(str(segment))}", mark)
-        expect_file_holds(segment, offline_map(2))
+        expect_file_holds(segment, two_scans)
         assert rig.parameter("map_file") == str(following)
         assert rig.wait_stats(lambda s: s.voxels == 0).integrated == final.integrated + 1
 
@@ -108,6 +115,6 @@ def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp
     assert "Traceback" not in output and "[ERROR]" not in output, output
     assert f"on shutdown: saved {last.voxels} voxels to {following}" in output, output
     assert following.read_bytes() != autosaved_segment
-    expect_file_holds(following, offline_map(1, translation=jumped))
+    expect_file_holds(following, one_jumped)
     assert rig.map_file.read_bytes() == autosaved  # the file saved before the resets was never overwritten
-    expect_file_holds(rig.map_file, offline_map(1))
+    expect_file_holds(rig.map_file, one_scan)

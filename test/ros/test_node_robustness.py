@@ -6,8 +6,9 @@ left the map as it was: the node's own counters on /diagnostics (scans integrate
 voxels, and the map's version, which every change of the map bumps) are equal before and
 after, and the latest /semantic_map is byte for byte the one before. Every rig first
 integrates a good cloud, so "the map did not change" is a check that can fail. To keep the
-time down, one node takes many cases in sequence; at the end its map must still save and
-load. (The reset options and autosave: test_node_resets.py; bad map files at start:
+time down, one node takes many cases in sequence (a second, started beside it, maps the
+partial clouds from an empty map); at the end its map must still save and load. (The reset
+options and autosave: test_node_resets.py; bad map files at start:
 test_node_bad_map_files.py.)
 """
 
@@ -332,7 +333,8 @@ def test_clouds_with_some_bad_points_or_big_endian_bytes_map_like_their_good_poi
                 rig.wait_log(r"\[WARN\].*" + warning, mark)
             else:
                 assert "[WARN]" not in rig.log.text(mark), rig.log.text(mark)
-        expected = offline_map(5).voxels()
+        five_scans = offline_map(5)
+        expected = five_scans.voxels()
         shown = expected.label != 0  # voxels the rays emptied are not shown
         got = decode_cloud(rig.map_message(int(shown.sum())), 20)
         order_got, order_expected = np.lexsort(got.points.T), np.lexsort(expected.centres[shown].T)
@@ -342,7 +344,7 @@ def test_clouds_with_some_bad_points_or_big_endian_bytes_map_like_their_good_poi
 
         saved = rig.probe.call(Trigger, "/convbki_mapper/save_map")
         assert saved.success, saved.message
-        expect_file_holds(rig.map_file, offline_map(5))
+        expect_file_holds(rig.map_file, five_scans)
     finally:
         output = rig.close()
     assert "Traceback" not in output, output

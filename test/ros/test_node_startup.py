@@ -7,7 +7,18 @@ import re
 import numpy as np
 import pytest
 import torch
-from mapper_rig import BOUNDS, LABELS, POINTS, QUATERNION, SECOND, TRANSLATION, WAIT, Rig, node_default_mapper
+from mapper_rig import (
+    BOUNDS,
+    LABELS,
+    POINTS,
+    QUATERNION,
+    SECOND,
+    TRANSLATION,
+    WAIT,
+    Rig,
+    close_together,
+    node_default_mapper,
+)
 from ros_helpers import IMPORT_LOG, domain_id, split_import_log, start
 
 from convbki_core.geometry.poses import pose_from_translation_quaternion
@@ -62,16 +73,33 @@ def test_every_bad_start_is_one_line_and_exit_2(tmp_path):
         assert "convbki_core.mapper" in imported if case == "no cuda" else "torch" not in imported, (case, imported)
 
 
-def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_effect(tmp_path):
-    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
-    from rcl_interfaces.srv import SetParameters
+NAMESPACES = ["", "/robot1"]
 
-    params = tmp_path / "params.yaml"
+
+@pytest.fixture(scope="module")
+def nodes(tmp_path_factory):
+    """The nodes of the tests below, started side by side (each test takes its own): "overrides"
+    (a params file with a misspelt name, an override of the kernel's filter size) and one in each
+    of NAMESPACES."""
+    folder = tmp_path_factory.mktemp("overrides")
+    params = folder / "params.yaml"
     params.write_text("/**:\n  ros__parameters:\n    resolutoin: 0.3\n    map_period: 1000.0\n"
                       "    publish_period: 1000.0\n")
     # map_period, publish_period and stats_period so long that, unless the change re-creates their
     # timers, the map and its updates would not be published nor the counters logged while the test runs.
-    rig = Rig(tmp_path, "--params-file", str(params), "-p", "filter_size:=3", "-p", "stats_period:=1000.0")
+    nodes = {"overrides": Rig(folder, "--params-file", str(params), "-p", "filter_size:=3",
+                              "-p", "stats_period:=1000.0", diagnostics_period=0.05, wait=False),
+             **{namespace: Rig(tmp_path_factory.mktemp("namespaced"), namespace=namespace, diagnostics_period=0.05,
+                               wait=False) for namespace in NAMESPACES}}
+    yield nodes
+    close_together(*nodes.values())
+
+
+def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_effect(nodes):
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    rig = nodes["overrides"].wait_ready()
     try:
         from sensor_msgs.msg import PointCloud2
 
@@ -110,12 +138,12 @@ def test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_e
     assert "Traceback" not in output, output
 
 
-@pytest.mark.parametrize("namespace", ["", "/robot1"])
-def test_output_topics_are_relative_to_the_namespace(namespace, tmp_path):
+@pytest.mark.parametrize("namespace", NAMESPACES)
+def test_output_topics_are_relative_to_the_namespace(namespace, nodes):
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
 
-    rig = Rig(tmp_path, namespace=namespace)
+    rig = nodes[namespace].wait_ready()
     try:
         # semantic_map/local is volatile: subscribed before the scans, so the node sends it after them.
         local = []

@@ -8,7 +8,17 @@ loop closure) half-way through the drive.
 """
 
 import numpy as np
-from mapper_rig import LABELS, POINTS, WAIT, Rig, cloud, expect_file_holds, node_default_mapper
+import pytest
+from mapper_rig import (
+    LABELS,
+    POINTS,
+    WAIT,
+    Rig,
+    close_together,
+    cloud,
+    expect_file_holds,
+    node_default_mapper,
+)
 from test_node_frames import BOUNDS, MOUNT, assert_same_voxels, shown_voxels
 
 from convbki_core.geometry.poses import pose_from_translation_quaternion
@@ -36,11 +46,24 @@ def expected_map() -> ConvBKIMapper:
     return mapper
 
 
-def test_a_robot_maps_in_map_through_tf_with_and_without_odometry(tmp_path):
+@pytest.fixture(scope="module")
+def nodes(tmp_path_factory):
+    """The module's nodes, started side by side (each test takes its own): "by odometry" and
+    "by tf" map the drive; "no transform" waits for a map -> odom that no one publishes."""
+    folder = tmp_path_factory.mktemp("tf")
     params = ("-p", "map_frame:=map")
-    by_odometry = Rig(tmp_path / "odometry", *params)
-    by_tf = Rig(tmp_path / "tf", *params, "-p", "pose_source:=tf", odometry=False)
-    rigs = (by_odometry, by_tf)
+    nodes = {"by odometry": Rig(folder / "odometry", *params, diagnostics_period=0.05, wait=False),
+             "by tf": Rig(folder / "tf", *params, "-p", "pose_source:=tf", odometry=False, diagnostics_period=0.05,
+                          wait=False),
+             "no transform": Rig(folder / "no_transform", *params, "-p", "transform_timeout:=0.3",
+                                 diagnostics_period=0.05, wait=False)}
+    yield nodes
+    close_together(*nodes.values())
+
+
+def test_a_robot_maps_in_map_through_tf_with_and_without_odometry(nodes):
+    expected = expected_map()  # while the nodes start
+    rigs = by_odometry, by_tf = nodes["by odometry"].wait_ready(), nodes["by tf"].wait_ready()
     try:
         for rig in rigs:
             rig.publish_tf(pose_to_transform_stamped(MOUNT, 0, "base_link", "lidar_top"), static=True)
@@ -54,7 +77,6 @@ def test_a_robot_maps_in_map_through_tf_with_and_without_odometry(tmp_path):
             by_tf.publish_tf(slam, pose_to_transform_stamped(base, stamp, "odom", "base_link"))
             for rig in rigs:
                 rig.publish(cloud(stamp, frame="lidar_top"))
-        expected = expected_map()
         for rig in rigs:
             stats = rig.wait_stats(lambda s: s.integrated + s.dropped == len(BASE_IN_ODOM))
             assert stats.integrated == len(BASE_IN_ODOM), stats
@@ -67,14 +89,14 @@ def test_a_robot_maps_in_map_through_tf_with_and_without_odometry(tmp_path):
         assert by_odometry.log.find(r"the odometry is in 'odom', the map in map_frame 'map'")
         assert by_tf.log.find(r"mapper ready.*poses from TF \('map' -> each cloud's frame\).* \+ TF")
     finally:
-        outputs = [rig.close() for rig in rigs]
+        outputs = close_together(*rigs)
     assert not any("Traceback" in output for output in outputs), outputs
 
 
-def test_a_cloud_whose_transform_never_comes_is_dropped_and_said(tmp_path):
+def test_a_cloud_whose_transform_never_comes_is_dropped_and_said(nodes):
     """map_frame 'map', odometry in 'odom', no map -> odom on TF: each cloud waits
-    transform_timeout, then is dropped with a warning naming the transform; the map stays empty."""
-    rig = Rig(tmp_path, "-p", "map_frame:=map", "-p", "transform_timeout:=0.3")
+    transform_timeout (0.3 s), then is dropped with a warning naming the transform; the map stays empty."""
+    rig = nodes["no transform"].wait_ready()
     try:
         stamp = rig.next_stamp()
         rig.publish(pose_to_odometry(BASE_IN_ODOM[0], stamp, "odom", "velo_link"), cloud(stamp))
@@ -84,14 +106,14 @@ def test_a_cloud_whose_transform_never_comes_is_dropped_and_said(tmp_path):
                      r"transform_timeout = 0\.3 s \(no transform\): no transform from map_frame 'map' to the "
                      r"odometry's 'odom' \(frames 'map' and 'odom' are unknown\)", since=0)
 
-        # transform_timeout 0 at run time: the next cloud waits (four reports, 0.8 s, outlast the
+        # transform_timeout 0 at run time: the next cloud waits (16 reports, 0.8 s, outlast the
         # 0.3 s before) until map -> odom comes, and is then mapped.
         assert rig.set_parameters(transform_timeout=0.0)[0].successful
         stamp = rig.next_stamp()
         rig.publish(pose_to_odometry(BASE_IN_ODOM[0], stamp, "odom", "velo_link"), cloud(stamp))
         rig.wait_stats(lambda s: s.scans_in == 2)
         seen = len(rig.diagnostics)
-        assert rig.probe.spin_until(lambda: len(rig.diagnostics) >= seen + 4, WAIT)
+        assert rig.probe.spin_until(lambda: len(rig.diagnostics) >= seen + 16, WAIT)
         stats = rig.stats()
         assert (stats.integrated, stats.dropped) == (0, 1), stats
         rig.publish_tf(pose_to_transform_stamped(np.eye(4), 0, "map", "odom"), static=True)

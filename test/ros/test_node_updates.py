@@ -25,7 +25,8 @@ def test_updates_rebuild_the_map_and_the_view_is_bounded(tmp_path):
 
     # Without free space every stored voxel is shown, so the counters' voxel count says which
     # map message reflects the last scan (test_node_free_space covers the updates with it).
-    rig = Rig(tmp_path, "-p", "view_radius:=12.0", "-p", "view_max_points:=3000", "-p", "free_space:=false")
+    rig = Rig(tmp_path, "-p", "view_radius:=12.0", "-p", "view_max_points:=3000", "-p", "free_space:=false",
+              diagnostics_period=0.05)
     try:
         updates = rig.probe.subscribe(PointCloud2, "/semantic_map/updates")
         views = rig.probe.subscribe(PointCloud2, "/semantic_map/view", latched=True)

@@ -22,7 +22,8 @@ RUN_TIME = "test_node_parameters.py::test_queue_timing_and_robustness_settings_a
 RESETS = "test_node_resets.py::test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm"
 UNREADABLE = "test_node_bad_map_files.py::test_bad_map_files_met_in_three_starts_are_each_set_aside_under_a_name_of_" \
     "their_own"
-OVERRIDES = "test_node_startup.py::test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_effect"
+OVERRIDES = "test_node_startup.py::test_unknown_names_and_kernel_overrides_are_said_and_run_time_changes_take_effect" \
+    " via nodes"
 CORRECTED = "test_node_corrections.py::test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scratch"
 RESTARTED = "test_node_corrections.py::test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing"
 FILES = "test_node_files.py::test_load_map_clear_box_and_a_run_time_map_file_show_in_the_published_map"
@@ -36,10 +37,10 @@ SET_AT_START = {
     "local_bounds": "test_node.py::test_node_maps_a_bag_like_the_offline_mapper_and_serves_its_map via start_mapper",
     "prior": MAP_SETTINGS,
     "label_space": STARTUP,
-    "map_frame": "test_node_tf.py::test_a_robot_maps_in_map_through_tf_with_and_without_odometry",
-    "pose_source": "test_node_tf.py::test_a_robot_maps_in_map_through_tf_with_and_without_odometry",
-    "transform_timeout": "test_node_tf.py::test_a_cloud_whose_transform_never_comes_is_dropped_and_said",
-    "base_to_sensor": "test_node_frames.py::test_a_lidar_on_a_mount_maps_like_odometry_of_the_lidar_itself",
+    "map_frame": "test_node_tf.py::test_a_robot_maps_in_map_through_tf_with_and_without_odometry via nodes",
+    "pose_source": "test_node_tf.py::test_a_robot_maps_in_map_through_tf_with_and_without_odometry via nodes",
+    "transform_timeout": "test_node_tf.py::test_a_cloud_whose_transform_never_comes_is_dropped_and_said via nodes",
+    "base_to_sensor": "test_node_frames.py::test_a_lidar_on_a_mount_maps_like_odometry_of_the_lidar_itself via nodes",
     "max_variance": MAP_SETTINGS,
     "publish_period": OVERRIDES,
     "map_period": OVERRIDES,
@@ -50,7 +51,7 @@ SET_AT_START = {
     "max_concentration": MAP_SETTINGS,
     "forget_movers": MAP_SETTINGS,
     "moving_labels": "test_node_free_space.py::test_points_labelled_moving_stay_out_of_the_map_unless_moving_"
-                     "labels_is_off",
+                     "labels_is_off via nodes",
     "device": "test_node_startup.py::test_every_bad_start_is_one_line_and_exit_2",
     "update_path": MAP_SETTINGS,
     "input_qos": MAP_SETTINGS,

@@ -42,6 +42,20 @@ def input_grid(dataset, grid) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
+def node(tmp_path_factory):
+    """The mapper node (shipped parameters), started before ``real_bag`` is made so that the two
+    overlap: its domain and process (stopped by the test, which reads its output)."""
+    real_sequence(SEQUENCE)  # skips here, before any process starts, where the real scans are absent
+    domain = domain_id()
+    process = start("convbki_ros.main", domain, "--ros-args", "--params-file", config_dir() / "mapper.yaml",
+                    "-r", "cloud_in:=/kitti/velo/pointcloud", "-r", "odom:=/kitti/odom", "-p", "device:=cpu",
+                    "-p", "publish_period:=0.3", "-p", "map_period:=0.3",
+                    "-p", f"map_file:={tmp_path_factory.mktemp('node') / 'map.npz'}")
+    yield domain, process
+    stop(process)
+
+
+@pytest.fixture(scope="module")
 def real_bag(tmp_path_factory):
     """Real sequence 05 with ``label_noise``'s input (seed 0, mIoU 0.55), and its bag."""
     root = real_sequence(SEQUENCE)
@@ -52,28 +66,27 @@ def real_bag(tmp_path_factory):
     return out
 
 
-def test_a_real_drive_through_the_node_gives_the_offline_map_and_a_free_road_under_the_ego_path(real_bag, tmp_path):
+def test_a_real_drive_through_the_node_gives_the_offline_map_and_a_free_road_under_the_ego_path(node, real_bag):
     from nav_msgs.msg import OccupancyGrid
     from sensor_msgs.msg import PointCloud2
 
-    dataset = SemanticKittiSequence(real_bag / "data", SEQUENCE)
-    offline = ConvBKIMapper(MapperConfig.from_params_file(config_dir() / "mapper.yaml").replace(device="cpu"))
-    for frame in dataset:  # at the pose the bag's odometry carries (a translation and a quaternion)
-        offline.integrate(frame.points, frame.input_labels,
-                          pose_from_translation_quaternion(*pose_to_translation_quaternion(frame.pose)))
-    voxels = offline.voxels()
-    shown = voxels.label != 0  # the published map leaves out voxels seen empty (class 0)
-    assert shown.sum() > 100_000
-
-    domain = domain_id()
-    node = start("convbki_ros.main", domain, "--ros-args", "--params-file", config_dir() / "mapper.yaml",
-                 "-r", "cloud_in:=/kitti/velo/pointcloud", "-r", "odom:=/kitti/odom", "-p", "device:=cpu",
-                 "-p", "publish_period:=0.3", "-p", "map_period:=0.3", "-p", f"map_file:={tmp_path / 'map.npz'}")
+    domain, process = node
     probe = Probe(domain)
+    player = None
     try:
         maps = probe.subscribe(PointCloud2, "/semantic_map", latched=True)
         costmaps = probe.subscribe(OccupancyGrid, "/semantic_map/costmap", latched=True)
         player = start("convbki_ros.tools.play_bag", domain, real_bag / "bag", "--wait-for-node")
+        # The offline map, made while the node maps the replay (the probe's latched readers keep
+        # the node's latest map and costmap meanwhile).
+        dataset = SemanticKittiSequence(real_bag / "data", SEQUENCE)
+        offline = ConvBKIMapper(MapperConfig.from_params_file(config_dir() / "mapper.yaml").replace(device="cpu"))
+        for frame in dataset:  # at the pose the bag's odometry carries (a translation and a quaternion)
+            offline.integrate(frame.points, frame.input_labels,
+                              pose_from_translation_quaternion(*pose_to_translation_quaternion(frame.pose)))
+        voxels = offline.voxels()
+        shown = voxels.label != 0  # the published map leaves out voxels seen empty (class 0)
+        assert shown.sum() > 100_000
         assert player.wait(timeout=120) == 0, stop(player)
         assert probe.spin_until(lambda: maps and maps[-1].width == shown.sum(), timeout=60), \
             f"map has {maps[-1].width if maps else 0} voxels, the offline map {shown.sum()}"
@@ -109,6 +122,8 @@ def test_a_real_drive_through_the_node_gives_the_offline_map_and_a_free_road_und
         assert len(costs) >= 100 and (costs < 90).all(), (costs, input_costs)
         assert (costs == 0).mean() >= max(0.85, (input_costs == 0).mean() - 0.05), (costs, input_costs)
     finally:
+        if player is not None:
+            stop(player)  # a player still running when a check failed
         probe.close()
-        output = stop(node)
+        output = stop(process)
     assert "Traceback" not in output and "[ERROR]" not in output, output

@@ -75,10 +75,27 @@ def test_listeners_argument() -> None:
     assert LISTENERS["map"].qos == "latched" and LISTENERS["local"].qos == "volatile"
 
 
-@pytest.mark.parametrize("argv", [["--listeners", "foo"], ["--listeners", "map,map"], ["--busy-cores", "-1"],
-                                  ["--publication-mode", "fast"]])
-def test_bad_argument_is_one_line_exit_2(argv: list[str]) -> None:
-    result = subprocess.run([sys.executable, "-m", "convbki_ros.tools.realtime_check", *argv], capture_output=True,
-                            text=True, stdin=subprocess.DEVNULL, timeout=60)
-    assert result.returncode == 2 and result.stdout == ""
-    assert result.stderr.count("\n") == 1 and result.stderr.startswith("realtime_check: error: ")
+BAD_ARGUMENTS = [["--listeners", "foo"], ["--listeners", "map,map"], ["--busy-cores", "-1"],
+                 ["--publication-mode", "fast"]]
+
+
+@pytest.fixture(scope="module")
+def bad_argument_runs():
+    """realtime_check on each of BAD_ARGUMENTS as a process of its own, the four started together
+    (each spends its second or two importing, on one core): {argv: process}."""
+    processes = {tuple(argv): subprocess.Popen([sys.executable, "-m", "convbki_ros.tools.realtime_check", *argv],
+                                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                               stdin=subprocess.DEVNULL) for argv in BAD_ARGUMENTS}
+    yield processes
+    for process in processes.values():
+        if process.poll() is None:
+            process.kill()
+        process.communicate()
+
+
+@pytest.mark.parametrize("argv", BAD_ARGUMENTS)
+def test_bad_argument_is_one_line_exit_2(bad_argument_runs, argv: list[str]) -> None:
+    process = bad_argument_runs[tuple(argv)]
+    stdout, stderr = process.communicate(timeout=60)
+    assert process.returncode == 2 and stdout == ""
+    assert stderr.count("\n") == 1 and stderr.startswith("realtime_check: error: ")

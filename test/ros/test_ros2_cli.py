@@ -42,12 +42,13 @@ def ros2(domain: int, command: str, timeout: float = WAIT) -> subprocess.Complet
 def topic_info(domain: int, topic: str, publishers: int, subscribers: int) -> str:
     """``ros2 topic info -v`` once the graph shows the expected counts and every endpoint's node
     by name (a fresh process discovers endpoints before their nodes' names): polled with a
-    deadline."""
+    deadline. Each try spins 1.5 s for discovery (`--spin-time`; 0.5 s by default, which a
+    loaded machine often needs several tries to make up for, each a new process)."""
     import time
 
     deadline = time.monotonic() + WAIT
     while True:
-        result = ros2(domain, f"topic info -v --no-daemon {topic}")
+        result = ros2(domain, f"topic info -v --no-daemon --spin-time 1.5 {topic}")
         text = result.stdout
         if (f"Publisher count: {publishers}" in text and f"Subscription count: {subscribers}" in text
                 and "_NODE_NAME_UNKNOWN_" not in text) or time.monotonic() > deadline:
@@ -64,31 +65,38 @@ def qos_of(text: str, node: str) -> dict[str, str]:
 
 
 def test_ros2_param_service_and_topic_commands_work_against_the_node(tmp_path):
-    rig = Rig(tmp_path, "-p", "clear_box_min:=[-1.0, -1.0, -1.0]", "-p", "clear_box_max:=[1.0, 1.0, 1.0]")
+    rig = Rig(tmp_path, "-p", "clear_box_min:=[-1.0, -1.0, -1.0]", "-p", "clear_box_max:=[1.0, 1.0, 1.0]",
+              diagnostics_period=0.05)
     domain, node = rig.domain, "/convbki_mapper"
     try:
         rig.integrate_good_cloud()
 
-        # Each `ros2` command is a process of its own that mostly waits on discovery: the two
-        # sequences, which do not touch each other's state, run side by side.
-        def parameters() -> None:
-            # a float given as an integer is taken, a bad value refused with the reason
+        # Each `ros2` command is a process of its own that mostly waits on discovery: the command
+        # sequences below, which do not touch each other's state, and the `topic info` of every
+        # topic (what they read, the topics' endpoints, no command here changes) all run side by side.
+        def set_and_get() -> None:  # a float given as an integer is taken
             result = ros2(domain, f"param set --no-daemon --timeout 30 {node} publish_period 2")
             assert result.returncode == 0 and "Set parameter successful" in result.stdout, result
             result = ros2(domain, f"param get --no-daemon --timeout 30 {node} publish_period")
             assert "Double value is: 2.0" in result.stdout, result
+
+        def refuse() -> None:  # a bad value refused with the reason
             result = ros2(domain, f"param set --no-daemon --timeout 30 {node} on_pose_jump sometimes")
             assert result.stderr.strip() == ("Setting parameter failed: parameter on_pose_jump: 'sometimes' is not "
                                              "one of keep, reset, new_file"), result
+
+        def describe() -> None:
             result = ros2(domain, f"param describe --no-daemon --timeout 30 {node} transform_timeout")
             assert "Type: double" in result.stdout and "Min value: 0.0" in result.stdout, result
 
-        def services() -> None:
-            # every service, as `ros2 service call` prints the answer, in an order whose answers are known
+        def get_costmap() -> None:
             result = ros2(domain, f"service call {node}/get_costmap nav_msgs/srv/GetMap")
             assert result.returncode == 0 and "map=nav_msgs.msg.OccupancyGrid(" in result.stdout, result
             assert re.search(r"frame_id='map'.*resolution=0\.2", result.stdout.replace("\n", " ")), \
                 result.stdout[:2000]
+
+        def services() -> None:
+            # every Trigger service, as `ros2 service call` prints the answer, in an order whose answers are known
             answers = {}
             for service in ("save_map", "load_map", "export_ply", "clear_box", "reset"):
                 result = ros2(domain, f"service call {node}/{service} std_srvs/srv/Trigger")
@@ -99,10 +107,6 @@ def test_ros2_param_service_and_topic_commands_work_against_the_node(tmp_path):
             assert re.search(r"success=True, message=.wrote \d+ voxels to .*\.ply.\)", answers["export_ply"]), answers
             assert re.search(r"success=True, message=.forgot \d+ voxels in the box", answers["clear_box"]), answers
             assert re.search(r"success=True, message=.map reset: forgot \d+ voxels", answers["reset"]), answers
-
-        with ThreadPoolExecutor(max_workers=2) as pool:
-            for done in [pool.submit(check) for check in (parameters, services)]:
-                done.result()  # a failed assertion is raised here
 
         # -- the QoS of every topic, as docs/node.md's table says
         expected = {  # topic: (publishers, subscribers, node's endpoint: reliability, durability)
@@ -117,10 +121,12 @@ def test_ros2_param_service_and_topic_commands_work_against_the_node(tmp_path):
             "/semantic_map/local": (1, 0, "RELIABLE", "VOLATILE"),
             "/semantic_map/costmap": (1, 0, "RELIABLE", "TRANSIENT_LOCAL"),
         }
-        # One `ros2 topic info` process per topic at once: each waits on discovery, not on the CPU.
-        with ThreadPoolExecutor(max_workers=len(expected)) as pool:
-            texts = dict(zip(expected, pool.map(lambda item: topic_info(domain, item[0], *item[1][:2]),
-                                                expected.items())))
+        sequences = (set_and_get, refuse, describe, get_costmap, services)
+        with ThreadPoolExecutor(max_workers=len(sequences) + len(expected)) as pool:
+            infos = {topic: pool.submit(topic_info, domain, topic, *counts[:2]) for topic, counts in expected.items()}
+            for done in [pool.submit(check) for check in sequences]:
+                done.result()  # a failed assertion is raised here
+            texts = {topic: info.result() for topic, info in infos.items()}
         for topic, (_, _, reliability, durability) in expected.items():
             qos = qos_of(texts[topic], "convbki_mapper")
             assert (qos.get("Reliability"), qos.get("Durability")) == (reliability, durability), (topic, texts[topic])

@@ -15,7 +15,15 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from ros_helpers import REPO, NodeLog, Probe, domain_id, ros2_tools_expected, ros2_tools_missing
+from ros_helpers import (
+    REPO,
+    NodeLog,
+    Probe,
+    domain_id,
+    ros2_tools_expected,
+    ros2_tools_missing,
+    selected_tests,
+)
 
 SETUP_BASH = REPO / "install" / "setup.bash"
 missing = ros2_tools_missing()
@@ -170,8 +178,42 @@ class Launch:
         return output
 
 
-def test_launch_brings_the_node_up_and_stops_on_ctrl_c(tmp_path: Path) -> None:
-    launch = Launch(tmp_path, "use_sim_time:=false")
+def _rviz_installed(shown: dict[str, str]) -> bool:
+    return bool(shown["prefix rviz2"].strip())  # `ros2 pkg prefix` prints nothing on stdout otherwise
+
+
+LAUNCH_ARGUMENTS = {  # test: the arguments of its launch, given ``shown``
+    "test_launch_brings_the_node_up_and_stops_on_ctrl_c": lambda shown: ["use_sim_time:=false"],
+    "test_launch_arguments_reach_the_node": lambda shown: [
+        "namespace:=robot1", "cloud_topic:=lidar/points", "odom_topic:=/robot1/odometry", "use_sim_time:=true",
+        "log_level:=debug", *([] if _rviz_installed(shown) else ["rviz:=true"])],  # rviz: says so, mapper alone
+}
+
+
+@pytest.fixture(scope="module")
+def launches(request, shown: dict[str, str], tmp_path_factory: pytest.TempPathFactory):
+    """``launches(test name)``: that test's launch. The launches of every selected test here start
+    together, each on its own domain (a launch mostly waits for its node to start); one not
+    started yet starts when asked for. A launch its test did not stop is stopped at the end."""
+    started: dict[str, Launch] = {}
+
+    def launch(test: str) -> Launch:
+        if test not in started:
+            started[test] = Launch(tmp_path_factory.mktemp("launch"), *LAUNCH_ARGUMENTS[test](shown))
+        return started[test]
+
+    try:
+        for test in sorted(LAUNCH_ARGUMENTS.keys() & selected_tests(request)):
+            launch(test)
+        yield launch
+    finally:
+        for each in started.values():
+            if each.process.poll() is None:
+                each.stop()
+
+
+def test_launch_brings_the_node_up_and_stops_on_ctrl_c(launches, request) -> None:
+    launch = launches(request.node.name)
     try:
         launch.wait_for_node("/")
         # The node works: it reports on /diagnostics (every second, in the system clock).
@@ -194,13 +236,9 @@ def test_launch_brings_the_node_up_and_stops_on_ctrl_c(tmp_path: Path) -> None:
     assert not Path(f"/proc/{started[0].group(1)}").exists(), output
 
 
-def test_launch_arguments_reach_the_node(tmp_path: Path, shown: dict[str, str]) -> None:
-    rviz_installed = bool(shown["prefix rviz2"].strip())  # `ros2 pkg prefix` prints nothing on stdout otherwise
-    arguments = ["namespace:=robot1", "cloud_topic:=lidar/points", "odom_topic:=/robot1/odometry",
-                 "use_sim_time:=true", "log_level:=debug"]
-    if not rviz_installed:
-        arguments.append("rviz:=true")  # says so in one line and starts the mapper alone
-    launch = Launch(tmp_path, *arguments)
+def test_launch_arguments_reach_the_node(launches, request, shown: dict[str, str]) -> None:
+    rviz_installed = _rviz_installed(shown)
+    launch = launches(request.node.name)  # started with rviz:=true where rviz2 is not installed
     try:
         launch.wait_for_node("/robot1")
         # The relative cloud topic follows the namespace; /clock: use_sim_time:=true.
