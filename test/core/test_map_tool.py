@@ -16,6 +16,7 @@ from kitti_fixture import write_drive
 from convbki_core.config import DEFAULTS, MapperConfig
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.free_space.clamping import DEFAULT_LIMIT
+from convbki_core.io import atomic
 from convbki_core.io.map_file import MapSnapshot, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.memory.store import VoxelStore
@@ -295,7 +296,8 @@ def test_evaluate_save_map_refused_up_front_and_never_left_by_a_failed_run(tmp_p
         raise OSError(28, "No space left on device", str(path))
 
     # The report is written after the map: when it fails, the run fails and takes its map with it.
-    monkeypatch.setattr(evaluate, "atomic_write_bytes", fail)
+    # (evaluate takes the writer from convbki_core.io.atomic when its run starts.)
+    monkeypatch.setattr(atomic, "atomic_write_bytes", fail)
     saved = tmp_path / "final.npz"
     assert evaluate.main([*common, "--save-map", str(saved)]) == 2
     assert "No space left" in capsys.readouterr().err
