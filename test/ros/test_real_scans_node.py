@@ -13,7 +13,6 @@ from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_core.geometry.poses import pose_from_translation_quaternion, pose_to_translation_quaternion
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.paths import config_dir
-from convbki_core.tools import label_noise
 from convbki_ros.inputs.cloud_decoding import decode_cloud
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
 
@@ -56,14 +55,13 @@ def node(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def real_bag(tmp_path_factory):
-    """Real sequence 05 with ``label_noise``'s input (seed 0, mIoU 0.55), and its bag."""
-    root = real_sequence(SEQUENCE)
+def real_bag(real_noisy, tmp_path_factory):
+    """Real sequence 05 with ``label_noise``'s input (seed 0, mIoU 0.55; the run's shared copy),
+    and its bag."""
+    data = real_noisy(SEQUENCE)
     out = tmp_path_factory.mktemp("real")
-    assert label_noise.main(["--dataset", str(root), "--sequence", SEQUENCE, "--out", str(out / "data"),
-                             "--quiet"]) == 0
-    assert kitti_to_bag(["--dataset", str(out / "data"), "--sequence", SEQUENCE, "--out", str(out / "bag")]) == 0
-    return out
+    assert kitti_to_bag(["--dataset", str(data), "--sequence", SEQUENCE, "--out", str(out / "bag")]) == 0
+    return data, out / "bag"
 
 
 def test_a_real_drive_through_the_node_gives_the_offline_map_and_a_free_road_under_the_ego_path(node, real_bag):
@@ -76,10 +74,10 @@ def test_a_real_drive_through_the_node_gives_the_offline_map_and_a_free_road_und
     try:
         maps = probe.subscribe(PointCloud2, "/semantic_map", latched=True)
         costmaps = probe.subscribe(OccupancyGrid, "/semantic_map/costmap", latched=True)
-        player = start("convbki_ros.tools.play_bag", domain, real_bag / "bag", "--wait-for-node")
+        player = start("convbki_ros.tools.play_bag", domain, real_bag[1], "--wait-for-node")
         # The offline map, made while the node maps the replay (the probe's latched readers keep
         # the node's latest map and costmap meanwhile).
-        dataset = SemanticKittiSequence(real_bag / "data", SEQUENCE)
+        dataset = SemanticKittiSequence(real_bag[0], SEQUENCE)
         offline = ConvBKIMapper(MapperConfig.from_params_file(config_dir() / "mapper.yaml").replace(device="cpu"))
         for frame in dataset:  # at the pose the bag's odometry carries (a translation and a quaternion)
             offline.integrate(frame.points, frame.input_labels,
