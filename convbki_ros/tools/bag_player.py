@@ -233,6 +233,9 @@ class BagPlayer:
         start_wall = None
         first_stamp = None
         previous = None
+        # Count the subscribers before the first message, so that one leaving before the first
+        # look after publishing is still seen to go.
+        self._watch_subscribers()
         try:
             messages = checked_messages(self.reader.messages(connections=wanted), str(self.args.bag))
             for timestamp, group in grouped(messages):
