@@ -25,6 +25,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from convbki_core.tools.cli import sequence_arg
+
 PROG = "synth"
 # The behaviour mixes of --traffic: the keys of convbki_core.synth.traffic.TRAFFIC (not imported
 # here, so that --help needs no numpy).
@@ -36,13 +38,6 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def sequence_arg(text: str) -> str:
-    """Sequence id as the two-digit folder name: ``8`` -> ``08``."""
-    if not text.isdigit():
-        raise argparse.ArgumentTypeError(f"sequence must be a number such as 08, got {text!r}")
-    return f"{int(text):02d}"
 
 
 def _positive_int(what: str, upper: int | None = None):
