@@ -110,7 +110,8 @@ class MapperNode(Node):
         self.corrections = CorrectionRunner(self.core, self, self.warnings)
         self.create_subscription(Path, "pose_corrections", self.corrections.on_path,
                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
-                                            durability=DurabilityPolicy.VOLATILE), callback_group=housekeeping)
+                                            durability=DurabilityPolicy.VOLATILE), callback_group=housekeeping,
+                                 event_callbacks=self._count_publishers("pose_corrections"))
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/save_map", self.files.on_save_map, callback_group=file_io)
         self.create_service(Trigger, "~/load_map", self.files.on_load_map, callback_group=file_io)

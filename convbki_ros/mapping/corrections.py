@@ -6,7 +6,9 @@ while a correction runs replaces the one waiting, and is applied after it.
 
 A correction runs on its own thread, beside the update thread:
 
-1. under the map lock, a copy of the scan log (its lists only: the scans do not change);
+1. the clouds queued before the newest keyframe integrated (no logged scan falls out of the
+   log meanwhile), then under the map lock a copy of the scan log (its lists only: the scans
+   do not change);
 2. without the lock, each logged scan's corrected pose (``keyframe_corrections``), the scans
    that move by ``correction_tolerance`` or more, and a new map mapped again from the log
    (``ConvBKIMapper.corrected``), while live scans go on into the map in service;
@@ -160,12 +162,22 @@ class CorrectionRunner:
     def _apply(self, keyframes: Keyframes) -> None:
         core, started = self.core, time.monotonic()
         tolerance = float(self.node.param("correction_tolerance"))
-        self._wait_for_queued_scans(int(keyframes.stamps_ns[-1]))
+        # While the clouds queued before the newest keyframe are integrated, a log at its bounds
+        # would freeze the oldest scans, which this Path moves: none falls out until the copy.
         with core.map_lock:
-            live, lineage = core.mapper, core.lineage
-            log = live.scan_log.copy()
-            # The scans the live map takes from now on stay logged until the new map has them.
-            live.scan_log.hold(log.next_index)
+            waited_on = core.mapper.scan_log
+            waited_on.hold(waited_on.first_index)
+        live = None
+        try:
+            self._wait_for_queued_scans(int(keyframes.stamps_ns[-1]))
+            with core.map_lock:
+                live, lineage = core.mapper, core.lineage
+                log = live.scan_log.copy()
+                # The scans the live map takes from now on stay logged until the new map has them.
+                live.scan_log.hold(log.next_index)
+        finally:
+            if live is None or waited_on is not live.scan_log:  # (a load meanwhile gave the map another log)
+                waited_on.hold(None)
         try:
             self._correct(keyframes, live, lineage, log, tolerance, started)
         finally:

@@ -178,6 +178,10 @@ class BagPlayer:
         self.typestore = {c.msgtype: bag_store if c.msgtype in bag_store.types else jazzy
                           for c in self.reader.connections}
 
+    def plays(self, msgtype: str) -> bool:
+        """The bag has a topic of ``msgtype`` ("nav_msgs/msg/Path") that the replay publishes."""
+        return any(channel.msgtype == msgtype and not channel.skipped for channel in self.channels.values())
+
     def wait_for_subscribers(self, timeout: float) -> bool:
         """Block until every publisher has a subscriber, or ``timeout``. Topics nobody subscribes
         to are given up 1 s after the first match; one whose subscriber either participant has

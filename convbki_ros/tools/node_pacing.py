@@ -7,7 +7,7 @@ and at the end what the node did with them, in one line.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -98,13 +98,16 @@ class NodePacer:
         self.baseline = self.latest
         return True
 
-    def wait_for_inputs(self, timeout: float, ok: Callable[[], bool]) -> list[str]:
-        """Block until the node reports a matched publisher on each of its inputs (its readers
-        have matched the player's writers, so nothing sent from now on is lost to matching), or
-        ``timeout``; the inputs still without one. A node that reports no inputs has none to wait for."""
+    def wait_for_inputs(self, timeout: float, ok: Callable[[], bool], unplayed: Iterable[str] = ()) -> list[str]:
+        """Block until the node reports a matched publisher on each of its inputs but those in
+        ``unplayed`` (inputs the bag has nothing for: no one will publish them), so that nothing
+        sent from now on is lost to matching, or ``timeout``; the inputs still without one. A node
+        that reports no inputs has none to wait for."""
         deadline = time.monotonic() + timeout
+        unplayed = set(unplayed)
         while True:
-            unmatched = sorted(name for name, count in self.latest.publishers.items() if count < 1)
+            unmatched = sorted(name for name, count in self.latest.publishers.items()
+                               if count < 1 and name not in unplayed)
             if not unmatched or time.monotonic() > deadline or not ok():
                 return unmatched
             self._spin(0.05)

@@ -16,7 +16,9 @@ DDS matches the two ends of a connection separately: the player's writers can co
 subscriber whose reader has not yet matched them, and what is sent in between reaches no one.
 The player therefore gives subscribers a second after its writers matched; with
 ``--wait-for-inputs NODE`` (implied by ``--wait-for-node``) it waits instead until the node's
-``/diagnostics`` report a matched publisher on each of its inputs.
+``/diagnostics`` report a matched publisher on each of its inputs (``pose_corrections`` only
+when the bag holds a Path: a SLAM's one Path of a loop closure lost to matching would leave the
+map uncorrected).
 
 The player tells the truth about delivery: at the end it waits for every subscriber to
 acknowledge every reliable message, and exits 1, naming the topic and the count, when some
@@ -49,6 +51,9 @@ NOT_DELIVERED = 1  # exit code: some messages were not acknowledged by a subscri
 MATCH_GRACE_S = 1.0
 DEFAULT_NODE = "/convbki_mapper"
 NODE_START_TIMEOUT_S = 120.0  # a node on a fresh install compiles its kernels before it reports
+# Inputs of the node that a bag often has nothing for, by the message type that feeds them: the
+# player waits for the node's reader of one only when the bag plays that type.
+OPTIONAL_INPUTS = {"pose_corrections": "nav_msgs/msg/Path"}
 
 
 def rate_arg(text: str) -> float:
@@ -157,7 +162,8 @@ def play(args: argparse.Namespace, ros_argv: list[str]) -> int:
             matched = player.wait_for_subscribers(args.wait_subscribers)
             confirmed = False  # the node said its readers matched the player's writers
             if matched and watch is not None:
-                unmatched = watch.wait_for_inputs(args.wait_subscribers + MATCHING_S, rclpy.ok)
+                unplayed = [name for name, msgtype in OPTIONAL_INPUTS.items() if not player.plays(msgtype)]
+                unmatched = watch.wait_for_inputs(args.wait_subscribers + MATCHING_S, rclpy.ok, unplayed)
                 confirmed = not unmatched
                 if unmatched:
                     node.get_logger().info(f"{watched} reports no publisher matched on {', '.join(unmatched)}; "
