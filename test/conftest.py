@@ -55,3 +55,26 @@ def real_noisy(tmp_path_factory):
         return root
 
     return noisy
+
+
+# -- early starts ---------------------------------------------------------------------------------
+@pytest.fixture(scope="session", autouse=True)
+def early_starts(request, tmp_path_factory):
+    """A test marked ``early_start(work)`` has ``work(tmp_path_factory)``, a slow part that mostly
+    waits (a replay with a stop longer than DDS's lease), started in a thread when the run
+    begins, beside the tests before it; the test takes what it returned from ``early_result``."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    started = {}
+    items = [item for item in request.session.items if item.get_closest_marker("early_start")]
+    pool = ThreadPoolExecutor(max_workers=max(1, len(items)))
+    for item in items:
+        started[item.nodeid] = pool.submit(item.get_closest_marker("early_start").args[0], tmp_path_factory)
+    yield started
+    pool.shutdown(wait=True, cancel_futures=True)
+
+
+@pytest.fixture
+def early_result(request, early_starts):
+    """What the test's ``early_start`` work returned (its failure raised here)."""
+    return early_starts[request.node.nodeid].result()

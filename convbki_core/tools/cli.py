@@ -44,7 +44,11 @@ def frames_arg(text: str) -> str:
 
 def device_arg(text: str) -> str:
     """argparse type: a torch device this machine has (``auto``, ``cpu``, ``cuda[:N]``), checked
-    while the arguments are parsed, before any work; returns ``text`` unchanged."""
+    while the arguments are parsed, before any work; returns ``text`` unchanged. ``auto`` and
+    ``cpu`` exist everywhere: they are taken without loading torch (argparse also checks the
+    default this way, and a mistyped flag should be said at once)."""
+    if text in ("", "auto", "cpu"):
+        return text
     from convbki_core.devices import resolve_device
 
     try:

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bag_fixture import FRAME_SIZES, TIMES
-from kitti_fixture import pose_about_z, write_drive, write_sequence
+from bag_fixture import write_dataset
+from kitti_fixture import write_drive
 from ros_helpers import require_current_install
 
 
@@ -18,21 +18,9 @@ def current_install():
 
 @pytest.fixture(scope="package")
 def dataset(tmp_path_factory: pytest.TempPathFactory):
-    """A 4-frame sequence 08: first pose not identity, raw ids with instance bits, probabilities."""
-    root = tmp_path_factory.mktemp("kitti")
-    rng = np.random.default_rng(8)
-    frames, poses, probabilities = [], [], []
-    for number, size in enumerate(FRAME_SIZES):
-        points = rng.normal(scale=8.0, size=(size, 3)).astype(np.float32)
-        truth = rng.choice([10, 40, 50, 70], size).astype(np.uint32)
-        predicted = rng.choice([10, 40, 48, 50, 252], size).astype(np.uint32) | (rng.integers(0, 9, size) << 16).astype(
-            np.uint32)
-        frames.append((points, truth, predicted))
-        poses.append(pose_about_z(0.3 + 0.05 * number, [5.0 + number, -2.0 + 0.5 * number, 0.25]))
-        p = rng.random((size, 20))
-        probabilities.append(p / p.sum(axis=1, keepdims=True))
-    write_sequence(root, "08", frames, poses, times=TIMES, probabilities=probabilities)
-    return root, frames, probabilities
+    """A 4-frame sequence 08: first pose not identity, raw ids with instance bits, probabilities
+    (``bag_fixture.write_dataset``)."""
+    return write_dataset(tmp_path_factory.mktemp("kitti"))
 
 
 @pytest.fixture(scope="package")

@@ -3,7 +3,8 @@ process receives them (order, stamps, /clock, remaps, converted messages, pacing
 Ctrl-C, a subscriber that goes away), paced to the mapper node's progress and stopped and
 resumed, the pacer's count of clouds DDS lost, and the rosbags -> rclpy converter that the
 replay falls back on. The ``dataset`` fixture is test/ros/conftest.py's; most replays of the
-selected tests run side by side (``replays``), each on a ROS domain of its own."""
+selected tests run side by side (``replays``), each on a ROS domain of its own; the paced and
+paused one starts with the test run."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bag_fixture import EPOCH_NS, TIMES, convert
+from bag_fixture import EPOCH_NS, TIMES, convert, write_dataset
 from ros_helpers import Probe, domain_id, selected_tests
 
 from convbki_ros.inputs.cloud_decoding import decode_cloud
@@ -118,8 +119,9 @@ def _playing(bag: Path, domain: int, *args: str):
 
 
 # The replays below mostly wait (a player's start and DDS discovery, the acknowledgements it
-# waits for at the end, a 21 s stop): each runs on a ROS domain of its own, and the ``replays``
-# fixture runs those of the selected tests side by side, each test then checking its own.
+# waits for at the end): each runs on a ROS domain of its own, and the ``replays`` fixture runs
+# those of the selected tests side by side, each test then checking its own. The paced and paused
+# one, with its 21 s stop, starts with the test run (``early_start``, test/conftest.py).
 
 
 def _in_order(bag: Path, mode: str) -> tuple[subprocess.Popen, str, Listener]:
@@ -221,22 +223,32 @@ def _paced_and_paused(bag: Path, folder: Path) -> None:
         rig.close()
 
 
+def _paced_and_paused_from_the_start(tmp_path_factory) -> None:
+    """``_paced_and_paused`` on a bag of its own: it starts with the test run (``early_start``),
+    its 21 s stop beside the tests before it."""
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # for the rig's probe
+    root, _, _ = write_dataset(tmp_path_factory.mktemp("kitti_paused"))
+    _paced_and_paused(_bag_of(root, tmp_path_factory), tmp_path_factory.mktemp("replay"))
+
+
 REPLAYS = {  # test: its replay, given the bag and a folder of its own
     "test_play_bag_publishes_everything_in_order[raw]": lambda bag, _: _in_order(bag, "raw"),
     "test_play_bag_publishes_everything_in_order[deserialize]": lambda bag, _: _in_order(bag, "deserialize"),
     "test_play_bag_paces_by_stamps_and_stops_on_ctrl_c": lambda bag, _: _interrupted(bag),
     "test_play_bag_says_so_when_a_subscriber_goes_away": lambda bag, _: _subscriber_leaves(bag),
-    "test_a_paced_replay_and_a_paused_player_lose_nothing": _paced_and_paused,
 }
+
+
+def _bag_of(root: Path, tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("bag") / "bag"
+    assert convert("--dataset", root, "--sequence", "8", "--out", path) == 0
+    return path
 
 
 @pytest.fixture(scope="module")
 def bag(dataset, tmp_path_factory) -> Path:
     """The 4-frame sequence as a bag, which the replays only read."""
-    root, _, _ = dataset
-    path = tmp_path_factory.mktemp("bag") / "bag"
-    assert convert("--dataset", root, "--sequence", "8", "--out", path) == 0
-    return path
+    return _bag_of(dataset[0], tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
@@ -318,12 +330,12 @@ def test_play_bag_says_so_when_a_subscriber_goes_away(replays, request) -> None:
     assert "/kitti/odom: " not in stderr.split("published", 1)[1]  # the odometry's subscriber stayed
 
 
-def test_a_paced_replay_and_a_paused_player_lose_nothing(replays, request) -> None:
+@pytest.mark.early_start.with_args(_paced_and_paused_from_the_start)
+def test_a_paced_replay_and_a_paused_player_lose_nothing(early_result) -> None:
     """The mapper node, then play_bag --wait-for-node at full speed, then play_bag stopped (SIGSTOP)
     for longer than Fast DDS's default participant lease (20 s) and resumed: every cloud integrated,
     and the player never lost sight of the node. (The checks are in ``_paced_and_paused``, which
-    runs beside the other replays: most of its time is the stop.)"""
-    replays(request.node.name)
+    starts with the test run: most of its time is the stop.)"""
 
 
 def test_the_pacer_gives_up_clouds_the_node_never_received_and_says_how_many(monkeypatch):

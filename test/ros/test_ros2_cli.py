@@ -1,7 +1,8 @@
 """The node through the ros2 commands a user types, after `source install/setup.bash`.
 
 `ros2 param set/get` (a float parameter given as an integer too), `ros2 service call` for every
-service, `ros2 topic info -v` for the QoS of every topic the reference documents. Each command
+service, `ros2 topic info -v` for the QoS of one topic of each kind, and the ROS graph for the QoS
+of every topic the reference documents. Each command
 runs as its own process (bash, ros2cli, rclpy) against a node in its own process, over DDS,
 without the ros2 daemon (so no process outlives the test).
 """
@@ -54,6 +55,12 @@ def topic_info(domain: int, topic: str, publishers: int, subscribers: int) -> st
                 and "_NODE_NAME_UNKNOWN_" not in text) or time.monotonic() > deadline:
             return text
         # the next try is the wait: each command is a new process that discovers the graph again
+
+
+# The topics whose QoS `ros2 topic info -v` shows here: one of each kind of the node's endpoints
+# (a reliable and a transient-local subscription, a transient-local and a volatile publisher);
+# the graph gives every topic's.
+ROS2_TOPICS = ("/cloud_in", "/tf_static", "/semantic_map", "/semantic_map/updates")
 
 
 def qos_of(text: str, node: str) -> dict[str, str]:
@@ -122,14 +129,28 @@ def test_ros2_param_service_and_topic_commands_work_against_the_node(tmp_path):
             "/semantic_map/costmap": (1, 0, "RELIABLE", "TRANSIENT_LOCAL"),
         }
         sequences = (set_and_get, refuse, describe, get_costmap, services)
-        with ThreadPoolExecutor(max_workers=len(sequences) + len(expected)) as pool:
-            infos = {topic: pool.submit(topic_info, domain, topic, *counts[:2]) for topic, counts in expected.items()}
+        with ThreadPoolExecutor(max_workers=len(sequences) + len(ROS2_TOPICS)) as pool:
+            infos = {topic: pool.submit(topic_info, domain, topic, *expected[topic][:2]) for topic in ROS2_TOPICS}
             for done in [pool.submit(check) for check in sequences]:
                 done.result()  # a failed assertion is raised here
             texts = {topic: info.result() for topic, info in infos.items()}
-        for topic, (_, _, reliability, durability) in expected.items():
+        for topic in ROS2_TOPICS:
             qos = qos_of(texts[topic], "convbki_mapper")
-            assert (qos.get("Reliability"), qos.get("Durability")) == (reliability, durability), (topic, texts[topic])
+            assert (qos.get("Reliability"), qos.get("Durability")) == expected[topic][2:], (topic, texts[topic])
+        # Every topic's, as the ROS graph gives it to any node (what `ros2 topic info -v` prints).
+        graph = rig.probe.node
+
+        def endpoints(topic: str) -> tuple[list, list]:
+            return graph.get_publishers_info_by_topic(topic), graph.get_subscriptions_info_by_topic(topic)
+
+        counts = {topic: want[:2] for topic, want in expected.items()}
+        assert rig.probe.spin_until(lambda: all(tuple(map(len, endpoints(t))) == c for t, c in counts.items()), WAIT), \
+            {topic: tuple(map(len, endpoints(topic))) for topic in expected}
+        for topic, (_, _, reliability, durability) in expected.items():
+            publishers, subscribers = endpoints(topic)
+            mine = [e for e in publishers + subscribers if e.node_name == "convbki_mapper"]
+            assert [(e.qos_profile.reliability.name, e.qos_profile.durability.name) for e in mine] == \
+                [(reliability, durability)], (topic, mine)
     finally:
         output = rig.close()
     assert "Traceback" not in output, output
