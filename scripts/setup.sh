@@ -292,13 +292,14 @@ fi
 # numba compiles a kernel at its first call and caches the machine code beside the sources.
 # colcon's install step (setup.py) compiles the installed copy's (`ros2 run`); this compiles
 # the source tree's (`.venv/bin/python -m ...`), so a freshly set-up tree starts warm either
-# way. Only after a package file changed (the cache itself notices which kernels changed).
+# way; with --tools also the kernels of synth (the demo), label_noise and evaluate. Only after a
+# package file changed (the cache itself notices which kernels changed).
 WARM_STAMP="$ROOT/build/.convbki_warm_stamp"
 if [[ -f "$WARM_STAMP" && "$(cat "$WARM_STAMP")" == "$FP" ]]; then
     log "compiled kernels up to date"
 else
     log "compiling the kernels into numba's cache (a minute the first time)"
-    scripts/venv_exec.sh "$VPY" -m convbki_core.tools.warm_up | sed 's/^/[setup] /' \
+    scripts/venv_exec.sh "$VPY" -m convbki_core.tools.warm_up --tools | sed 's/^/[setup] /' \
         || die "compiling the kernels failed (see above)"
     echo "$FP" > "$WARM_STAMP"
 fi

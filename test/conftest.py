@@ -66,6 +66,7 @@ def early_starts(request, tmp_path_factory):
     from concurrent.futures import ThreadPoolExecutor
 
     started = {}
+    tmp_path_factory.getbasetemp()  # made here: two threads making it at once would make two
     items = [item for item in request.session.items if item.get_closest_marker("early_start")]
     pool = ThreadPoolExecutor(max_workers=max(1, len(items)))
     for item in items:
