@@ -207,6 +207,13 @@ class ScanLog:
             return last.first_index + len(last.scans)
 
     @property
+    def newest_ns(self) -> int | None:
+        """The stamp of the newest logged scan (None: none logged)."""
+        with self._lock:
+            newest = next((segment.scans[-1] for segment in reversed(self._segments) if segment.scans), None)
+            return None if newest is None else newest.stamp_ns
+
+    @property
     def reach_ns(self) -> int | None:
         """The stamp of the oldest scan a correction can still move (None: none logged)."""
         with self._lock:

@@ -6,9 +6,9 @@ while a correction runs replaces the one waiting, and is applied after it.
 
 A correction runs on its own thread, beside the update thread:
 
-1. the clouds queued before the newest keyframe integrated (no logged scan falls out of the
-   log meanwhile), then under the map lock a copy of the scan log (its lists only: the scans
-   do not change);
+1. the clouds stamped up to the newest keyframe received and integrated (no logged scan falls
+   out of the log meanwhile), then under the map lock a copy of the scan log (its lists only:
+   the scans do not change);
 2. without the lock, each logged scan's corrected pose (``keyframe_corrections``), the scans
    that move by ``correction_tolerance`` or more, and a new map mapped again from the log
    (``ConvBKIMapper.corrected``), while live scans go on into the map in service;
@@ -162,14 +162,14 @@ class CorrectionRunner:
     def _apply(self, keyframes: Keyframes) -> None:
         core, started = self.core, time.monotonic()
         tolerance = float(self.node.param("correction_tolerance"))
-        # While the clouds queued before the newest keyframe are integrated, a log at its bounds
+        # While the clouds up to the newest keyframe come and are integrated, a log at its bounds
         # would freeze the oldest scans, which this Path moves: none falls out until the copy.
         with core.map_lock:
             waited_on = core.mapper.scan_log
             waited_on.hold(waited_on.first_index)
         live = None
         try:
-            self._wait_for_queued_scans(int(keyframes.stamps_ns[-1]))
+            self._wait_for_scans_up_to(int(keyframes.stamps_ns[-1]))
             with core.map_lock:
                 live, lineage = core.mapper, core.lineage
                 log = live.scan_log.copy()
@@ -237,15 +237,24 @@ class CorrectionRunner:
             f"{result.skipped} within correction_tolerance left alone), {result.replayed} mapped again, "
             f"in {result.seconds:.2f} s{frozen_note}")
 
-    def _wait_for_queued_scans(self, stamp: int, longest: float = 5.0) -> None:
-        """Let the update thread integrate the clouds queued that are stamped up to ``stamp`` (the
-        newest keyframe's) first, for ``longest`` seconds at most: the Path moves them too."""
-        queue = self.core.queue
+    def _wait_for_scans_up_to(self, stamp: int, longest: float = 5.0) -> None:
+        """Let the clouds stamped up to ``stamp`` (the newest keyframe's) arrive and the update
+        thread integrate them first, for ``longest`` seconds at most: the Path moves them too.
+        Arrived means a cloud stamped at or after ``stamp`` is queued or logged: a Path, a small
+        message on a topic of its own, can overtake the clouds it reaches, which would then be
+        mapped after the correction at their uncorrected poses. Keyframes more than ``longest``
+        seconds newer than the newest cloud are not waited for (no cloud is that late), nor any
+        when no cloud is logged or queued."""
+        core, queue = self.core, self.core.queue
         deadline = time.monotonic() + longest
         with queue.changed:
             while not queue.stopping and time.monotonic() < deadline:
-                oldest = min((stamp_to_ns(p.msg.header.stamp) for p in queue.clouds), default=None)
-                if oldest is None or oldest > stamp:
+                queued = [stamp_to_ns(p.msg.header.stamp) for p in queue.clouds]
+                logged = core.mapper.scan_log.newest_ns
+                newest = max(queued + ([] if logged is None else [logged]), default=None)
+                # (Nothing logged nor queued: no stream to wait for, e.g. a map loaded without a log.)
+                arrived = newest is None or newest >= stamp or stamp - newest > longest * 1e9
+                if arrived and (not queued or min(queued) > stamp):
                     return
                 queue.changed.wait(0.05)
 
