@@ -46,16 +46,18 @@ def warm_up_tools() -> float:
     import numpy as np
 
     from convbki_core.datasets.label_noise_neighbours import nearest_other
-    from convbki_core.measures.costmap_eval import _dijkstra
+    from convbki_core.measures.costmap_eval import planning_check
     from convbki_core.tools import synth
 
     started = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="convbki_warm_up_") as folder:
-        assert synth.main(["--out", str(Path(folder) / "drive"), "--sequence", "00", "--frames", "2", "--beams", "8",
-                           "--azimuth-steps", "64", "--movers", "2", "--quiet"]) == 0
+        if synth.main(["--out", str(Path(folder) / "drive"), "--sequence", "00", "--frames", "2", "--beams", "8",
+                       "--azimuth-steps", "64", "--movers", "2", "--quiet"]) != 0:
+            raise RuntimeError("the synthetic drive of the warm-up failed (see above)")
     points = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [3.0, 0.0, 0.0]])
     nearest_other(points, np.array([1, 2, 1]), 1.0)
-    _dijkstra(np.zeros((3, 3), np.int8), 0, 8, 1.0)
+    free = np.zeros((3, 3), np.int8)  # an occupancy grid of free cells: one path planned on it
+    planning_check(free, free, np.ones((3, 3), bool), pairs=1, min_distance=1.0)
     return time.monotonic() - started
 
 

@@ -18,6 +18,7 @@ from convbki_ros.mapping.corrections import CorrectionRunner, Keyframes
 
 NUM_CLASSES = 4
 BOUND = 6  # scans the log keeps
+STAMP_0 = 1_000_000_000  # ns, scan 0's stamp; scan k is stamped STAMP_0 + k
 
 
 def wait_for(condition, timeout: float = 30.0) -> bool:
@@ -61,9 +62,6 @@ class Rig:
                                   self.rng.integers(0, NUM_CLASSES, 150), pose, stamp_ns=STAMP_0 + number)
         with self.queue.changed:
             self.queue.changed.notify_all()
-
-
-STAMP_0 = 1_000_000_000
 
 
 def cloud_stamped(number: int) -> PointCloud2:
