@@ -13,7 +13,8 @@ Groups:
 * ``kernel_file``: the kernel (``""``: the shipped compound kernel);
 * ``free_space``: rays, clamping and the movers' rules;
 * ``compute``: torch device and update path;
-* ``store``: whether the map remembers its changes for outputs that send only changes;
+* ``store``: whether the map remembers its changes for outputs that send only changes, and the
+  map's memory budget;
 * ``scan_log``: the log of integrated scans that a SLAM's correction moves, and its bounds;
 * ``classes``: the label map whose ignored and movable classes apply, or explicit lists.
 """
@@ -79,7 +80,12 @@ class ComputeConfig:
 
 @dataclass(frozen=True)
 class StoreConfig:
-    track_changes: bool = False  # remember what changed for ``take_changes``
+    """``track_changes``: remember what changed for ``take_changes``. ``max_megabytes``: the
+    map's memory budget in MB (10^6 bytes) of the global store (0: no bound): at it the map is
+    full and stops growing, mapping goes on in the window (``memory.budget``, ``ConvBKIMapper``)."""
+
+    track_changes: bool = False
+    max_megabytes: float = 4000.0  # the node's default too: a robot's map stops growing before its memory ends
 
 
 @dataclass(frozen=True)
@@ -105,7 +111,7 @@ _FLAT = {
     "forget_movers": ("free_space", "forget_movers"),
     "contradiction_radius": ("free_space", "contradiction_radius"),
     "device": ("compute", "device"), "update_path": ("compute", "update_path"),
-    "track_changes": ("store", "track_changes"),
+    "track_changes": ("store", "track_changes"), "max_map_megabytes": ("store", "max_megabytes"),
     "scan_log": ("scan_log", "enabled"), "scan_log_scans": ("scan_log", "max_scans"),
     "scan_log_megabytes": ("scan_log", "max_megabytes"),
     "label_map": ("classes", "label_map"), "ignore_classes": ("classes", "ignore_classes"),
@@ -137,6 +143,8 @@ class MapperConfig:
             group, attribute = _FLAT[name]
             if name == "local_bounds":
                 value = tuple(tuple(float(v) for v in corner) for corner in value)
+            elif name == "max_map_megabytes":
+                value = float(value)
             elif name in ("ignore_classes", "movable_classes", "ground_classes") and value is not None:
                 value = tuple(int(c) for c in value)
             if group is None:

@@ -29,7 +29,8 @@ from convbki_core.torch_path.window import TorchWindow
 class MapChanges:
     """What changed in the map since the changes were last taken.
 
-    ``removed``: global indices (R, 3) of voxels that left the map (a reset, a load);
+    ``removed``: global indices (R, 3) of voxels that left the map (a reset, a load, dropped by a
+    full map as they left the window);
     ``indices`` (N, 3) and ``alpha`` (N, C): voxels whose concentrations changed, in order
     (a voxel may appear more than once: its last row is its state). Applying the removals
     first and then the rows to a copy of the map as it was gives the map as it is.
@@ -154,6 +155,8 @@ class MapContents:
         the place of, kept only for its window (``corrected``'s ``reuse``)."""
         self._clear()
         self._removed, self._everything_changed, self._replaced_keys = [], False, None
+        if self.window.track_changes:
+            self.window.take_dropped()
 
     def _clear(self) -> None:
         self.store.clear()
@@ -186,11 +189,17 @@ class MapContents:
             self._restart_log("a box of the map was forgotten after them")
         return forgotten
 
+    def _take_removed(self) -> np.ndarray:
+        """The voxels that left the map since the changes were last taken (global indices (R, 3)):
+        a reset's, a load's, a forgotten box's, and those a full store dropped (``memory.budget``)."""
+        removed = [*self._removed, self.window.take_dropped()] if self.window.track_changes else self._removed
+        self._removed = []
+        return np.concatenate(removed) if removed else np.zeros((0, 3), np.int64)
+
     def take_changes(self, everything: bool = False) -> MapChanges:
         """The voxels that changed or left the map since the last call (``everything``: every
         voxel of the map, as after a load), for outputs that send only what changed."""
-        removed = np.concatenate(self._removed) if self._removed else np.zeros((0, 3), np.int64)
-        self._removed = []
+        removed = self._take_removed()
         indices, alpha = self.window.take_changes()
         if everything or self._everything_changed:
             self._everything_changed = False
@@ -207,8 +216,7 @@ class MapContents:
         (``records.RECORD``)): for a window on a torch device the records are made there, so
         the changes come to the host as records, not as concentrations."""
         if isinstance(self.window, TorchWindow) and not (everything or self._everything_changed):
-            removed = np.concatenate(self._removed) if self._removed else np.zeros((0, 3), np.int64)
-            self._removed = []
+            removed = self._take_removed()
             indices, records = self.window.take_change_records(self.resolution, palette)
             return removed, indices, records
         changes = self.take_changes(everything)

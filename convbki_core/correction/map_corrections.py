@@ -30,7 +30,7 @@ class MapCorrections:
         store's chunks shared, the window's voxels written into it. Returns (store, the memory
         it takes beside the map's store: about the window's voxels)."""
         base = self.store.copy()
-        base.write(*self.window.items())
+        base.write(*self.window.items(), bounded=False)  # the map as it is, whatever its budget
         return base, base.bytes_not_shared_with(self.store)
 
     def _begin_log_segment(self) -> None:
@@ -82,7 +82,13 @@ class MapCorrections:
         memory, where a new window's pages cost more than the scans). ``log``: a copy of this
         mapper's log (``ScanLog.copy``) to read instead of the log, so that this mapper may go
         on mapping meanwhile (the node's live scans). Returns (the new mapper, or this one when
-        nothing moves; the result)."""
+        nothing moves; the result).
+
+        The new mapper has this one's configuration, so its map is held to the same memory budget
+        (``memory_state``; its counts go on from the segment's base). The replay is exact only while
+        neither map reached its budget: a full map drops voxels by the order it met new ground in,
+        and the corrected drive meets it in another, so a corrected full map differs from this one
+        mapped at the corrected poses (and from scratch) where either dropped voxels."""
         started = time.perf_counter()
         log = self.scan_log if log is None else log
         moves, skipped, largest = self.plan_correction(poses, tolerance, log=log)
@@ -107,6 +113,7 @@ class MapCorrections:
         if segment.base is not None:
             self.store = segment.base.copy()
             self.window.store = self.store
+            self._bound_store()  # the corrected map is held to this mapper's budget, full at once if over it
         self.scans_integrated = segment.first_index
         if segment.base_position is not None:
             self.sensor_position = np.asarray(segment.base_position, np.float64).copy()

@@ -25,7 +25,7 @@ class MapFiles:
     ``replace_with``), ``export_ply``."""
 
     def save(self, path: str | Path) -> None:
-        """Write the whole map to one self-describing file, atomically."""
+        """Write the whole map to one self-describing file, atomically (the memory budget plays no part)."""
         self.snapshot().write(path)
 
     def snapshot(self) -> MapSnapshot:
@@ -78,9 +78,10 @@ class MapFiles:
         """Make the map the given one (a map file's contents, ``read_map``, checked with
         ``check_compatible``). The window is placed around the sensor position the file
         recorded (else the centre of its voxels), so the map around the robot is at hand
-        before the next scan."""
+        before the next scan. A map bigger than the mapper's memory budget is loaded whole (the
+        user's file); the map is then full at once (``memory_state``)."""
         self.reset()  # its voxels count as removed
-        self.store.write(indices, alpha)
+        self.store.write(indices, alpha, bounded=False)
         self.scans_integrated = int(metadata.get("scans_integrated", 0))
         position = metadata.get("sensor_position")
         if position is None and len(indices):

@@ -11,6 +11,9 @@ received evidence (one to three of twenty, typically). So a chunk keeps, per vox
 the prior (uint8); and per such class its id (uint8) and its float32 value, kept as the
 bit pattern (uint32). Classes left out are exactly the prior, so rows come back bit for bit.
 Rows go in and out dense, (n, C) float32; ``compact_rows`` does the packing.
+
+Resident bytes are a running total, so a byte budget (``set_budget``) costs O(1) per chunk
+written: under it the store is as if it had none, bit for bit; at it the map stops growing (``budget``).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import numpy as np
 
 from convbki_core.compiled import HAVE_NUMBA
 from convbki_core.geometry.grid import linear_index, unravel_linear
+from convbki_core.memory.budget import MemoryState, StoreBudget
 from convbki_core.memory.compact_rows import compress_rows, entry_ranges, entry_starts, expand_rows
 
 if HAVE_NUMBA:
@@ -55,6 +59,11 @@ def _per_chunk_bytes() -> int:
 
 
 _PER_CHUNK_BYTES = _per_chunk_bytes()
+
+
+def _chunk_bytes(chunk: _Chunk) -> int:
+    """The bytes of a chunk's arrays (``VoxelStore.nbytes`` counts these)."""
+    return chunk.offsets.nbytes + chunk.counts.nbytes + chunk.classes.nbytes + chunk.values.nbytes
 
 
 def _chunk_keys(indices: np.ndarray) -> np.ndarray:
@@ -153,15 +162,19 @@ class VoxelStore:
     """Sparse global map: voxel index (3 x int64) -> concentrations (C x float32).
 
     ``prior``: the concentration of a class without evidence; only other values take memory.
+    ``budget_bytes`` / ``ceiling_bytes``: the map's memory budget and hard ceiling, as
+    ``set_budget`` takes them (0: no bound, the default).
     """
 
-    def __init__(self, num_classes: int, prior: float):
+    def __init__(self, num_classes: int, prior: float, budget_bytes: int = 0, ceiling_bytes: int | None = None):
         self.num_classes = int(num_classes)
         if self.num_classes < 1:
             raise ValueError(f"num_classes must be positive, got {num_classes}")
         self.prior = np.float32(prior)
         self._chunks: dict[tuple[int, int, int], _Chunk] = {}
         self._count = 0
+        self._array_bytes = 0  # running sum of every chunk's ``_chunk_bytes``
+        self.budget = StoreBudget(budget_bytes, ceiling_bytes)
 
     # -- size ----------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -170,32 +183,69 @@ class VoxelStore:
     @property
     def nbytes(self) -> int:
         """Bytes held by the voxel arrays (offsets, counts, class ids, values), excluding Python overhead."""
-        return sum(c.offsets.nbytes + c.counts.nbytes + c.classes.nbytes + c.values.nbytes
-                   for c in self._chunks.values())
+        return self._array_bytes
 
     @property
     def resident_bytes(self) -> int:
-        """``nbytes`` plus the Python bookkeeping: the chunk table and, per chunk, its objects."""
-        return self.nbytes + sys.getsizeof(self._chunks) + _PER_CHUNK_BYTES * len(self._chunks)
+        """``nbytes`` plus the Python bookkeeping: the chunk table and, per chunk, its objects. O(1)."""
+        return self._array_bytes + sys.getsizeof(self._chunks) + _PER_CHUNK_BYTES * len(self._chunks)
+
+    def recount_resident_bytes(self) -> int:
+        """``resident_bytes`` summed afresh over every chunk (O(chunks)): what the running total must equal."""
+        return (sum(_chunk_bytes(c) for c in self._chunks.values()) + sys.getsizeof(self._chunks)
+                + _PER_CHUNK_BYTES * len(self._chunks))
+
+    # -- the budget ------------------------------------------------------------------------
+    def set_budget(self, budget_bytes: int, ceiling_bytes: int | None = None) -> None:
+        """Bound the map's memory (``budget``): at ``budget_bytes`` (resident plus lent) the map
+        is full, writes go only into chunks held or lent; at ``ceiling_bytes`` resident (default:
+        the budget) none. 0: no bound. A store over a new budget keeps its voxels and is full."""
+        self.budget.set(budget_bytes, ceiling_bytes)
+        self.budget.note(self.resident_bytes)
+
+    def memory_state(self) -> MemoryState:
+        """The budget's state now: bytes, bound, full, voxels dropped, times it became full."""
+        budget = self.budget
+        resident = self.resident_bytes
+        return MemoryState(resident, budget.lent_bytes, budget.budget_bytes, budget.ceiling_bytes,
+                           budget.note(resident), budget.voxels_dropped, budget.times_full)
 
     def copy(self) -> VoxelStore:
         """A copy that shares every chunk with this store: a chunk is never changed in place (a
-        write makes a new one), so each store goes on as if the other did not exist."""
+        write makes a new one), so each store goes on as if the other did not exist. The copy has
+        this store's budget and counts; it lent nothing (the window is this store's)."""
         other = VoxelStore(self.num_classes, self.prior)
         other._chunks = dict(self._chunks)
         other._count = self._count
+        other._array_bytes = self._array_bytes
+        other.budget = self.budget.copy()
         return other
 
     def bytes_not_shared_with(self, other: VoxelStore) -> int:
         """The memory this store holds that ``other`` (a store it was copied from) does not share:
         its chunk table and the chunks written since the copy."""
         own = [c for key, c in self._chunks.items() if other._chunks.get(key) is not c]
-        return (sum(c.offsets.nbytes + c.counts.nbytes + c.classes.nbytes + c.values.nbytes for c in own)
-                + sys.getsizeof(self._chunks) + _PER_CHUNK_BYTES * len(own))
+        return sum(_chunk_bytes(c) for c in own) + sys.getsizeof(self._chunks) + _PER_CHUNK_BYTES * len(own)
 
     def clear(self) -> None:
+        """Forget every voxel; the budget stays, and the map is no longer full (nothing lent or dropped)."""
         self._chunks.clear()
         self._count = 0
+        self._array_bytes = 0
+        self.budget.clear()
+
+    def _replace_chunk(self, key: tuple[int, int, int], old: _Chunk | None, new: _Chunk | None) -> int:
+        """Put ``new`` (None: nothing) in the place of ``old`` (None: nothing) at ``key``, keeping
+        the running totals; returns the change of resident bytes (per-chunk overhead included)."""
+        grown = ((_chunk_bytes(new) + _PER_CHUNK_BYTES if new is not None else 0)
+                 - (_chunk_bytes(old) + _PER_CHUNK_BYTES if old is not None else 0))
+        if new is None:
+            del self._chunks[key]
+        else:
+            self._chunks[key] = new
+        self._array_bytes += grown - _PER_CHUNK_BYTES * ((new is not None) - (old is not None))
+        self._count += (new.offsets.size if new is not None else 0) - (old.offsets.size if old is not None else 0)
+        return grown
 
     def _expand_chunks(self, chunks: list[_Chunk], positions: np.ndarray | None = None,
                        out: np.ndarray | None = None) -> np.ndarray:
@@ -237,16 +287,17 @@ class VoxelStore:
         positions = selected[order]
         rows = self._expand_chunks(chunks, positions)
         if remove:
+            bounded = bool(self.budget.budget_bytes)
             for key, chunk, count, start, end in zip(keys, chunks, inside.tolist(), bounds[:-1].tolist(),
                                                      bounds[1:].tolist()):
-                if count == chunk.offsets.size:
-                    del self._chunks[key]
-                elif count:
-                    keep = linear[start:end] < 0
-                    entries = np.repeat(keep, chunk.counts)
-                    self._chunks[key] = _Chunk(chunk.offsets[keep], chunk.counts[keep], chunk.classes[entries],
-                                               chunk.values[entries])
-            self._count -= positions.size
+                if not count:
+                    continue
+                keep = linear[start:end] < 0
+                entries = np.repeat(keep, chunk.counts)
+                grown = self._replace_chunk(key, chunk, None if count == chunk.offsets.size else _Chunk(
+                    chunk.offsets[keep], chunk.counts[keep], chunk.classes[entries], chunk.values[entries]))
+                if bounded:  # the map's all the same: what the window holds counts against the budget
+                    self.budget.lend(key, -grown)
         return linear[positions], rows
 
     def write_window(self, origin: np.ndarray, dims: np.ndarray, linear: np.ndarray, alpha: np.ndarray) -> None:
@@ -254,17 +305,21 @@ class VoxelStore:
         origin = np.asarray(origin, np.int64)
         self.write(unravel_linear(np.asarray(linear, np.int64), np.asarray(dims, np.int64)) + origin, alpha)
 
-    def write(self, indices: np.ndarray, alpha: np.ndarray) -> None:
+    def write(self, indices: np.ndarray, alpha: np.ndarray, bounded: bool = True) -> np.ndarray:
         """Insert or overwrite voxels at global ``indices`` (n, 3) with ``alpha`` (n, C) float32.
 
-        An index given twice keeps its last row.
+        An index given twice keeps its last row. With a budget (``set_budget``), a full map
+        writes only into chunks it holds or lent, and nothing past the ceiling: the other rows
+        are dropped (a row the store held at such an index stays) and counted. ``bounded``
+        False: every row is written whatever the budget (a map file loaded, a log's base).
+        Returns the positions (k,) int64 in ``indices`` of the rows dropped.
         """
         indices = np.asarray(indices, np.int64)
         alpha = np.ascontiguousarray(alpha, np.float32)
         if alpha.shape != (indices.shape[0], self.num_classes):
             raise ValueError(f"alpha must be ({indices.shape[0]}, {self.num_classes}), got {alpha.shape}")
         if indices.shape[0] == 0:
-            return
+            return np.zeros(0, np.int64)
         keys = _chunk_keys(indices)
         offsets = _local_offsets(indices)
         order = np.lexsort((offsets, keys[:, 2], keys[:, 1], keys[:, 0]))
@@ -276,17 +331,26 @@ class VoxelStore:
         counts, classes, values = compress_rows(alpha, self.prior, order)
         starts = entry_starts(counts)
         bounds = np.append(np.flatnonzero(new_chunk), order.size).tolist()
+        budget = self.budget if bounded and self.budget.budget_bytes else None
+        dropped = []
         for key, start, end in zip(map(tuple, keys[bounds[:-1]].tolist()), bounds[:-1], bounds[1:]):
             first, stop = int(starts[start]), int(starts[end])
             chunk = self._chunks.get(key)
+            if budget is not None and not budget.admits(key, chunk is not None, self.resident_bytes):
+                dropped.append(order[start:end])
+                budget.voxels_dropped += end - start
+                continue
             if chunk is None:
-                self._chunks[key] = _Chunk(offsets[start:end].copy(), counts[start:end].copy(),
-                                           classes[first:stop].copy(), values[first:stop].copy())
-                self._count += end - start
+                new = _Chunk(offsets[start:end].copy(), counts[start:end].copy(), classes[first:stop].copy(),
+                             values[first:stop].copy())
             else:
-                merged = _merge(chunk, offsets[start:end], counts[start:end], classes[first:stop], values[first:stop])
-                self._count += merged.offsets.size - chunk.offsets.size
-                self._chunks[key] = merged
+                new = _merge(chunk, offsets[start:end], counts[start:end], classes[first:stop], values[first:stop])
+            grown = self._replace_chunk(key, chunk, new)
+            if self.budget.lent:
+                self.budget.returned(key, grown)
+        if self.budget.budget_bytes:
+            self.budget.note(self.resident_bytes)
+        return np.concatenate(dropped) if dropped else np.zeros(0, np.int64)
 
     def forget_box(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Remove the stored voxels of the global box [lo, hi) (hi exclusive); returns their
@@ -302,14 +366,14 @@ class VoxelStore:
             if not inside.any():
                 continue
             removed.append(indices[inside])
-            if inside.all():
-                del self._chunks[key]
-            else:
-                keep = ~inside
-                entries = np.repeat(keep, chunk.counts)
-                self._chunks[key] = _Chunk(chunk.offsets[keep], chunk.counts[keep], chunk.classes[entries],
-                                           chunk.values[entries])
-            self._count -= int(np.count_nonzero(inside))
+            keep = ~inside
+            entries = np.repeat(keep, chunk.counts)
+            self._replace_chunk(key, chunk, None if inside.all() else _Chunk(
+                chunk.offsets[keep], chunk.counts[keep], chunk.classes[entries], chunk.values[entries]))
+        if self.budget.lent:  # chunks the box covers whole: what the window held of them is forgotten with it
+            self.budget.release_inside(((lo + _MASK) >> CHUNK_SHIFT).tolist(), ((hi >> CHUNK_SHIFT) - 1).tolist())
+        if self.budget.budget_bytes:
+            self.budget.note(self.resident_bytes)
         return np.concatenate(removed) if removed else np.zeros((0, 3), np.int64)
 
     # -- point access ----------------------------------------------------------------------

@@ -8,6 +8,8 @@ window are written to the global ``VoxelStore`` and the slabs that enter are rea
 Voxels without evidence hold the prior, so an update is a plain in-place addition.
 
 Every voxel with evidence is in exactly one place: in the window (mask set) or in the store.
+A store that is full (its memory budget, ``budget``) may drop voxels leaving the window: they
+leave the map, and with ``track_changes`` are reported as removed (``take_dropped``).
 
 The mask's main bits: ``EVIDENCE`` (the voxel holds evidence) and ``CHANGED`` (its
 concentrations changed since the map's changes were last taken). With ``track_changes``,
@@ -24,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from convbki_core.compiled import HAVE_NUMBA, parallel_region
-from convbki_core.geometry.grid import unravel_linear
+from convbki_core.geometry.grid import unravel_linear, voxel_keys
 from convbki_core.memory.column_classes import MAX_CLASS_BITS, _note_scan_classes, classes_held, row_class_bits
 from convbki_core.memory.store import VoxelStore
 
@@ -82,6 +84,7 @@ class RollingWindow:
         # kept only for a map whose changes are taken (``track_changes``), or they would pile up.
         self.track_changes = bool(track_changes)
         self._evicted_changes: list[tuple[np.ndarray, np.ndarray]] = []
+        self._dropped: list[np.ndarray] = []  # voxels a full store dropped, untaken (with track_changes)
         # Per column (X, Y) uint64: bit c set where class c may be above the prior somewhere in
         # the column; None until a reader asks for it (``classes_by_column``).
         self._class_columns: np.ndarray | None = None
@@ -113,15 +116,37 @@ class RollingWindow:
         local = np.argwhere(mask)
         if local.size and keep:
             rows = self.alpha[:, px[local[:, 0]], py[local[:, 1]], pz[local[:, 2]]].T
-            if self.track_changes:
-                changed = (mask[local[:, 0], local[:, 1], local[:, 2]] & CHANGED) != 0
-                if changed.any():
-                    self._evicted_changes.append(((local + lo)[changed], rows[changed]))
-            self.store.write(local + lo, rows)
+            marks = mask[local[:, 0], local[:, 1], local[:, 2]] if self.track_changes else None
+            self._write_back(local + lo, rows, marks)
         self.alpha[np.ix_(np.arange(self.num_classes), px, py, pz)] = self.prior
         self.mask[np.ix_(px, py, pz)] = 0
         self._columns_left(px, py, pz)
         return local + lo
+
+    def _write_back(self, indices: np.ndarray, rows: np.ndarray, marks: np.ndarray | None) -> None:
+        """Write voxels leaving the window (global ``indices`` (n, 3), ``rows`` (n, C), their mask
+        bytes ``marks`` when changes are tracked) to the store. Those a full store drops
+        (``budget``) have left the map: with ``track_changes`` they are removals
+        (``take_dropped``), and no change of theirs is kept to bring them back."""
+        dropped = self.store.write(indices, rows)
+        if marks is None:
+            return
+        changed = (marks & CHANGED) != 0
+        if dropped.size:
+            changed[dropped] = False
+            gone = voxel_keys(indices[dropped])
+            self._evicted_changes = [(kept[keep], alpha[keep]) for kept, alpha in self._evicted_changes
+                                     for keep in [~np.isin(voxel_keys(kept), gone)]]
+            self._dropped.append(indices[dropped])
+        if changed.any():
+            self._evicted_changes.append((indices[changed], rows[changed]))
+
+    def take_dropped(self) -> np.ndarray:
+        """Global indices (n, 3) of the voxels a full store dropped since the last call (kept only
+        with ``track_changes``): they left the map."""
+        dropped = np.concatenate(self._dropped) if self._dropped else np.zeros((0, 3), np.int64)
+        self._dropped = []
+        return dropped
 
     def _load(self, lo: np.ndarray, hi: np.ndarray) -> None:
         """Bring the stored voxels of global box [lo, hi) into the window."""

@@ -63,12 +63,8 @@ class TorchWindow(RollingWindow):
         if local.shape[0] and keep:
             x, y, z = gx[local[:, 0], 0, 0], gy[0, local[:, 1], 0], gz[0, 0, local[:, 2]]
             rows = self.alpha[:, x, y, z].T.cpu().numpy()
-            marks = mask[local[:, 0], local[:, 1], local[:, 2]].cpu().numpy()
-            if self.track_changes:
-                changed = (marks & CHANGED) != 0
-                if changed.any():
-                    self._evicted_changes.append((indices[changed], rows[changed]))
-            self.store.write(indices, rows)
+            marks = mask[local[:, 0], local[:, 1], local[:, 2]].cpu().numpy() if self.track_changes else None
+            self._write_back(indices, rows, marks)  # the host window's admission: a full store drops the same
         self.alpha[:, gx, gy, gz] = float(self.prior)
         self.mask[gx, gy, gz] = 0
         self._columns_left(*self._physical(lo, hi))
