@@ -33,6 +33,7 @@ import itertools
 import os
 import shutil
 import socket
+import stat
 import tempfile
 import time
 import zlib
@@ -76,7 +77,7 @@ def _temp_file(path: Path) -> BinaryIO:
 
 
 def _keep_previous(path: Path) -> None:
-    """Put the current ``path`` (if any) in place as ``NAME.prev``, atomically."""
+    """Put the current ``path`` (if any) in place as ``NAME.prev``, atomically, with its permissions."""
     previous = previous_path(path)
     remove_stale_temp_files(previous)
     with _temp_file(previous) as handle:
@@ -88,8 +89,13 @@ def _keep_previous(path: Path) -> None:
         except FileNotFoundError:
             return  # nothing to keep: the first save of this file
         except OSError:  # no hard links here (some network and FUSE file systems): a copy
-            with open(path, "rb") as source, open(temp, "wb") as copy:
+            # Opened without following a link and created private, then given the original's mode:
+            # a copy must not be readable by more people than the file it keeps.
+            source_fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+            with os.fdopen(source_fd, "rb") as source, \
+                    os.fdopen(os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), "wb") as copy:
                 shutil.copyfileobj(source, copy, 1 << 20)
+                os.fchmod(copy.fileno(), os.fstat(source.fileno()).st_mode & 0o7777)
                 copy.flush()
                 os.fsync(copy.fileno())
         os.replace(temp, previous)
@@ -98,11 +104,14 @@ def _keep_previous(path: Path) -> None:
 
 
 @contextmanager
-def atomic_open(path: str | Path, keep_previous: bool = False) -> Iterator[BinaryIO]:
+def atomic_open(path: str | Path, keep_previous: bool = False, new_mode: int | None = None) -> Iterator[BinaryIO]:
     """Open a temporary binary file next to ``path``; on clean exit it replaces ``path``
     (and with ``keep_previous`` the file it replaces becomes ``NAME.prev``).
 
-    On an exception the temporary file is removed and ``path`` is left as it was.
+    The result keeps the permissions of the file it replaces; a new file gets ``new_mode``
+    (default: what a plain ``open()`` gives, 0666 minus the umask). A link at ``path`` is
+    replaced, never followed. On an exception the temporary file is removed and ``path`` is
+    left as it was.
     """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
@@ -111,7 +120,7 @@ def atomic_open(path: str | Path, keep_previous: bool = False) -> Iterator[Binar
     temp_path = Path(handle.name)
     try:
         # Temporary files are created 0600; give the result the permissions a plain open() would.
-        os.chmod(temp_path, _final_mode(path))
+        os.chmod(temp_path, _final_mode(path, new_mode))
         with handle:
             yield handle
             handle.flush()
@@ -125,16 +134,19 @@ def atomic_open(path: str | Path, keep_previous: bool = False) -> Iterator[Binar
     _fsync_folder(folder)
 
 
-def atomic_write_bytes(path: str | Path, data: bytes, keep_previous: bool = False) -> None:
-    """Write ``data`` to ``path`` atomically (``keep_previous``: the file it replaces becomes ``NAME.prev``)."""
-    with atomic_open(path, keep_previous) as handle:
+def atomic_write_bytes(path: str | Path, data: bytes, keep_previous: bool = False,
+                       new_mode: int | None = None) -> None:
+    """Write ``data`` to ``path`` atomically (``keep_previous``: the file it replaces becomes
+    ``NAME.prev``; ``new_mode``: the permissions of a new file, see ``atomic_open``)."""
+    with atomic_open(path, keep_previous, new_mode) as handle:
         handle.write(data)
 
 
-def atomic_write_with(path: str | Path, writer: Callable[[BinaryIO], None], keep_previous: bool = False) -> None:
+def atomic_write_with(path: str | Path, writer: Callable[[BinaryIO], None], keep_previous: bool = False,
+                      new_mode: int | None = None) -> None:
     """Call ``writer(file)`` on a temporary file that atomically becomes ``path`` (``keep_previous``:
-    the file it replaces becomes ``NAME.prev``)."""
-    with atomic_open(path, keep_previous) as handle:
+    the file it replaces becomes ``NAME.prev``; ``new_mode``: the permissions of a new file)."""
+    with atomic_open(path, keep_previous, new_mode) as handle:
         writer(handle)
 
 
@@ -243,12 +255,17 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
-def _final_mode(path: Path) -> int:
-    """The existing file's permissions, else 0666 minus the process umask."""
+def _final_mode(path: Path, new_mode: int | None = None) -> int:
+    """The existing file's permissions (of a link itself, never of what it points to), else
+    ``new_mode``, else 0666 minus the process umask."""
     try:
-        return path.stat().st_mode & 0o7777
+        info = path.lstat()
+        if not stat.S_ISLNK(info.st_mode):
+            return info.st_mode & 0o7777
     except OSError:
         pass
+    if new_mode is not None:
+        return new_mode
     umask = 0o022
     try:  # Linux exposes the umask without changing it (os.umask would, racing other threads)
         for line in Path("/proc/self/status").read_text().splitlines():

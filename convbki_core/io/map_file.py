@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,10 +101,11 @@ class MapSnapshot:
     def __len__(self) -> int:
         return int(self.indices.shape[0])
 
-    def write(self, path: str | Path) -> None:
+    def write(self, path: str | Path, new_mode: int | None = None) -> None:
         """Write the map file (the current version, with the scan log when there is one) atomically:
         a failed write leaves the previous file as it was, and a successful one keeps the file it
-        replaced as ``NAME.prev``.
+        replaced as ``NAME.prev``. ``new_mode``: the permissions of a new file (a file replaced
+        keeps its own; default 0666 minus the umask).
 
         Only values that differ from the metadata's ``prior`` are written; the rest is the prior.
         """
@@ -123,7 +126,43 @@ class MapSnapshot:
         }
         if self.scan_log is not None:
             arrays.update(self.scan_log.to_arrays())
-        atomic_write_with(path, lambda handle: np.savez(handle, **arrays), keep_previous=True)
+        atomic_write_with(path, lambda handle: np.savez(handle, **arrays), keep_previous=True, new_mode=new_mode)
+
+
+# A map file's metadata is a small JSON object; a member claiming more is not one of ours.
+_MAX_METADATA_BYTES = 1 << 20
+
+
+def map_file_voxels(path: str | Path) -> int | None:
+    """How many voxels the map file at ``path`` holds, read from its headers alone (no array is
+    loaded); None when ``path`` is not a ConvBKI map file: missing, a link, a folder, another
+    program's file, or damaged beyond its headers' reach. What decides whether an existing file
+    may be replaced by a map: only a map file may."""
+    try:
+        descriptor = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except (OSError, ValueError):  # (ValueError: a path with a NUL byte)
+        return None
+    try:
+        with os.fdopen(descriptor, "rb") as stream:
+            if not stat.S_ISREG(os.fstat(stream.fileno()).st_mode):
+                return None  # a fifo or a device is never a map file (and reading one may block)
+            with zipfile.ZipFile(stream) as archive:
+                info = archive.getinfo("metadata.npy")
+                if info.file_size > _MAX_METADATA_BYTES:
+                    return None
+                with archive.open(info) as member:
+                    metadata = json.loads(np.lib.format.read_array(member, allow_pickle=False).tobytes().decode())
+                if not isinstance(metadata, dict) or metadata.get("format") != MAP_FORMAT:
+                    return None
+                with archive.open("voxel_index.npy") as member:
+                    version = np.lib.format.read_magic(member)
+                    read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                                   else np.lib.format.read_array_header_2_0)
+                    shape = read_header(member)[0]
+    except (OSError, ValueError, KeyError, EOFError, RuntimeError, zipfile.BadZipFile, NotImplementedError,
+            UnicodeDecodeError):
+        return None
+    return int(shape[0]) if len(shape) == 2 and shape[1] == 3 else None
 
 
 def read_map(path: str | Path, with_scan_log: bool = False) -> tuple[dict, np.ndarray, np.ndarray]:
