@@ -25,6 +25,8 @@ data_files = [
     ("share/" + package_name + "/config/kernels", _files("config/kernels/*.yaml")),
     ("share/" + package_name + "/config/traversability", _files("config/traversability/*.yaml")),
     ("share/" + package_name + "/config/dds", _files("config/dds/*.xml")),
+    # SROS2 policies (docs/security.md): `ros2 security create_permission` reads them from here.
+    ("share/" + package_name + "/config/security", _files("config/security/*.xml")),
 ]
 if _files("launch/*.launch.py"):
     # `ros2 launch convbki_ros mapper.launch.py` looks in share/convbki_ros/launch.

@@ -135,6 +135,23 @@ def init_rclpy(rclpy, args: list[str]) -> None:
         sys.stderr.write(held_back)
 
 
+def spin(rclpy, executor, node) -> None:
+    """``executor.spin()`` that outlives a failed callback: the node guards each of its own
+    (``convbki_ros.guard``); whatever still reaches the executor is logged and counted the same
+    way, and spinning goes on until the context shuts down (Ctrl-C, SIGTERM)."""
+    from rclpy.executors import ExternalShutdownException
+
+    while rclpy.ok():
+        try:
+            executor.spin_once()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            return
+        except Exception as error:
+            if not rclpy.ok():
+                return  # the context went down under the executor: a shutdown
+            node.guard.failed("the executor", error)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
     args = sys.argv[1:] if argv is None else list(argv)
@@ -143,6 +160,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_params_files(args)
         import rclpy
         from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
         use_large_data_profile()
         publish_asynchronously()  # a large map being sent must not stall the update thread
@@ -157,14 +175,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         # The executor exists before the node says "ready", so a Ctrl-C right after it lands in spin().
         executor = SingleThreadedExecutor()
-        node = MapperNode()
+        try:
+            node = MapperNode()
+        except (ValueError, KernelFileError, MapFileError, OSError) as error:  # StartupError is a ValueError
+            print(f"{PROG}: error: {error}", file=sys.stderr)
+            return 2
+        except _rclpy.RCLError as error:  # e.g. ROS_SECURITY_ENABLE with a DDS built without security
+            reason = " ".join(str(error).split()).split(", at ")[0]
+            print(f"{PROG}: error: ROS 2 could not create the node: {reason}", file=sys.stderr)
+            return 2
         executor.add_node(node)
-        executor.spin()
+        spin(rclpy, executor, node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ValueError, KernelFileError, MapFileError, OSError) as error:  # StartupError is a ValueError
-        print(f"{PROG}: error: {error}", file=sys.stderr)
-        return 2
     except Exception:
         # Ctrl-C shuts the context down from the signal handler; an executor that was just
         # building its wait set then fails with an RCLError. That is a shutdown, not a crash.

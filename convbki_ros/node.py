@@ -41,19 +41,20 @@ from std_srvs.srv import Trigger
 from convbki_core.compiled import kernel_cache
 from convbki_core.io.labels import load_label_map
 from convbki_core.outputs.records import packed_palette
-from convbki_ros.files.map_files import MapFiles, check_map_file_at_start, read_map_file_at_start
+from convbki_ros.files.map_files import MapFiles
+from convbki_ros.files.start import check_map_file_at_start, read_map_file_at_start
+from convbki_ros.guard import CallbackGuard
 from convbki_ros.inputs.cloud_decoding import decode_cloud
 from convbki_ros.mapping.corrections import CorrectionRunner
 from convbki_ros.outputs.cloud_encoding import encode_cloud
 from convbki_ros.outputs.publisher import MapOutputs
 from convbki_ros.outputs.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
+from convbki_ros.param_checks import check_box, check_choice, choice_problem
 from convbki_ros.params import (
+    MIN_AUTOSAVE_PERIOD,
     NODE_NAME,
     PARAMETERS,
     SPECS,
-    check_box,
-    check_choice,
-    choice_problem,
     declare,
     integers_as_doubles,
     optional,
@@ -75,7 +76,10 @@ class MapperNode(Node):
     """
 
     def __init__(self, **node_options):
+        # Before rclpy's Node builds its own parameter services, which come through create_service.
+        self.guard = CallbackGuard(None)
         super().__init__(NODE_NAME, **node_options)
+        self.guard.logger = self.get_logger()
         self.status = MapperStatus()
         # On simulated time a bag's /clock follows the stamps it plays: an arrival minus its stamp says nothing.
         self.status.odometry_delay_measured = not self.get_parameter("use_sim_time").value
@@ -83,14 +87,14 @@ class MapperNode(Node):
         self.label_map = load_label_map("semantic_kitti")
         self.palette = packed_palette(self.label_map.colors)
         settings = read_start_settings(self, self.label_map)
-        check_map_file_at_start(self)
+        write_folder = check_map_file_at_start(self)
         start_map = read_map_file_at_start(self)
         # The mapper (torch, compiled kernels) is loaded only once every parameter has passed: a
         # bad one is said at once, not after seconds of loading.
         from convbki_ros.mapping.mapping_thread import MappingCore
 
         self.core = MappingCore(self, settings, self.status, self.warnings, self.label_map)
-        self.files = MapFiles(self)
+        self.files = MapFiles(self, write_folder)
         self.files.load_at_start(start_map)
         self._warm_up()
 
@@ -108,10 +112,11 @@ class MapperNode(Node):
         self.outputs = MapOutputs(self)
         # A SLAM's optimised keyframes: the scans the map holds move where it now says they were.
         self.corrections = CorrectionRunner(self.core, self, self.warnings)
+        # Raw: a Path's pose count is checked before it is decoded (max_path_poses).
         self.create_subscription(Path, "pose_corrections", self.corrections.on_path,
                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
                                             durability=DurabilityPolicy.VOLATILE), callback_group=housekeeping,
-                                 event_callbacks=self._count_publishers("pose_corrections"))
+                                 event_callbacks=self._count_publishers("pose_corrections"), raw=True)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/save_map", self.files.on_save_map, callback_group=file_io)
         self.create_service(Trigger, "~/load_map", self.files.on_load_map, callback_group=file_io)
@@ -123,6 +128,7 @@ class MapperNode(Node):
         # Housekeeping runs on the steady clock: with use_sim_time the ROS clock stops when a bag
         # pauses or ends, and the map must still be published and the counters reported.
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._times_full = 0  # how often the map had filled when last said
         self._groups = {"housekeeping": housekeeping, "file_io": file_io}
         self._period_timers: dict[str, object] = {}
         self._timer_callbacks = {"publish_period": (lambda: self.outputs.request("cycle"), "housekeeping"),
@@ -133,10 +139,10 @@ class MapperNode(Node):
                                  "diagnostics_period": (self._publish_diagnostics, "housekeeping")}
         for name in self._timer_callbacks:
             self._restart_timer(name)
-        # Integers for number parameters at run time, as at start.
-        self.add_pre_set_parameters_callback(lambda parameters: [integers_as_doubles(p) for p in parameters])
-        self.add_on_set_parameters_callback(self._check_parameters)
-        self.add_post_set_parameters_callback(self._on_parameters_changed)
+        # Integers for number parameters at run time, as at start; paths taken inside map_folder.
+        self.add_pre_set_parameters_callback(self.guard.parameter_filter(self._prepare_parameters))
+        self.add_on_set_parameters_callback(self.guard.parameter_check(self._check_parameters))
+        self.add_post_set_parameters_callback(self.guard.call("applying parameters", self._on_parameters_changed))
 
         self.core.on_integrated = lambda: self.outputs.request("local")
         self.update_thread = threading.Thread(target=self.core.run, name="convbki_update", daemon=True)
@@ -153,6 +159,19 @@ class MapperNode(Node):
 
     def param(self, name: str):
         return self.get_parameter(name).value
+
+    # -- every callback guarded (convbki_ros.guard): no request or message ends the node ------------
+    def create_subscription(self, msg_type, topic, callback, *args, **kwargs):
+        return super().create_subscription(msg_type, topic, self.guard.call(f"a message on {topic}", callback),
+                                           *args, **kwargs)
+
+    def create_service(self, srv_type, srv_name, callback, *args, **kwargs):
+        return super().create_service(srv_type, srv_name, self.guard.service(f"service {srv_name}", callback),
+                                      *args, **kwargs)
+
+    def create_timer(self, timer_period_sec, callback, *args, **kwargs):
+        name = getattr(callback, "__qualname__", "")
+        return super().create_timer(timer_period_sec, self.guard.call(f"a timer ({name})", callback), *args, **kwargs)
 
     def _warm_up(self) -> None:
         """Every kernel mapping and its outputs run was compiled with the mapper; the node's own
@@ -198,11 +217,29 @@ class MapperNode(Node):
             self._period_timers[name] = self.create_timer(period, callback, clock=self._steady,
                                                    callback_group=self._groups[group])
 
+    def _prepare_parameters(self, parameters) -> list:
+        """Integers given for numbers become doubles; a relative map_file or ply_file is taken
+        inside map_folder (so ``ros2 param get`` shows the file written)."""
+        prepared = []
+        for parameter in map(integers_as_doubles, parameters):
+            if parameter.name in ("map_file", "ply_file") and isinstance(parameter.value, str) and parameter.value \
+                    and not parameter.value.startswith("/") and "\0" not in parameter.value:
+                from rclpy.parameter import Parameter
+
+                parameter = Parameter(parameter.name, Parameter.Type.STRING, self.files.folder.resolve(parameter.value))
+            prepared.append(parameter)
+        return prepared
+
     def _check_parameters(self, parameters) -> SetParametersResult:
         """Values that pass their type and range but cannot be used are refused with the reason."""
         for parameter in parameters:
-            if parameter.name == "map_file":
-                problem = self.files.check_new_path(parameter.value)
+            if parameter.name in ("map_file", "ply_file"):
+                problem = self.files.check_new_path(parameter.name, parameter.value)
+            elif parameter.name == "use_sim_time":  # rclpy's own: else a caller could hand the clock to /clock
+                problem = "use_sim_time is read at start only (--ros-args -p use_sim_time:=true)"
+            elif parameter.name == "autosave_period" and 0.0 < parameter.value < MIN_AUTOSAVE_PERIOD:
+                problem = f"parameter autosave_period: {parameter.value:g} s is too often: 0 (never) or at least " \
+                          f"{MIN_AUTOSAVE_PERIOD:g} s"
             elif parameter.name in ("clear_box_min", "clear_box_max"):
                 problem = check_box(parameter.name, parameter.value)
             elif parameter.name in SPECS and SPECS[parameter.name].choices:
@@ -238,20 +275,51 @@ class MapperNode(Node):
     def _publish_diagnostics(self) -> None:
         snapshot = self._snapshot()
         level, message = self.status.health(snapshot, self.param("odometry_timeout"))
-        saving = self.files.health()
-        if saving is not None:
-            saving_level, saving_message = saving
-            message = saving_message if level == OK else f"{message}; {saving_message}"
-            level = max(level, saving_level)
+        for extra in (self.files.health(), self._memory_health()):
+            if extra is not None:
+                extra_level, extra_message = extra
+                message = extra_message if level == OK else f"{message}; {extra_message}"
+                level = max(level, extra_level)
         status = DiagnosticStatus(level=LEVELS[level], name=f"{self.get_fully_qualified_name()}: mapping",
                                   message=message, hardware_id=self.core.frame,
                                   values=[KeyValue(key=k, value=v) for k, v in diagnostic_values(snapshot)])
         status.values.append(KeyValue(key="last_save", value=self.files.last_save or ""))
         status.values.append(KeyValue(key="queue_limit", value=str(self.param("cloud_queue_size"))))
         status.values.extend(KeyValue(key=k, value=v) for k, v in self.corrections.diagnostic_values())
+        status.values.extend(KeyValue(key=k, value=str(v)) for k, v in self._guard_values() + self._memory_values())
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_publisher.publish(array)
+
+    def _memory_health(self) -> tuple[int, str] | None:
+        """WARN while the map is full (max_map_megabytes): it stops growing; said once in the log
+        each time it fills."""
+        memory = self.core.mapper.memory_state()
+        self._times_full = min(self._times_full, memory.times_full)  # a reset starts the count again
+        if memory.times_full > self._times_full:
+            self._times_full = memory.times_full
+            self.get_logger().warning(
+                f"the map is full: {(memory.store_bytes + memory.lent_bytes) / 1e6:.0f} MB of voxels reached "
+                f"max_map_megabytes = {memory.budget_bytes / 1e6:g}; it stops growing (new ground that leaves the "
+                "window is forgotten) while mapping goes on in the window")
+        if not memory.full:
+            return None
+        return WARN, (f"map full (max_map_megabytes {memory.budget_bytes / 1e6:g}): {memory.voxels_dropped} voxels of "
+                      "new ground forgotten")
+
+    def _memory_values(self) -> list[tuple[str, object]]:
+        memory = self.core.mapper.memory_state()
+        return [("map_megabytes", f"{(memory.store_bytes + memory.lent_bytes) / 1e6:.1f}"),
+                ("map_budget_megabytes", f"{memory.budget_bytes / 1e6:g}"), ("map_full", str(memory.full).lower()),
+                ("map_voxels_dropped", memory.voxels_dropped)]
+
+    def _guard_values(self) -> list[tuple[str, object]]:
+        """What no input may exceed: failed callbacks, refused transforms, the folder files go to."""
+        errors = self.guard.errors
+        listener = getattr(self.core.tf, "listener", None)
+        return [("callback_errors", errors.count), ("callback_last_error", errors.last),
+                ("tf_refused", listener.skipped if listener is not None else 0),
+                ("map_folder", self.files.folder.describe())]
 
     # -- services -----------------------------------------------------------------------------
     def _on_reset(self, request, response):

@@ -15,12 +15,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
-from convbki_core.config import DEFAULTS, UPDATE_PATHS, MapperConfig
+from convbki_core.config import DEFAULTS, UPDATE_PATHS
 from convbki_core.io.kernel_file import KernelConfig
 
 NODE_NAME = "convbki_mapper"
+MIN_AUTOSAVE_PERIOD = 1.0  # seconds: a shorter period (other than 0, never) is refused
 KERNEL_DECIDES = ("num_classes", "resolution", "filter_size")  # defaults come from the kernel file
 NOT_SET = None  # default of an optional list parameter (declared typed, without a value)
 # Parameters every rclpy node declares or reads itself: never "unknown".
@@ -91,7 +90,7 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("view_radius", 30.0, "semantic_map/view holds the voxels within this horizontal distance of the sensor; "
          "metres", 0.5, 10000.0, run_time=True),
     Spec("view_max_points", 600_000, "at most this many voxels in semantic_map/view, the nearest first; count",
-         1, 100_000_000, run_time=True),
+         1, 100_000_000),
     Spec("free_space", DEFAULTS.free_space.enabled,
          "the rays between the sensor and its returns add evidence that the voxels they "
          "cross are empty, so moving objects leave no trail (the ground's surface stays); "
@@ -117,17 +116,25 @@ PARAMETERS: tuple[Spec, ...] = (
          choices=("reliable", "sensor_data")),
     Spec("map_file", "", "map file loaded at start when present, written by ~/save_map (the file it replaces is kept "
          "as <map_file>.prev) and read by ~/load_map; its folder is created at start, and one that cannot be "
-         "written is refused; \"\" = none; path", run_time=True),
-    Spec("autosave_period", 0.0, "save the map to map_file every this many seconds; 0.0 = never", 0.0, 1e6,
-         run_time=True),
+         "written is refused; at run time only a file in map_folder (a relative name is taken there), never a "
+         "file that is not a ConvBKI map file; \"\" = none; path", run_time=True),
+    Spec("map_folder", "", "the folder every file the node writes lies in (map_file, its .prev and kept maps, "
+         "ply_file, segment files); fixed at start: no service or parameter writes outside it, nor makes a "
+         "folder; \"\" = map_file's folder, else ply_file's, else no file is written on request; path"),
+    Spec("max_kept_maps", 5, "~/save_map after the map lost evidence (a reset, a forgotten box, another file) keeps "
+         "the map file it replaces as <map_file>.kept-<UTC time>; with this many kept already the save is refused "
+         "rather than lose one; count", 1, 1000),
+    Spec("autosave_period", 0.0, "save the map to map_file every this many seconds; 0.0 = never, else at least "
+         f"{MIN_AUTOSAVE_PERIOD:g} s", 0.0, 1e6, run_time=True),
     Spec("save_on_shutdown", True, "save the map to map_file when the node stops (SIGINT/SIGTERM); bool",
          run_time=True),
     Spec("clear_box_min", NOT_SET, "lower corner [x, y, z] of the box ~/clear_box forgets (voxels whose centre lies "
          "inside), in the map frame; metres", run_time=True),
     Spec("clear_box_max", NOT_SET, "upper corner [x, y, z] of the box ~/clear_box forgets, in the map frame; metres",
          run_time=True),
-    Spec("ply_file", "", "file written by ~/export_ply; \"\" = map_file with the suffix .ply, else "
-         "convbki_map.ply", run_time=True),
+    Spec("ply_file", "", "file written by ~/export_ply; \"\" = map_file with the suffix .ply, else convbki_map.ply in "
+         "map_folder; at run time only a file in map_folder, never a file that is not this node's PLY; path",
+         run_time=True),
     Spec("publish_local", True, "publish semantic_map/local (the window around the sensor) after updates; bool",
          run_time=True),
     Spec("local_period", 0.5, "shortest time between two semantic_map/local messages: after updates, the "
@@ -138,11 +145,11 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("costmap_size", 0.0, "edge of the square semantic_map/costmap rolling with the sensor; metres; 0.0 = the "
          "local window's footprint (local_bounds' x extent), and at most that", 0.0, 1e5),
     Spec("costmap_max_cells", 25_000_000, "~/get_costmap refuses (one line) a whole-map grid of more cells than this; "
-         "count", 1, 1_000_000_000, run_time=True),
+         "count", 1, 1_000_000_000),
     Spec("cloud_queue_size", 100, "clouds waiting to be integrated or for their odometry (10 s at 10 Hz); when "
-         "full the oldest is dropped; count", 1, 10000, run_time=True),
+         "full the oldest is dropped; count", 1, 10000),
     Spec("cloud_queue_megabytes", 1024.0, "bytes of cloud data the queue may hold; when full the oldest cloud is "
-         "dropped; megabytes (1e6 bytes); 0.0 = no limit but cloud_queue_size", 0.0, 1e6, run_time=True),
+         "dropped; megabytes (1e6 bytes); 0.0 = no limit but cloud_queue_size", 0.0, 1e6),
     Spec("pose_wait_timeout", 0.0, "how long a cloud waits for odometry covering its stamp before it is dropped, "
          "in the node's clock (the data's time under use_sim_time); seconds; 0.0 = as long as the queue has "
          "room for it", 0.0, 3600.0, run_time=True),
@@ -152,7 +159,14 @@ PARAMETERS: tuple[Spec, ...] = (
          "seconds", 0.05, 3600.0, run_time=True),
     Spec("max_points_per_cloud", 2_000_000,
          "clouds with more points (width * height) are dropped on arrival with a warning, before any decoding, "
-         "so that a runaway source cannot exhaust memory; count; 0 = no limit", 0, 1_000_000_000, run_time=True),
+         "so that a runaway source cannot exhaust memory; count; 0 = no limit", 0, 1_000_000_000),
+    Spec("max_cloud_megabytes", 256.0,
+         "clouds with more data than this are dropped on arrival with a warning, as are clouds whose data does not "
+         "match their header (row_step * height bytes); megabytes (1e6 bytes)", 0.001, 1e5),
+    Spec("max_map_megabytes", DEFAULTS.store.max_megabytes,
+         "the most memory the map's voxels away from the window may take: at this bound the map stops growing "
+         "(voxels of new ground that leave the window are forgotten, said on /diagnostics) while mapping goes on "
+         "in the window; megabytes (1e6 bytes); 0.0 = no bound", 0.0, 1e7),
     Spec("max_pose_jump", 10.0,
          "two consecutive odometry poses further apart than this are a break: warned, and clouds stamped between "
          "them are dropped rather than placed half way; after a gap in the odometry (over 10 of its periods and "
@@ -186,6 +200,8 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("scan_log_megabytes", DEFAULTS.scan_log.max_megabytes,
          "the most memory the log (and the map as it was where its segments begin) may take, and so what it "
          "adds to map_file; megabytes (1e6 bytes); 0.0 = no bound but scan_log_scans", 0.0, 1e7),
+    Spec("max_path_poses", 100_000,
+         "a Path on pose_corrections with more poses is refused before it is decoded; count", 1, 10_000_000),
     Spec("correction_tolerance", 0.05,
          "a Path on pose_corrections leaves a logged scan alone where it moves none of its points within the "
          "local window by this much or more (a fraction of a voxel); metres", 0.0, 1e3, run_time=True),
@@ -212,13 +228,14 @@ PARAMETER_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("Planner's costmap", (
         "costmap_profile", "costmap_size", "costmap_max_cells",)),
     ("Files and map edits", (
-        "map_file", "autosave_period", "save_on_shutdown", "refuse_bad_map_file", "map_file_mismatch", "ply_file",
-        "clear_box_min", "clear_box_max",)),
+        "map_file", "map_folder", "autosave_period", "save_on_shutdown", "refuse_bad_map_file", "map_file_mismatch",
+        "max_kept_maps", "ply_file", "clear_box_min", "clear_box_max",)),
     ("Queue and robustness (bad input never stops the node, and never changes the map)", (
-        "cloud_queue_size", "cloud_queue_megabytes", "max_points_per_cloud", "pose_wait_timeout", "max_pose_jump",
-        "on_pose_jump", "stamp_backwards_tolerance", "reset_on_stamp_backwards", "odometry_timeout",)),
+        "cloud_queue_size", "cloud_queue_megabytes", "max_points_per_cloud", "max_cloud_megabytes",
+        "max_map_megabytes", "pose_wait_timeout", "max_pose_jump", "on_pose_jump", "stamp_backwards_tolerance",
+        "reset_on_stamp_backwards", "odometry_timeout",)),
     ("SLAM corrections (a Path of optimised keyframe poses moves the scans the map holds)", (
-        "scan_log", "scan_log_scans", "scan_log_megabytes", "correction_tolerance",)),
+        "scan_log", "scan_log_scans", "scan_log_megabytes", "max_path_poses", "correction_tolerance",)),
     ("Logs and diagnostics", (
         "stats_period", "diagnostics_period",)),
 )
@@ -318,43 +335,6 @@ def kernel_defaults(config: KernelConfig) -> dict[str, object]:
             "filter_size": int(config.filter_size)}
 
 
-def choice_problem(name: str, value: str) -> str | None:
-    """Why ``value`` is not one of parameter ``name``'s choices (None when it is)."""
-    choices = SPECS[name].choices
-    return None if value in choices else f"parameter {name}: {value!r} is not one of {', '.join(choices)}"
-
-
-def check_choice(name: str, value: str) -> str:
-    problem = choice_problem(name, value)
-    if problem:
-        raise StartupError(problem)
-    return value
-
-
-def check_local_bounds(bounds) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    bounds = [float(v) for v in bounds]
-    if len(bounds) != 6:
-        raise StartupError(f"parameter local_bounds needs 6 numbers (min xyz, max xyz), got {len(bounds)}")
-    low, high = bounds[:3], bounds[3:]
-    if not all(np.isfinite(bounds)) or not all(a < b for a, b in zip(low, high, strict=True)):
-        raise StartupError(f"parameter local_bounds: each min must be below its max, got {bounds}")
-    return tuple(low), tuple(high)
-
-
-def config_from_node(node, label_map) -> MapperConfig:
-    """The mapper's configuration from the node's parameters: the one place where ROS
-    parameter names meet ``MapperConfig`` (checked values; the label map's classes)."""
-    return DEFAULTS.replace(
-        local_bounds=check_local_bounds(node.param("local_bounds")), prior=node.param("prior"),
-        resolution=node.param("resolution"), filter_size=node.param("filter_size"),
-        device=node.param("device"), update_path=node.param("update_path"), frame_id=node.param("map_frame") or "map",
-        ignore_classes=label_map.ignore_classes, movable_classes=label_map.movable_classes,
-        ground_classes=label_map.ground_classes, track_changes=True,
-        free_space=node.param("free_space"), max_concentration=node.param("max_concentration"),
-        forget_movers=node.param("forget_movers"), scan_log=node.param("scan_log"),
-        scan_log_scans=node.param("scan_log_scans"), scan_log_megabytes=node.param("scan_log_megabytes"))
-
-
 def optional(node, name: str):
     """The value of an optional parameter (declared without a default), None while unset."""
     from rclpy.exceptions import ParameterUninitializedException
@@ -363,28 +343,3 @@ def optional(node, name: str):
         return node.get_parameter(name).value
     except ParameterUninitializedException:
         return None
-
-
-def check_box(name: str, values) -> str | None:
-    """Why ``values`` is not a box corner [x, y, z] (finite, metres); None when it is."""
-    values = list(values)
-    if len(values) != 3 or not all(np.isfinite(values)):
-        return f"parameter {name} needs 3 finite numbers [x, y, z], got {values}"
-    return None
-
-
-def check_mount(values) -> np.ndarray | None:
-    """``base_to_sensor`` as a 4x4 pose (child frame <- cloud frame), None when unset."""
-    if values is None:
-        return None
-    from convbki_core.geometry.poses import pose_from_translation_quaternion
-    from convbki_ros.inputs.pose_buffer import pose_problem
-
-    values = [float(v) for v in values]
-    if len(values) != 7:
-        raise StartupError(f"parameter base_to_sensor needs 7 numbers [x, y, z, qx, qy, qz, qw], got {len(values)}")
-    problem = pose_problem(values[:3], values[3:])
-    if problem:
-        raise StartupError(f"parameter base_to_sensor: {problem}")
-    quaternion = np.asarray(values[3:]) / np.linalg.norm(values[3:])
-    return pose_from_translation_quaternion(values[:3], quaternion)

@@ -13,19 +13,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.config import MapperConfig
+from convbki_core.config import DEFAULTS, MapperConfig
 from convbki_core.costmap.profile import TraversabilityProfile
 from convbki_core.io.kernel_file import KernelConfig, load_kernel_file
 from convbki_core.paths import kernel_path
 from convbki_ros.outputs.costmap import profile_of
+from convbki_ros.param_checks import check_choice, check_local_bounds, check_mount
 from convbki_ros.params import (
     KERNEL_DECIDES,
+    MIN_AUTOSAVE_PERIOD,
     REPLACED,
     SPECS,
     StartupError,
-    check_choice,
-    check_mount,
-    config_from_node,
     declare,
     explicitly_set,
     kernel_defaults,
@@ -81,5 +80,24 @@ def read_start_settings(node, label_map) -> StartSettings:
     if pose_source == "tf" and not map_frame:
         raise StartupError("pose_source tf needs map_frame: the frame TF gives each cloud's pose in (e.g. map)")
     mount = check_mount(optional(node, "base_to_sensor"))
+    autosave = node.param("autosave_period")
+    if 0.0 < autosave < MIN_AUTOSAVE_PERIOD:
+        raise StartupError(f"parameter autosave_period: {autosave:g} s is too often: 0 (never) or at least "
+                           f"{MIN_AUTOSAVE_PERIOD:g} s")
     return StartSettings(kernel_file, kernel, mapper, pose_source, map_frame, mount,
                          profile_of(node, label_map.class_names))
+
+
+def config_from_node(node, label_map) -> MapperConfig:
+    """The mapper's configuration from the node's parameters: the one place where ROS
+    parameter names meet ``MapperConfig`` (checked values; the label map's classes)."""
+    return DEFAULTS.replace(
+        local_bounds=check_local_bounds(node.param("local_bounds")), prior=node.param("prior"),
+        resolution=node.param("resolution"), filter_size=node.param("filter_size"),
+        device=node.param("device"), update_path=node.param("update_path"), frame_id=node.param("map_frame") or "map",
+        ignore_classes=label_map.ignore_classes, movable_classes=label_map.movable_classes,
+        ground_classes=label_map.ground_classes, track_changes=True,
+        free_space=node.param("free_space"), max_concentration=node.param("max_concentration"),
+        forget_movers=node.param("forget_movers"), scan_log=node.param("scan_log"),
+        scan_log_scans=node.param("scan_log_scans"), scan_log_megabytes=node.param("scan_log_megabytes"),
+        max_map_megabytes=node.param("max_map_megabytes"))

@@ -2,6 +2,7 @@
 process and talks to it over DDS (publishes clouds and odometry, reads /semantic_map and
 /diagnostics, calls its services)."""
 
+import os
 import re
 import signal
 from dataclasses import dataclass
@@ -133,11 +134,14 @@ class Rig:
             self.map_file.parent.mkdir(parents=True, exist_ok=True)
         self.domain = domain = domain_id()
         remap = ("-r", f"__ns:={namespace}") if namespace else ()
+        # The node writes only inside map_folder: the rig's folder holds the maps folder and the PLY.
+        self.map_folder = Path(os.path.commonpath([self.map_file.parent, folder]))
         self.process = start("convbki_ros.main", domain, "--ros-args", *remap, "-p", f"local_bounds:={BOUNDS}",
                              "-p", "device:=cpu", "-p", "publish_period:=0.2", "-p", "map_period:=0.2",
                              "-p", f"diagnostics_period:={diagnostics_period}",
                              "-p", "pose_wait_timeout:=1.5", "-p", f"map_file:={self.map_file}",
-                             "-p", f"ply_file:={folder / 'shown.ply'}", *parameters,
+                             "-p", f"ply_file:={folder / 'shown.ply'}", "-p", f"map_folder:={self.map_folder}",
+                             *parameters,
                              prefix=prefix)
         self.log = NodeLog(self.process)
         self.probe = Probe(domain)

@@ -1,11 +1,14 @@
 """The node's files: the map loaded at start or on request, saved on request, on a timer and at
-shutdown, and exported as PLY.
+shutdown, and exported as PLY. What happens at start is ``files.start``; where the node may
+write, and which files it may replace, ``files.folder`` (``map_folder``, fixed at start).
 
 Nothing a user saved is lost:
 
 * ``map_file``'s folder is made (or refused, exit code 2) and written to once at start, so a
   folder that does not exist, is read-only or sits on a full disk is found before a whole
   session's map depends on it;
+* a request writes only the node's own files, in ``map_folder``: never through a link, never
+  over another program's file (``WriteFolder.problem``, checked at every write);
 * every save is atomic (a temporary file, fsync, rename) and keeps the file it replaces as
   ``<map_file>.prev``; the temporary files of saves that were killed are removed at start;
 * a ``map_file`` that cannot be read, or (with ``map_file_mismatch`` set_aside) holds a map of
@@ -14,7 +17,9 @@ Nothing a user saved is lost:
   another file; by default a map of another set-up stops the start (exit code 2);
 * a save the user did not ask for (autosave, shutdown) never replaces the file with a map
   that lost evidence the file holds: after a reset, a forgotten box, or a ``map_file`` set to
-  a file this map did not come from, the file is kept until ``~/save_map`` writes there;
+  a file this map did not come from, the file is kept until ``~/save_map`` writes there, and
+  then, if it holds voxels, it is first moved to ``<map_file>.kept-<UTC time>`` (at most
+  ``max_kept_maps`` of them; a save that would need one more is refused);
 * a save that fails is an ERROR on ``/diagnostics`` until one succeeds, and at shutdown an
   error line and a non-zero exit code.
 
@@ -27,40 +32,26 @@ executor goes on taking clouds and odometry while a large file is written or rea
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 
 from rclpy.task import Future
 
-from convbki_core.io.atomic import previous_path, remove_stale_temp_files, set_aside
-from convbki_core.io.map_file import MapFileError, MapSetupError, SetupDifference, read_map, setup_differences
+from convbki_core.io.atomic import previous_path, set_aside
+from convbki_core.io.map_file import MapFileError, MapSetupError, map_file_voxels
 from convbki_core.io.ply import write_voxels_ply
+from convbki_ros.files.folder import KEPT, NEW_FILE_MODE, FileKind, WriteFolder, check_map_folder, kept_maps
+from convbki_ros.files.start import OTHER_SETUP, UNREADABLE, StartMap, other_setup, refusal, ways_out
 from convbki_ros.outputs.status import ERROR, WARN
 from convbki_ros.params import StartupError
 
+MAX_SEGMENTS = 1000  # segment files on_pose_jump new_file makes of one map_file, at most
 
-def check_map_folder(path: str) -> str | None:
-    """Make ``path``'s folder if it is missing and write a file in it; the reason it cannot be
-    used (None when it can)."""
-    target = Path(path)
-    if target.is_dir():
-        return f"map_file {path} is a folder, not a file"
-    folder = target.parent
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        return f"map_file {path}: its folder cannot be made ({error.strerror or error})"
-    try:  # a byte written and synced: a read-only folder and a full disk both fail here
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{target.name}.probe-") as probe:
-            probe.write(b"\0")
-            probe.flush()
-            os.fsync(probe.fileno())
-    except OSError as error:
-        return f"map_file {path}: its folder {folder} cannot be written ({error.strerror or error})"
-    return None
+
+def segment_number(path: str) -> int:
+    """N of a ``<stem>.segment-N<suffix>`` path (1 for any other)."""
+    _, sep, tail = Path(path).stem.rpartition(".segment-")
+    return int(tail) if sep and tail.isdigit() else 1
 
 
 def next_segment_path(path: str, taken: set[str] = frozenset()) -> str:
@@ -78,118 +69,15 @@ def next_segment_path(path: str, taken: set[str] = frozenset()) -> str:
         number += 1
 
 
-def check_map_file_at_start(node) -> None:
-    """``map_file``'s folder exists (made when missing) and can be written, else ``StartupError``.
-    A node that never saves by itself (no autosave, no save on shutdown) only warns. Called
-    before the mapper is built, so that a folder that cannot be written is said at once."""
-    path = node.param("map_file")
-    if not path:
-        return
-    existed = Path(path).parent.is_dir()
-    problem = check_map_folder(path)
-    saves_by_itself = node.param("save_on_shutdown") or node.param("autosave_period") > 0
-    if problem and saves_by_itself:
-        raise StartupError(f"{problem}: this session's map could not be saved (choose another map_file, or set "
-                           "save_on_shutdown false and autosave_period 0 to only read it)")
-    if problem:
-        node.get_logger().warning(f"{problem}: ~/save_map will fail")
-    elif not existed:
-        node.get_logger().info(f"made the folder {Path(path).parent} for map_file")
-    _remove_killed_saves(node, path)
-    _warn_if_no_room(node, path)
-
-
-def _remove_killed_saves(node, path: str) -> None:
-    """Remove the temporary files that saves of map_file (and of its ``.prev``) left when they
-    were killed: only this node's own kind (``.NAME.PID.HOST.RANDOM.tmp``), of processes that
-    are gone. Nothing of this process can be mid-save yet, so its own id counts as gone too."""
-    removed = remove_stale_temp_files(path, own_too=True) + remove_stale_temp_files(previous_path(path), own_too=True)
-    if removed:
-        names = ", ".join(file.name for file, _ in removed)
-        megabytes = sum(size for _, size in removed) / 1e6
-        node.get_logger().info(f"removed {len(removed)} temporary file(s) of killed saves beside map_file "
-                               f"({megabytes:.1f} MB): {names}")
-
-
-def _warn_if_no_room(node, path: str) -> None:
-    """Say so when the disk holds less free space than the map already saved there needs."""
-    try:
-        size = Path(path).stat().st_size
-        free = shutil.disk_usage(Path(path).parent).free
-    except OSError:
-        return
-    if free < size:
-        node.get_logger().warning(f"map_file {path}: {free / 1e6:.1f} MB free on its disk, less than the "
-                                  f"{size / 1e6:.1f} MB of the map there: a save is likely to fail")
-
-
-# What a map file moved aside is named after: why it could not be loaded.
-UNREADABLE, OTHER_SETUP = "unreadable", "other-setup"
-# The parameter that makes a difference of set-up go away, by what differs.
-MATCHING_PARAMETER = {"resolution": "resolution", "num_classes": "num_classes", "prior": "prior",
-                      "frame_id": "map_frame"}
-
-
-@dataclass(frozen=True)
-class StartMap:
-    """``map_file`` as read at start, before the mapper is built: what ``read_map`` gave, or the
-    one-line reason it cannot be loaded."""
-
-    path: str
-    contents: tuple | None  # (metadata, indices, alpha)
-    error: MapFileError | None = None
-
-
-def read_map_file_at_start(node) -> StartMap | None:
-    """Read ``map_file`` (None when there is none) and check that it fits the node's set-up,
-    before the mapper is built, so that a refusal comes at once rather than after seconds of
-    compiling. A file that cannot be read is refused under ``refuse_bad_map_file``; a map of
-    another set-up (resolution, classes, prior, map_frame) is refused unless
-    ``map_file_mismatch`` is set_aside. Otherwise the reason is kept for ``load_at_start``."""
-    path = node.param("map_file")
-    if not path or not Path(path).exists():
-        return None
-    try:
-        contents = read_map(path, with_scan_log=True)
-    except MapFileError as error:
-        if node.param("refuse_bad_map_file"):
-            raise refusal(error) from None
-        return StartMap(path, None, error)
-    differences = setup_differences(contents[0], node.param("resolution"), node.param("num_classes"),
-                                    node.param("prior"), node.param("map_frame") or None)
-    if differences:
-        error = MapSetupError(other_setup(path, differences), differences)
-        if node.param("map_file_mismatch") == "refuse":
-            raise StartupError(f"{error}; {ways_out(differences)}")
-        return StartMap(path, None, error)
-    return StartMap(path, contents)
-
-
-def other_setup(path: str, differences: list[SetupDifference]) -> str:
-    """A map file of another set-up, in words."""
-    return f"map_file {path} holds a map of another set-up ({'; '.join(d.words() for d in differences)})"
-
-
-def ways_out(differences: list[SetupDifference]) -> str:
-    """The two ways to start with a map file of another set-up: parameters that match it, or
-    another map_file."""
-    matching = " ".join(f"-p {MATCHING_PARAMETER[d.what]}:={d.in_file}" for d in differences)
-    kernel = " (and a kernel_file of as many classes)" if any(d.what == "num_classes" for d in differences) else ""
-    return (f"to load it, start with {matching}{kernel}; to start a new map, set map_file to another file "
-            "(or map_file_mismatch:=set_aside: an empty map, and this file moved aside at the first save)")
-
-
-def refusal(error: MapFileError) -> MapFileError:
-    """The start-up error of a map file that cannot be used under ``refuse_bad_map_file``."""
-    return MapFileError(f"{error} (refuse_bad_map_file is true: not starting)")
-
-
+DEFAULT_PLY = "convbki_map.ply"  # ~/export_ply's file in map_folder when neither ply_file nor map_file is set
 class MapFiles:
-    """Load, save and export for ``MapperNode`` (whose ``core`` holds the map and its lock)."""
+    """Load, save and export for ``MapperNode`` (whose ``core`` holds the map and its lock), in
+    the ``folder`` fixed at start."""
 
-    def __init__(self, node):
+    def __init__(self, node, folder: WriteFolder):
         self.node = node
         self.core = node.core
+        self.folder = folder
         self.saved_version: int | None = 0  # map_version at the last save or load of map_file (None: never)
         # core.lineage when the map last was what map_file holds (saved or loaded); None: never.
         # While it differs, the map may lack evidence the file holds, and only ~/save_map writes there.
@@ -277,26 +165,57 @@ class MapFiles:
             return False, "map_file parameter is empty: nowhere to save"
         if not requested and self.file_may_hold_more():
             return True, f"kept {path} as it is: {self.kept_reason()}"
+        kept_note = ""
         try:
             if self.to_set_aside is not None and self.to_set_aside[0] == path and os.path.lexists(path):
-                why = self.to_set_aside[1]
+                why = self.to_set_aside[1]  # the file named at start: moved to a name of its own, not replaced
                 kept = set_aside(path, why)
                 what = "the unreadable map file" if why == UNREADABLE else "the map file of another set-up"
                 self.node.get_logger().warning(f"moved {what} {path} to {kept}")
             self.to_set_aside = None
+            problem = self.folder.problem(path, FileKind.MAP)
+            if problem:
+                return self._failed_save(f"could not save {path}: {problem}")
+            if self.file_may_hold_more():
+                refused, kept_note = self._keep_the_file()
+                if refused:
+                    return self._failed_save(refused)
             replaces = os.path.lexists(path)
             with self.core.map_lock:
                 snapshot = self.core.mapper.snapshot()
                 version, lineage = self.core.map_version, self.core.lineage
-            snapshot.write(path)
+            snapshot.write(path, new_mode=NEW_FILE_MODE)
         except (OSError, ValueError) as error:
-            message = f"could not save {path}: {getattr(error, 'strerror', None) or error}"
-            self.save_error = self.last_save = message
-            return False, message
+            return self._failed_save(f"could not save {path}: {getattr(error, 'strerror', None) or error}")
         self.saved_version, self.lineage_in_file, self.save_error = version, lineage, None
         kept = f" (the file before kept as {previous_path(path).name})" if replaces else ""
-        self.last_save = f"saved {len(snapshot)} voxels to {path}{kept}"
+        self.last_save = f"saved {len(snapshot)} voxels to {path}{kept}{kept_note}"
         return True, self.last_save
+
+    def _failed_save(self, message: str) -> tuple[bool, str]:
+        self.save_error = self.last_save = message
+        return False, message
+
+    def _keep_the_file(self) -> tuple[str | None, str]:
+        """map_file holds evidence the map lacks and is about to be replaced: a map file with
+        voxels is moved to ``<map_file>.kept-<UTC time>`` first, so that no number of saves after
+        a reset or a forgotten box loses the last map that held them. (a refusal or None, a note
+        for the save's line)."""
+        path = self.path
+        voxels = map_file_voxels(path)
+        if not voxels:
+            return None, ""  # an empty map (or none): nothing to lose
+        limit = int(self.node.param("max_kept_maps"))
+        kept = kept_maps(path)
+        if len(kept) >= limit:
+            why = (f"evidence this map no longer has ({self.core.forgotten_by})" if self.lineage_in_file is not None
+                   else "a map this one did not come from")
+            names = ", ".join(k.name for k in kept[:3]) + (", ..." if len(kept) > 3 else "")
+            return (f"not saved: {path} holds {voxels} voxels of {why}, and {len(kept)} earlier maps are kept beside "
+                    f"it already (max_kept_maps = {limit}): move some of them ({names}) away first"), ""
+        moved = set_aside(path, KEPT)
+        self.lineage_in_file = self.core.lineage  # the file is out of the way: nothing of it can be lost now
+        return None, f"; the map it held ({voxels} voxels) is kept as {moved.name}"
 
     def kept_reason(self) -> str:
         why = ("this map was neither loaded from it nor saved to it" if self.lineage_in_file is None else
@@ -348,6 +267,10 @@ class MapFiles:
         path = self.path
         old = path if not self.file_may_hold_more() else next_segment_path(path)
         new = next_segment_path(path, taken={old})
+        if segment_number(new) > MAX_SEGMENTS:
+            return (f"map kept: {MAX_SEGMENTS} segment files of {Path(path).name} exist already, the most "
+                    "on_pose_jump new_file makes (a source of odometry jumps must not fill the disk); the scans after "
+                    "the jump are added where the odometry now says")
         _, snapshot = self.core.take_and_reset(f"a new segment at {where}", keep=True)
         self._file_thread.submit(self._write_segment, snapshot, old)
         # Through the parameter (its checks and callbacks), so ros2 param get shows the file in use.
@@ -361,8 +284,11 @@ class MapFiles:
                f"segment, saved to {new} (map_file is now {new})"
 
     def _write_segment(self, snapshot, path: str) -> None:
+        problem = self.folder.problem(path, FileKind.MAP)
         try:
-            snapshot.write(path)
+            if problem:
+                raise ValueError(problem)
+            snapshot.write(path, new_mode=NEW_FILE_MODE)
         except (OSError, ValueError) as error:
             self.save_error = self.last_save = f"could not save the segment to {path}: " \
                                                f"{getattr(error, 'strerror', None) or error}"
@@ -372,9 +298,17 @@ class MapFiles:
         self._log_outcome(True, self.last_save)
 
     # -- map_file at run time ----------------------------------------------------------------------
-    def check_new_path(self, path: str) -> str | None:
-        """Why ``path`` cannot become map_file (None when it can): its folder must be writable."""
-        return check_map_folder(path) if path else None
+    def check_new_path(self, name: str, path: str) -> str | None:
+        """Why ``path`` cannot become parameter ``name`` (map_file or ply_file) at run time (None when
+        it can): a file of the node's own kind in map_folder, in a folder that exists and can be
+        written (no folder is made on request)."""
+        if not path:
+            return None
+        kind = FileKind.MAP if name == "map_file" else FileKind.PLY
+        problem = self.folder.problem(path, kind)
+        if problem:
+            return f"{name} {path}: {problem}"
+        return check_map_folder(path, make=False) if kind is FileKind.MAP else None
 
     def path_changed(self) -> None:
         """map_file now names another file: the map is not what it holds (if it exists)."""
@@ -406,16 +340,27 @@ class MapFiles:
         self._log_outcome(response.success, response.message)
         return response
 
-    def _export_ply(self) -> tuple[bool, str]:
+    def ply_path(self) -> str:
+        """Where ~/export_ply writes: ply_file, else map_file with the suffix .ply, else
+        convbki_map.ply in map_folder ("" when there is no folder)."""
         path = self.node.param("ply_file")
-        if not path:
-            map_file = self.path
-            path = str(Path(map_file).with_suffix(".ply")) if map_file else "convbki_map.ply"
+        if path:
+            return path
+        if self.path:
+            return str(Path(self.path).with_suffix(".ply"))
+        return os.path.join(self.folder.root, DEFAULT_PLY) if self.folder.root else ""
+
+    def _export_ply(self) -> tuple[bool, str]:
+        path = self.ply_path()
+        problem = self.folder.problem(path, FileKind.PLY)
+        if problem:
+            return False, f"could not write {path or 'a PLY file'}: {problem}"
         try:
             with self.core.map_lock:
                 indices, alpha = self.core.mapper.items()
             voxels = self.core.mapper.voxel_set(indices, alpha)
-            count = write_voxels_ply(voxels, path, max_variance=self.node.param("max_variance") or None)
+            count = write_voxels_ply(voxels, path, max_variance=self.node.param("max_variance") or None,
+                                     new_mode=NEW_FILE_MODE)
         except OSError as error:
             return False, f"could not write {path}: {error.strerror or error}"
         return True, f"wrote {count} voxels to {path}"

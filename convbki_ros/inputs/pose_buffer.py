@@ -40,6 +40,10 @@ QUATERNION_NORM_TOLERANCE = 1e-2
 OUTAGE_PERIODS = 10
 OUTAGE_MIN_S = 1.0
 RATE_HISTORY = 50  # recent stamp gaps the usual period is taken from
+# Poses kept at most, beside the time they cover: a source sending odometry stamped a nanosecond
+# apart (anyone on the domain can) must not grow the history without bound. 1 kHz over the
+# history's 30 s fits.
+MAX_POSES = 50_000
 
 
 class PoseStatus(Enum):
@@ -92,7 +96,8 @@ def pose_problem(position: np.ndarray, orientation: np.ndarray,
 
 
 class OdometryBuffer:
-    """Poses (map <- child frame) by stamp, covering the last ``history_ns`` nanoseconds.
+    """Poses (map <- child frame) by stamp, covering the last ``history_ns`` nanoseconds (at most
+    ``MAX_POSES`` of them, the newest).
 
     ``tolerance_ns``: a cloud up to this much newer than the latest odometry uses the latest
     pose rather than waiting (sensor and odometry clocks are rarely within a nanosecond).
@@ -167,6 +172,8 @@ class OdometryBuffer:
             gap = self._stamps[position] - self._stamps[position - 1]
             found = PoseBreak(self._distance(position - 1, position), gap / 1e9, self._is_outage(position))
         self.drop_before(self._stamps[-1] - self.history_ns)
+        if len(self._stamps) > MAX_POSES:
+            self.drop_before(self._stamps[len(self._stamps) - MAX_POSES])
         return found
 
     def drop_before(self, stamp_ns: int) -> None:

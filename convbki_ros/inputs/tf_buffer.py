@@ -1,11 +1,12 @@
-"""A TF buffer in numpy: the project's stand-in for tf2_ros.Buffer where tf2_ros is not installed.
+"""A TF buffer in numpy: the node's own stand-in for tf2_ros.Buffer, bounded by count.
 
 The mapper needs the pose of a cloud's frame in the map frame at the cloud's stamp, and the
 tree of frames that gives it is published on ``/tf`` (moving joints, odometry) and
 ``/tf_static`` (mounts). tf2_ros is part of a full ROS 2 install but not of the pip wheels
 this project also runs from; ``tf2_msgs`` (the message type) is much lighter. So
-``TransformBuffer`` keeps the tree itself and ``make_tf_lookup`` picks tf2_ros when it is
-importable, this buffer otherwise.
+``TransformBuffer`` keeps the tree itself, in every install: tf2's buffer is bounded by time
+alone, and since anyone on the domain can publish /tf, this one is bounded by count as well
+(``MAX_FRAMES``, ``MAX_RECORDS``, ``MAX_FRAME_ID_LENGTH``).
 
 Conventions are those of ``transforms``: a pose is a 4x4 matrix ``parent <- child``, stamps
 are integer nanoseconds. ``lookup(target, source)`` is ``target <- source`` (what tf2's
@@ -52,9 +53,15 @@ import numpy as np
 
 from convbki_core.geometry.poses import interpolate_pose, pose_from_translation_quaternion
 from convbki_ros.inputs.pose_buffer import pose_problem
-from convbki_ros.inputs.transforms import stamp_to_ns, transform_to_pose
+from convbki_ros.inputs.transforms import stamp_to_ns
 
 MAX_GRAPH_DEPTH = 100  # parents walked above a frame before giving up (tf2 uses the same bound)
+# Bounds by count, beside the time the cache covers: anyone on the domain can publish /tf, and a
+# flood of frames or of records stamped a nanosecond apart must not exhaust the node's memory.
+MAX_FRAMES = 1000  # child frames kept; transforms for more are refused
+MAX_RECORDS = 100_000  # dynamic records over all frames; each frame keeps its share of them, newest first
+MIN_RECORDS_PER_FRAME = 100  # what a frame keeps however many frames share the records
+MAX_FRAME_ID_LENGTH = 256  # characters; a longer frame id is refused
 RIGID_TOLERANCE = 1e-6  # how far R^T R may be from I in a pose passed to add()
 TF_QUEUE_DEPTH = 100  # the history depth tf2_ros's listener subscribes with
 SKIP_WARNING_PERIOD_S = 10.0  # at most one warning this often about skipped transforms
@@ -92,6 +99,9 @@ def _frame_id(name: Any, role: str) -> str:
     frame = str(name).lstrip("/")
     if not frame:
         raise InvalidTransformError(f"the {role} frame id is empty")
+    if len(frame) > MAX_FRAME_ID_LENGTH:
+        raise InvalidTransformError(f"the {role} frame id is {len(frame)} characters long, more than "
+                                    f"{MAX_FRAME_ID_LENGTH}")
     return frame
 
 
@@ -139,7 +149,9 @@ class _Edge:
         self.poses.clear()
         self.static_parent, self.static_pose = parent, pose
 
-    def insert(self, stamp: int, parent: str, pose: np.ndarray, cache_ns: int) -> None:
+    def insert(self, stamp: int, parent: str, pose: np.ndarray, cache_ns: int, keep: int) -> None:
+        """Add a record (a repeated stamp replaces), then forget those older than ``cache_ns``
+        behind the newest and all but the newest ``keep``."""
         self.static_parent = self.static_pose = None
         position = bisect.bisect_left(self.stamps, stamp)
         if position < len(self.stamps) and self.stamps[position] == stamp:
@@ -148,8 +160,8 @@ class _Edge:
             self.stamps.insert(position, stamp)
             self.parents.insert(position, parent)
             self.poses.insert(position, pose)
-        cut = bisect.bisect_left(self.stamps, self.stamps[-1] - cache_ns)
-        if cut:
+        cut = max(bisect.bisect_left(self.stamps, self.stamps[-1] - cache_ns), len(self.stamps) - keep)
+        if cut > 0:
             del self.stamps[:cut], self.parents[:cut], self.poses[:cut]
 
     @property
@@ -193,7 +205,9 @@ class _Edge:
 class TransformBuffer:
     """TF's tree of frames over the last ``cache_seconds``, looked up at any stamp in it (see the module's docstring).
 
-    Thread-safe: a listener's callbacks may add while another thread looks up.
+    Thread-safe: a listener's callbacks may add while another thread looks up. Bounded by count
+    too: at most ``MAX_FRAMES`` child frames, and ``MAX_RECORDS`` dynamic records shared among them
+    (each frame keeps at least ``MIN_RECORDS_PER_FRAME``, its newest).
     """
 
     def __init__(self, cache_seconds: float = 10.0):
@@ -221,12 +235,19 @@ class TransformBuffer:
         with self._lock:
             edge = self._edges.get(child)
             if edge is None:
+                if len(self._edges) >= MAX_FRAMES:
+                    raise InvalidTransformError(f"transform '{parent}' -> '{child}': {MAX_FRAMES} frames are known "
+                                                "already, the most this buffer keeps")
                 edge = self._edges[child] = _Edge(child)
             if static:
                 edge.set_static(parent, pose)
             else:
-                edge.insert(stamp, parent, pose, self.cache_ns)
+                share = max(MIN_RECORDS_PER_FRAME, MAX_RECORDS // len(self._edges))
+                edge.insert(stamp, parent, pose, self.cache_ns, share)
             self._known.update((parent, child))
+            if len(self._known) > 2 * MAX_FRAMES:  # parents no record names any more are forgotten
+                self._known = set(self._edges).union(
+                    *({e.static_parent} if e.is_static else set(e.parents) for e in self._edges.values()))
 
     def add_message(self, tf_message: Any, static: bool = False) -> list[str]:
         """Keep every transform of a tf2_msgs/TFMessage (anything with ``.transforms`` of TransformStamped).
@@ -421,62 +442,16 @@ class BufferLookup:
         return self.buffer.can_transform(target_frame, source_frame, stamp_ns)
 
 
-class Tf2Lookup:
-    """tf2_ros.Buffer and tf2_ros.TransformListener behind the same ``lookup`` / ``can_transform``.
-
-    tf2_ros's calls take an rclpy Time (``Time()`` = latest) and return a TransformStamped;
-    here stamps are int ns and poses 4x4, and tf2's exceptions become TransformError with
-    tf2's own message. The buffer is made without a node: with one it would also offer a
-    ``tf2_frames`` service on the node, which the mapper has no use for.
-    """
-
-    def __init__(self, node: Any, cache_seconds: float):
-        import tf2_ros
-        from rclpy.duration import Duration
-
-        self._tf2 = tf2_ros
-        self.buffer = tf2_ros.Buffer(cache_time=Duration(nanoseconds=round(float(cache_seconds) * 1e9)))
-        self.listener = tf2_ros.TransformListener(self.buffer, node, spin_thread=False)
-
-    @staticmethod
-    def _time(stamp_ns: Any) -> Any:
-        from rclpy.time import Time
-
-        return Time(nanoseconds=0 if stamp_ns is None else stamp_to_ns(stamp_ns))
-
-    def lookup(self, target_frame: str, source_frame: str, stamp_ns: Any = None) -> np.ndarray:
-        try:
-            transform = self.buffer.lookup_transform(target_frame, source_frame, self._time(stamp_ns))
-        except self._tf2.TransformException as error:
-            raise TransformError(f"no transform '{target_frame}' <- '{source_frame}': "
-                                 f"{error.__class__.__name__}: {error}") from error
-        return transform_to_pose(transform)
-
-    def can_transform(self, target_frame: str, source_frame: str, stamp_ns: Any = None) -> tuple[bool, str | None]:
-        try:
-            possible, why = self.buffer.can_transform(target_frame, source_frame, self._time(stamp_ns),
-                                                      return_debug_tuple=True)
-        except self._tf2.TransformException as error:
-            return False, f"{error.__class__.__name__}: {error}"
-        return bool(possible), None if possible else (why or "tf2 gave no reason")
-
-
-def make_tf_lookup(node: Any, cache_seconds: float = 10.0) -> tuple[Tf2Lookup | BufferLookup | None, str]:
+def make_tf_lookup(node: Any, cache_seconds: float = 10.0) -> tuple[BufferLookup | None, str]:
     """TF for ``node``: (a lookup, which backend it is) or (None, why there is none).
 
-    tf2_ros when it is importable (a ROS 2 install); else this module's TransformBuffer and
-    TransformListener, which need only tf2_msgs; else None, since nothing can receive /tf.
+    This module's TransformBuffer and TransformListener, which need only tf2_msgs, in every
+    install: tf2_ros's buffer, where a ROS 2 install has it, is bounded by time alone, and anyone
+    on the domain can publish /tf. None where tf2_msgs is missing, since nothing can receive /tf.
     """
-    try:
-        import tf2_ros  # noqa: F401
-    except ImportError as error:
-        tf2_ros_missing = str(error)
-    else:
-        return Tf2Lookup(node, cache_seconds), "tf2_ros.Buffer"
     buffer = TransformBuffer(cache_seconds)
     try:
         listener = TransformListener(node, buffer)
     except ImportError as error:
-        return None, (f"tf2_ros is not installed ({tf2_ros_missing}) and {error}; frames other than the "
-                      "odometry's need the base_to_sensor parameter")
-    return BufferLookup(buffer, listener), "convbki_ros.inputs.tf_buffer.TransformBuffer (tf2_ros is not installed)"
+        return None, f"{error}; frames other than the odometry's need the base_to_sensor parameter"
+    return BufferLookup(buffer, listener), "convbki_ros.inputs.tf_buffer.TransformBuffer"

@@ -32,8 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from convbki_core.correction.replay import CorrectionResult, continue_correction, keyframe_correction
-from convbki_core.geometry.poses import pose_from_translation_quaternion
-from convbki_ros.inputs.pose_buffer import pose_problem
+from convbki_core.geometry.poses import quaternion_to_matrix
+from convbki_ros.inputs.path_decoding import DecodedPath, PathError, decode_path, path_pose_count
+from convbki_ros.inputs.pose_buffer import QUATERNION_NORM_TOLERANCE, pose_problem
 from convbki_ros.inputs.transforms import stamp_to_ns
 from convbki_ros.outputs.status import problem_key
 
@@ -47,32 +48,32 @@ class Keyframes:
     received: float  # time.monotonic() on arrival
 
 
-def path_keyframes(msg, map_frame: str) -> Keyframes | str:
-    """The keyframes of a ``nav_msgs/Path``, or why it cannot be used (one line)."""
-    frame = msg.header.frame_id
-    if frame != map_frame:
-        return f"its frame is '{frame}', not the map's '{map_frame}'"
-    if not msg.poses:
+def path_keyframes(path: DecodedPath, map_frame: str) -> Keyframes | str:
+    """The keyframes of a decoded ``nav_msgs/Path``, or why it cannot be used (one line)."""
+    if path.frame_id != map_frame:
+        return f"its frame is '{path.frame_id}', not the map's '{map_frame}'"
+    if not len(path):
         return "it holds no pose"
-    stamps = np.empty(len(msg.poses), np.int64)
-    poses = np.empty((len(msg.poses), 4, 4))
-    for number, stamped in enumerate(msg.poses):
-        if stamped.header.frame_id not in ("", map_frame):
-            return f"pose {number} is in frame '{stamped.header.frame_id}', not the map's '{map_frame}'"
-        position, orientation = stamped.pose.position, stamped.pose.orientation
-        translation = [position.x, position.y, position.z]
-        quaternion = [orientation.x, orientation.y, orientation.z, orientation.w]
-        problem = pose_problem(translation, quaternion)
-        if problem:
-            return f"pose {number}: {problem}"
-        stamps[number] = stamp_to_ns(stamped.header.stamp)
-        poses[number] = pose_from_translation_quaternion(translation, np.asarray(quaternion) / np.linalg.norm(
-            quaternion))
+    outside = path.first_pose_outside(("", map_frame))
+    if outside is not None:
+        return f"pose {outside} is in frame '{path.frame_ids[outside]}', not the map's '{map_frame}'"
+    positions, orientations = path.positions, path.orientations
+    norms = np.linalg.norm(orientations, axis=1)
+    usable = (np.isfinite(positions).all(axis=1) & np.isfinite(norms)
+              & (np.abs(norms - 1.0) <= QUATERNION_NORM_TOLERANCE))
+    if not usable.all():
+        number = int(np.flatnonzero(~usable)[0])
+        return f"pose {number}: {pose_problem(positions[number], orientations[number])}"
+    stamps = path.stamps_ns
     if (np.diff(stamps) <= 0).any():
         number = int(np.flatnonzero(np.diff(stamps) <= 0)[0]) + 1
         return (f"its stamps are not in ascending order (pose {number} at {stamps[number] / 1e9:.3f} s after "
                 f"{stamps[number - 1] / 1e9:.3f} s)")
-    return Keyframes(stamps, poses, time.monotonic())
+    poses = np.zeros((len(path), 4, 4))
+    poses[:, :3, :3] = quaternion_to_matrix(orientations / norms[:, None])
+    poses[:, :3, 3] = positions
+    poses[:, 3, 3] = 1.0
+    return Keyframes(stamps.copy(), poses, time.monotonic())
 
 
 @dataclass
@@ -111,11 +112,23 @@ class CorrectionRunner:
             self._changed.notify_all()
 
     # -- input (executor thread) ---------------------------------------------------------------
-    def on_path(self, msg) -> None:
-        keyframes = path_keyframes(msg, self.core.frame)
+    def on_path(self, raw: bytes) -> None:
+        """A Path as its serialized bytes (a raw subscription): its pose count is read and checked
+        against max_path_poses before anything is decoded, and the poses are then read with numpy,
+        not as hundreds of thousands of Python objects."""
+        topic = self.node.resolve_topic_name("pose_corrections")
+        limit = int(self.node.param("max_path_poses"))
+        try:
+            count = path_pose_count(raw)
+            if count > limit:
+                self._refuse(f"ignoring the Path on {topic}: its {count} poses are more than max_path_poses = "
+                             f"{limit} (refused before decoding); the map is unchanged")
+                return
+            keyframes = path_keyframes(decode_path(raw, limit), self.core.frame)
+        except PathError as error:
+            keyframes = f"it cannot be read: {error}"
         if isinstance(keyframes, str):
-            self._refuse(f"ignoring the Path on {self.node.resolve_topic_name('pose_corrections')}: {keyframes}; "
-                         "the map is unchanged")
+            self._refuse(f"ignoring the Path on {topic}: {keyframes}; the map is unchanged")
             return
         if self.core.mapper.scan_log is None:
             self._refuse("ignoring the Path on pose_corrections: scan_log is false, so no integrated scan can move; "

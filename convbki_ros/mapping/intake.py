@@ -9,8 +9,17 @@ from __future__ import annotations
 
 from convbki_core.geometry.poses import pose_from_translation_quaternion
 from convbki_ros.inputs.pose_buffer import pose_problem
+from convbki_ros.inputs.tf_buffer import MAX_FRAME_ID_LENGTH
 from convbki_ros.inputs.transforms import seconds_to_ns, stamp_to_ns
 from convbki_ros.outputs.status import problem_key
+
+
+def frame_id_problem(*frame_ids: str) -> str | None:
+    """Why a message's frame ids cannot be used (None when they can): longer than TF keeps."""
+    for frame in frame_ids:
+        if len(frame) > MAX_FRAME_ID_LENGTH:
+            return f"a frame id of {len(frame)} characters, more than {MAX_FRAME_ID_LENGTH}"
+    return None
 
 
 class InputIntake:
@@ -26,6 +35,14 @@ class InputIntake:
             self.status.drop("too large")
             self.warnings.warn("too large", f"dropping cloud stamped {stamp / 1e9:.3f} s: {points} points "
                                f"({len(msg.data) / 1e6:.0f} MB), more than max_points_per_cloud = {limit}")
+            return
+        problem = self._size_problem(msg, points)
+        if problem is None and frame_id_problem(msg.header.frame_id):
+            problem = "bad cloud", frame_id_problem(msg.header.frame_id)
+        if problem:
+            reason, text = problem
+            self.status.drop(reason)
+            self.warnings.warn(reason + " " + problem_key(text), f"dropping cloud stamped {stamp / 1e9:.3f} s: {text}")
             return
         if points == 0:
             self.status.drop("empty")
@@ -51,6 +68,23 @@ class InputIntake:
             self.warnings.warn("queue", f"{full}: dropping the oldest cloud; the map update is slower than the "
                                "input rate")
 
+    def _size_problem(self, msg, points: int) -> tuple[str, str] | None:
+        """(drop reason, words) for a cloud whose data is over max_cloud_megabytes or disagrees with
+        its header (height rows of row_step bytes, each holding width points of point_step bytes),
+        checked before it is queued: a header claiming one point may carry gigabytes."""
+        size = len(msg.data)
+        limit = self.node.param("max_cloud_megabytes")
+        if size > limit * 1e6:
+            return "too large", f"{size / 1e6:.1f} MB of data, more than max_cloud_megabytes = {limit:g}"
+        height, row_step = int(msg.height), int(msg.row_step)
+        if points and row_step < int(msg.width) * int(msg.point_step):
+            return "bad cloud", (f"row_step {row_step} is smaller than width * point_step = {msg.width} * "
+                                 f"{msg.point_step}")
+        if size != height * row_step:
+            return "bad cloud", (f"its data is {size} bytes, {'more' if size > height * row_step else 'fewer'} than "
+                                 f"its header says: height * row_step = {height} * {row_step} = {height * row_step}")
+        return None
+
     def clock_ns(self) -> int:
         """The node's clock (ROS time: the data's time under use_sim_time), in nanoseconds."""
         return self.node.get_clock().now().nanoseconds
@@ -60,7 +94,7 @@ class InputIntake:
         position, orientation = msg.pose.pose.position, msg.pose.pose.orientation
         translation = [position.x, position.y, position.z]
         quaternion = [orientation.x, orientation.y, orientation.z, orientation.w]
-        problem = pose_problem(translation, quaternion)
+        problem = pose_problem(translation, quaternion) or frame_id_problem(msg.header.frame_id, msg.child_frame_id)
         self.status.odometry_received(usable=problem is None)
         if problem:
             self.warnings.warn("odometry " + problem_key(problem),

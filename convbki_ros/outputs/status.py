@@ -23,6 +23,9 @@ from dataclasses import dataclass, field
 
 OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
 TIMING_HISTORY = 100  # update and publish times kept for the medians
+# Distinct problems the warnings throttle remembers: a source inventing a new frame name for every
+# message must not grow it (nor the log) without bound.
+MAX_PROBLEM_KEYS = 1000
 PLAUSIBLE_DELAY_MS = 3_600_000.0  # odometry "delayed" by more than an hour is stamped in another clock
 
 
@@ -46,12 +49,23 @@ class WarningThrottle:
     def warn(self, key: str, message: str, period: float | None = None) -> None:
         now = time.monotonic()
         with self._lock:
+            if key not in self._last and len(self._last) >= MAX_PROBLEM_KEYS:
+                self._forget_quiet(now)
+                if len(self._last) >= MAX_PROBLEM_KEYS:  # a flood of distinct problems: one key for the rest
+                    key = "many distinct problems"
             if now - self._last.get(key, -1e9) < (self.period if period is None else period):
                 self._held[key] = self._held.get(key, 0) + 1
                 return
             held = self._held.pop(key, 0)
             self._last[key] = now
         self.logger.warning(message + (f" ({held} more like this since the last warning)" if held else ""))
+
+    def _forget_quiet(self, now: float) -> None:
+        """Forget the problems not warned about for an hour and with nothing held back (call
+        with the lock held): their next warning is due anyway."""
+        quiet = [key for key, last in self._last.items() if now - last > 3600.0 and not self._held.get(key)]
+        for key in quiet:
+            del self._last[key]
 
 
 @dataclass

@@ -112,3 +112,61 @@ def test_a_path_that_overtook_the_clouds_it_reaches_waits_for_them():
     assert not rig.thread.is_alive()
     (log,) = rig.corrected_logs
     assert [index for index, _ in log.scans()] == list(range(BOUND + 1))
+
+
+def serialized_path(frame: str, stamps: list[int], positions, quaternions, pose_frames=None) -> bytes:
+    """A nav_msgs/Path as rclpy serializes it (what the node's raw subscription receives)."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path
+    from rclpy.serialization import serialize_message
+
+    path = Path()
+    path.header.frame_id = frame
+    for number, (stamp, position, quaternion) in enumerate(zip(stamps, positions, quaternions, strict=True)):
+        stamped = PoseStamped()
+        stamped.header.frame_id = (pose_frames or [""] * len(stamps))[number]
+        stamped.header.stamp.sec, stamped.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+        p, q = stamped.pose.position, stamped.pose.orientation
+        p.x, p.y, p.z = (float(v) for v in position)
+        q.x, q.y, q.z, q.w = (float(v) for v in quaternion)
+        path.poses.append(stamped)
+    return serialize_message(path)
+
+
+def test_a_path_becomes_keyframes_from_its_bytes_and_what_cannot_be_used_is_named():
+    """path_keyframes over the raw bytes' decoding: each keyframe the pose its translation and
+    (normalised) quaternion make, stamps in ns; a Path in another frame, empty, with a pose in
+    another frame, a quaternion that is not a rotation, or stamps out of order is refused naming
+    which pose."""
+    from convbki_core.geometry.poses import pose_from_translation_quaternion
+    from convbki_ros.inputs.path_decoding import decode_path
+    from convbki_ros.mapping.corrections import path_keyframes
+
+    rng = np.random.default_rng(3)
+    quaternions = rng.normal(size=(5, 4))
+    quaternions /= np.linalg.norm(quaternions, axis=1, keepdims=True)
+    quaternions[2] *= 1.005  # within the tolerance: normalised
+    positions = rng.uniform(-50, 50, (5, 3))
+    stamps = [7 * 10**9 + 10**8 * k + 3 for k in range(5)]
+
+    def keyframes(*args, **kwargs):
+        return path_keyframes(decode_path(serialized_path(*args, **kwargs), 100), "map")
+
+    got = keyframes("map", stamps, positions, quaternions, pose_frames=["", "map", "", "map", ""])
+    np.testing.assert_array_equal(got.stamps_ns, stamps)
+    for number in range(5):
+        want = pose_from_translation_quaternion(positions[number], quaternions[number] / np.linalg.norm(
+            quaternions[number]))
+        np.testing.assert_allclose(got.poses[number], want, atol=1e-12)
+    assert keyframes("odom", stamps, positions, quaternions) == "its frame is 'odom', not the map's 'map'"
+    assert keyframes("map", [], [], []) == "it holds no pose"
+    assert keyframes("map", stamps, positions, quaternions, pose_frames=["", "", "", "odom", ""]) == \
+        "pose 3 is in frame 'odom', not the map's 'map'"
+    bad = quaternions.copy()
+    bad[4] = [0.0, 0.0, 0.0, 0.0]
+    assert keyframes("map", stamps, positions, bad).startswith("pose 4: orientation quaternion")
+    nan = positions.copy()
+    nan[1, 2] = np.nan
+    assert keyframes("map", stamps, nan, quaternions).startswith("pose 1: position")
+    assert keyframes("map", stamps[::-1], positions, quaternions).startswith(
+        "its stamps are not in ascending order (pose 1 at 7.300 s after 7.400 s)")

@@ -153,8 +153,13 @@ def test_load_map_clear_box_and_a_run_time_map_file_show_in_the_published_map(tm
         refused = rig.set_parameters(clear_box_min=[1.0, 2.0])[0]
         assert not refused.successful and "needs 3 finite numbers" in refused.reason
 
-        # map_file at run time: a folder that does not exist yet is made; ~/save_map writes there.
+        # map_file at run time: a folder that does not exist is refused (no request makes one); once it
+        # exists in map_folder, map_file takes it and ~/save_map writes there.
         new_file = tmp_path / "elsewhere" / "new.npz"
+        refused = rig.set_parameters(map_file=str(new_file))[0]
+        assert not refused.successful and "is in a folder that does not exist" in refused.reason, refused
+        assert not new_file.parent.exists()
+        new_file.parent.mkdir()
         assert rig.set_parameters(map_file=str(new_file))[0].successful
         saved = rig.call("save_map")
         assert saved.success and saved.message == f"saved {len(original) - int(inside.sum())} voxels to {new_file}"

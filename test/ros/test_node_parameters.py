@@ -95,14 +95,13 @@ def test_map_settings_at_start_shape_the_map_and_its_outputs(tmp_path):
         assert rig.probe.spin_until(lambda: len(updates) > 0, WAIT)
         assert local == []
 
-        # costmap_max_cells 10: the whole map's grid is refused; raised at run time, it is answered.
+        # costmap_max_cells 10: the whole map's grid is refused; a resource limit, it cannot be raised at run time.
         mark = rig.log.mark()
         refused = rig.probe.call(GetMap, "/convbki_mapper/get_costmap")
         assert refused.map.info.width * refused.map.info.height == 0, refused.map.info
         rig.wait_log(r"\[WARN\].*more than costmap_max_cells = 10: answered an empty grid", mark)
-        assert rig.set_parameters(costmap_max_cells=25_000_000)[0].successful
-        answered = rig.probe.call(GetMap, "/convbki_mapper/get_costmap")
-        assert answered.map.info.width * answered.map.info.height > 10
+        raised = rig.set_parameters(costmap_max_cells=25_000_000)[0]
+        assert not raised.successful and "read-only" in raised.reason, raised
 
         # ply_file at run time: the next export goes there.
         moved = tmp_path / "elsewhere.ply"
@@ -118,9 +117,9 @@ def test_map_settings_at_start_shape_the_map_and_its_outputs(tmp_path):
 # ----------------------------------------------------------------------------- run-time changes
 
 
-def tiny_cloud(stamp: int):
-    """50 points of the good cloud: 800 bytes of data."""
-    return cloud(stamp, **fields(points=POINTS[:50], labels=LABELS[:50]))
+def tiny_cloud(stamp: int, points: int = 50):
+    """``points`` points of the good cloud: 16 bytes each (800 bytes of data for 50)."""
+    return cloud(stamp, **fields(points=POINTS[:points], labels=LABELS[:points]))
 
 
 def report(rig: Rig, done) -> dict:
@@ -160,31 +159,32 @@ def test_queue_timing_and_robustness_settings_at_start_and_at_run_time(tmp_path)
     from sensor_msgs.msg import PointCloud2
 
     rig = Rig(tmp_path, "-p", "cloud_queue_size:=3", "-p", "cloud_queue_megabytes:=0.002",
-              "-p", "pose_wait_timeout:=0.0", "-p", "odometry_timeout:=3600.0", "-p", "max_points_per_cloud:=100",
+              "-p", "pose_wait_timeout:=0.0", "-p", "odometry_timeout:=3600.0",
+              "-p", f"max_points_per_cloud:={len(POINTS) + 10}",
               "-p", "local_period:=1000.0", "-p", "stamp_backwards_tolerance:=5.0", "-p", "max_pose_jump:=0.0",
               diagnostics_period=PERIOD)
     try:
         local = rig.probe.subscribe(PointCloud2, "/semantic_map/local")
         updates = rig.probe.subscribe(PointCloud2, "/semantic_map/updates")
 
-        def clouds(number: int, expected: tuple[int, int, int]) -> None:
+        def clouds(number: int, expected: tuple[int, int, int], points: int = 50) -> None:
             """Publish ``number`` tiny clouds (no odometry: they wait); the counters then."""
             before = counts(report(rig, lambda v: True))[0]
             for _ in range(number):
-                rig.publish(tiny_cloud(rig.next_stamp()))
+                rig.publish(tiny_cloud(rig.next_stamp(), points))
             assert counts(report(rig, lambda v: counts(v)[0] == before + number)) == expected
 
-        # -- the queue: 2000 bytes hold two clouds of 800; then 3 clouds; then 5.
+        # -- the queue: 2000 bytes hold two clouds of 800; then clouds of 160 bytes: 3 clouds at most.
         clouds(3, (3, 1, 2))  # the oldest pushed out by the byte limit
-        assert rig.set_parameters(cloud_queue_megabytes=0.0)[0].successful
-        clouds(1, (4, 1, 3))  # no byte limit now: three fit
-        clouds(1, (5, 2, 3))  # cloud_queue_size 3 pushes out the oldest
-        assert rig.set_parameters(cloud_queue_size=5)[0].successful
-        clouds(2, (7, 2, 5))
+        for limit, value in (("cloud_queue_megabytes", 0.0), ("cloud_queue_size", 5)):  # resource limits: read-only
+            raised = rig.set_parameters(**{limit: value})[0]
+            assert not raised.successful and "read-only" in raised.reason, (limit, raised)
+        clouds(1, (4, 1, 3), points=10)  # 1760 bytes: three fit
+        clouds(1, (5, 2, 3), points=10)  # cloud_queue_size 3 pushes out the oldest
         # pose_wait_timeout 0 kept them waiting; 0.3 s drops them (they waited longer).
         assert rig.set_parameters(pose_wait_timeout=0.3)[0].successful
-        values = report(rig, lambda v: counts(v) == (7, 7, 0))
-        assert values["dropped.no pose"] == "7", values
+        values = report(rig, lambda v: counts(v) == (5, 5, 0))
+        assert values["dropped.no pose"] == "5", values
         assert not rig.log.find("no odometry at all")  # odometry_timeout 3600 s
 
         # -- odometry_timeout 0.5 s at run time: clouds without odometry are warned about.
@@ -209,11 +209,14 @@ def test_queue_timing_and_robustness_settings_at_start_and_at_run_time(tmp_path)
         assert all(result.successful for result in rig.set_parameters(diagnostics_period=PERIOD, stats_period=10.0))
         wait_reports(rig, 3 * PERIOD)  # three reports
 
-        # -- max_points_per_cloud 100 drops the good cloud on arrival; 0 lifts the limit.
+        # -- max_points_per_cloud (10 more than the good cloud's) drops a cloud of twice as many on arrival,
+        # and cannot be raised at run time (a resource limit).
         stamp = rig.next_stamp()
-        rig.publish(odometry(stamp), cloud(stamp))
+        rig.publish(odometry(stamp), cloud(stamp, **fields(points=np.concatenate([POINTS, POINTS]),
+                                                           labels=np.concatenate([LABELS, LABELS]))))
         assert report(rig, lambda v: v.get("dropped.too large") == "1")["integrated"] == "0"
-        assert rig.set_parameters(max_points_per_cloud=0)[0].successful
+        raised = rig.set_parameters(max_points_per_cloud=0)[0]
+        assert not raised.successful and "read-only" in raised.reason, raised
         rig.integrate_good_cloud()
 
         # -- local_period 1000 s: the first window is sent, none after it; 0: after every update.
@@ -267,7 +270,9 @@ def test_queue_timing_and_robustness_settings_at_start_and_at_run_time(tmp_path)
 
         # -- autosave_period at run time writes the map (never saved so far).
         assert not rig.map_file.exists()
-        assert rig.set_parameters(autosave_period=0.2)[0].successful
+        too_often = rig.set_parameters(autosave_period=0.2)[0]
+        assert not too_often.successful and "at least 1 s" in too_often.reason, too_often
+        assert rig.set_parameters(autosave_period=1.0)[0].successful
         assert rig.probe.spin_until(rig.map_file.exists, WAIT)
         rig.wait_log(r"autosave: saved \d+ voxels", mark)
         # -- save_on_shutdown false at run time: a changed map is not saved at Ctrl-C.

@@ -1,7 +1,7 @@
 """The mapper node's resets and saves over a run, over DDS, in a separate process.
 
 One node with the reset options on (on_pose_jump reset, reset_on_stamp_backwards) and autosave
-every 0.5 s: clouds with no odometry at all are warned about and not mapped; autosave writes
+every 1 s: clouds with no odometry at all are warned about and not mapped; autosave writes
 the map when it changed; a pose jump and time going backwards reset the map, an odometry outage
 keeps it; on_pose_jump new_file saves the map so far to a segment file of its own; SIGTERM saves
 the map to the map_file in use.
@@ -14,10 +14,10 @@ from mapper_rig import SECOND, TRANSLATION, WAIT, Rig, cloud, expect_file_holds,
 
 
 def test_resets_on_request_no_odometry_warnings_autosave_and_save_on_sigterm(tmp_path):
-    # Short periods where the test waits for them: the warnings, the autosave, clouds without
-    # odometry waiting to be dropped (0.5 s each); reports every 0.05 s.
+    # Short periods where the test waits for them: the warnings, clouds without odometry waiting to
+    # be dropped (0.5 s each), the autosave (1 s, the shortest it takes); reports every 0.05 s.
     rig = Rig(tmp_path, "-p", "on_pose_jump:=reset", "-p", "reset_on_stamp_backwards:=true",
-              "-p", "odometry_timeout:=0.5", "-p", "autosave_period:=0.5", "-p", "pose_wait_timeout:=0.5",
+              "-p", "odometry_timeout:=0.5", "-p", "autosave_period:=1.0", "-p", "pose_wait_timeout:=0.5",
               diagnostics_period=0.05, wait=False)
     try:
         # What the files must hold, computed while the node starts: one scan, two, one at the pose after a jump.

@@ -153,11 +153,21 @@ def test_malformed_clouds_are_dropped_with_one_warning_each(rig):
         msg.data = msg.data[:-100]
         return msg
 
-    case(short_data, rf"data holds {16 * count - 100} bytes, expected at least {16 * count} ")
+    # Refused on arrival, before it is queued: a cloud's data must be what its header says.
+    case(short_data, rf"its data is {16 * count - 100} bytes, fewer than its header says: height \* row_step = 1 "
+                     rf"\* {16 * count}")
 
-    def step_too_small(stamp):  # x, y, z, label laid out in 16 bytes, point_step claims 12
+    def long_data(stamp):  # a header claiming one point that carries megabytes
+        msg = cloud(stamp, **fields(points=POINTS[:1], labels=LABELS[:1]))
+        msg.data = bytes(msg.data) + bytes(2_000_000)
+        return msg
+
+    case(long_data, r"its data is 2000016 bytes, more than its header says: height \* row_step = 1 \* 16 = 16")
+
+    def step_too_small(stamp):  # x, y, z, label laid out in 16 bytes, point_step claims 12 (and the data agrees)
         msg = cloud(stamp)
         msg.point_step, msg.row_step = 12, 12 * count
+        msg.data = msg.data[:12 * count]
         return msg
 
     case(step_too_small, r"field 'label' \(offset 12, 4 bytes\) does not fit in point_step 12")
@@ -167,7 +177,7 @@ def test_malformed_clouds_are_dropped_with_one_warning_each(rig):
         msg.row_step = 0
         return msg
 
-    case(one_row_without_row_step, rf"dropping cloud: row_step 0 is smaller than width \* point_step = {16 * count}")
+    case(one_row_without_row_step, rf"row_step 0 is smaller than width \* point_step = {count} \* 16")
 
     def all_non_finite(stamp):
         points = POINTS.copy()

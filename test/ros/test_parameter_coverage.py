@@ -27,6 +27,8 @@ OVERRIDES = "test_node_startup.py::test_unknown_names_and_kernel_overrides_are_s
 CORRECTED = "test_node_corrections.py::test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scratch"
 RESTARTED = "test_node_corrections.py::test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing"
 FILES = "test_node_files.py::test_load_map_clear_box_and_a_run_time_map_file_show_in_the_published_map"
+HOSTILE_FILES = "test_hostile.py::test_no_request_writes_outside_the_folder_or_over_a_file_that_is_not_the_nodes"
+HOSTILE_INPUTS = "test_hostile.py::test_inputs_over_their_caps_are_refused_before_they_cost"
 
 # parameter: the test that sets it at start (-p name:=value, a params file, parameter_overrides)
 SET_AT_START = {
@@ -86,6 +88,13 @@ SET_AT_START = {
     "scan_log_scans": CORRECTED + " via start_node",
     "scan_log_megabytes": CORRECTED + " via start_node",
     "correction_tolerance": RESTARTED + " via start_node",
+    "map_folder": HOSTILE_FILES + " via target",
+    "max_kept_maps": "test_hostile.py::test_resets_and_forgotten_boxes_followed_by_saves_never_lose_the_last_map via "
+                     "target",
+    "max_cloud_megabytes": HOSTILE_INPUTS + " via target",
+    "max_path_poses": HOSTILE_INPUTS + " via target",
+    "max_map_megabytes": "test_hostile.py::test_odometry_over_new_ground_fills_the_map_to_its_bound_and_mapping_"
+                         "goes_on via target",
 }
 
 # parameter: the test that changes it while the node runs (set_parameters, ros2 param set)
@@ -96,7 +105,6 @@ CHANGED_AT_RUN_TIME = {
     "publish_period": OVERRIDES,
     "map_period": OVERRIDES,
     "view_radius": "test_node_updates.py::test_updates_rebuild_the_map_and_the_view_is_bounded",
-    "view_max_points": "test_node_updates.py::test_updates_rebuild_the_map_and_the_view_is_bounded",
     "map_file": FILES,
     "autosave_period": RUN_TIME,
     "save_on_shutdown": RUN_TIME,
@@ -105,13 +113,9 @@ CHANGED_AT_RUN_TIME = {
     "ply_file": MAP_SETTINGS,
     "publish_local": RUN_TIME,
     "local_period": RUN_TIME,
-    "costmap_max_cells": MAP_SETTINGS,
-    "cloud_queue_size": RUN_TIME,
-    "cloud_queue_megabytes": RUN_TIME,
     "pose_wait_timeout": RUN_TIME,
     "stats_period": OVERRIDES,
     "diagnostics_period": RUN_TIME,
-    "max_points_per_cloud": RUN_TIME,
     "max_pose_jump": RUN_TIME,
     "on_pose_jump": RESETS,
     "stamp_backwards_tolerance": RUN_TIME,

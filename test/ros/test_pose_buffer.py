@@ -5,7 +5,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from convbki_core.geometry.poses import pose_from_translation_quaternion
-from convbki_ros.inputs.pose_buffer import OUTAGE_MIN_S, OdometryBuffer, PoseStatus, pose_problem
+from convbki_ros.inputs.pose_buffer import MAX_POSES, OUTAGE_MIN_S, OdometryBuffer, PoseStatus, pose_problem
 
 
 def yaw_pose(yaw, x):
@@ -33,6 +33,17 @@ def test_out_of_order_insertion_and_history_limit():
         buffer.add(stamp, yaw_pose(stamp * 1e-3, stamp * 1e-3))
     assert len(buffer) == 2 and buffer.latest_stamp == 1400  # 100 and 300 fell out of the last 1000 ns
     np.testing.assert_allclose(buffer.lookup(950).pose, yaw_pose(0.95, 0.95), atol=1e-12)
+
+
+def test_the_history_is_bounded_by_count_too():
+    """Odometry stamped a nanosecond apart stays within the history's time but not its count: the
+    newest MAX_POSES are kept, and the newest still interpolate."""
+    buffer = OdometryBuffer(tolerance_ns=0)
+    pose = yaw_pose(0.0, 1.0)
+    for stamp in range(MAX_POSES + 500):
+        buffer.add(stamp, pose)
+    assert len(buffer) == MAX_POSES and buffer.lookup(499).status is PoseStatus.TOO_OLD
+    np.testing.assert_allclose(buffer.lookup(MAX_POSES + 400).pose, pose)
 
 
 @given(st.floats(0.0, 1.0), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0))

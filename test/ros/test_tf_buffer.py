@@ -15,7 +15,11 @@ from convbki_core.geometry.poses import (
     pose_to_translation_quaternion,
 )
 from convbki_ros.inputs.tf_buffer import (
+    MAX_FRAME_ID_LENGTH,
+    MAX_FRAMES,
     MAX_GRAPH_DEPTH,
+    MAX_RECORDS,
+    MIN_RECORDS_PER_FRAME,
     ConnectivityError,
     ExtrapolationError,
     InvalidTransformError,
@@ -97,6 +101,35 @@ def test_records_older_than_the_cache_behind_the_newest_are_forgotten():
     buffer.add("map", "odom", 0, np.eye(4))
     buffer.add("map", "odom", NS_PER_S // 2, np.eye(4))
     assert buffer.can_transform("map", "odom", NS_PER_S // 4) == (True, None)
+
+
+def test_the_buffer_is_bounded_by_count_whatever_is_published(monkeypatch):
+    """Records stamped a nanosecond apart stay within the cache's time but not its count: a frame
+    keeps the newest MAX_RECORDS (its share once other frames come, never below
+    MIN_RECORDS_PER_FRAME); frames beyond MAX_FRAMES and frame ids beyond MAX_FRAME_ID_LENGTH are
+    refused, and the frames already known keep answering."""
+    import convbki_ros.inputs.tf_buffer as tf_buffer
+
+    monkeypatch.setattr(tf_buffer, "MAX_RECORDS", 1000)  # the bounds' logic at a tenth of the cost
+    monkeypatch.setattr(tf_buffer, "MAX_FRAMES", 50)
+    buffer = TransformBuffer(cache_seconds=60.0)
+    for stamp in range(1, 1501):
+        buffer.add("map", "flooded", stamp, yaw_pose(stamp * 1e-3, 0.0, 0.0))
+    edge = buffer._edges["flooded"]
+    assert len(edge.stamps) == 1000 and edge.stamps[0] == 501 and edge.stamps[-1] == 1500
+    np.testing.assert_allclose(buffer.lookup("map", "flooded", 1500), yaw_pose(1.5, 0.0, 0.0), atol=1e-12)
+    for number in range(49):
+        buffer.add("map", f"frame_{number}", 1, np.eye(4))
+    with pytest.raises(InvalidTransformError, match="50 frames are known already"):
+        buffer.add("map", "one_too_many", 1, np.eye(4))
+    buffer.add("map", "flooded", 1501, yaw_pose(1.501, 0.0, 0.0))  # its share is now 1000 // 50
+    assert len(edge.stamps) == max(MIN_RECORDS_PER_FRAME, 1000 // 50) and edge.stamps[-1] == 1501
+    with pytest.raises(InvalidTransformError, match=f"more than {MAX_FRAME_ID_LENGTH}"):
+        buffer.add("map", "f" * (MAX_FRAME_ID_LENGTH + 1), 1, np.eye(4))
+    for number in range(5000):  # re-parented each time: the names of parents no record holds are forgotten
+        buffer.add(f"parent_{number}", "frame_0", 2 + number, np.eye(4))
+    assert len(buffer.frames()) <= 2 * 50 + MIN_RECORDS_PER_FRAME
+    assert (MAX_FRAMES, MAX_RECORDS) == (1000, 100_000)  # what the node runs with
 
 
 def test_extrapolation_into_the_past_and_the_future_is_refused_with_the_known_span():
