@@ -107,6 +107,9 @@ class CloudQueue:
         self.generation = 0  # bumped by every map reset
         self.stopping = False
         self.waiting_for_transform = False  # a cloud with its odometry waits for TF
+        # The stamp (ns) of the cloud the update thread took and has not finished with: neither
+        # queued nor logged yet, it is on its way into the map (a correction waits for it).
+        self.in_flight: int | None = None
 
     def push(self, msg, limit: int, byte_limit: int = 0, clock_ns: int = 0) -> Evicted:
         """Queue ``msg`` (``clock_ns``: the node's clock now); the oldest clouds are pushed out
@@ -168,6 +171,7 @@ class CloudQueue:
                 pose_wait_timeout = read()
                 decision = self._decide(pose_wait_timeout, clock_ns)
                 if decision is not None:
+                    self.in_flight = stamp_to_ns(decision.pending.msg.header.stamp)
                     return decision
                 # Nothing queued: sleep until something arrives. Clouds waiting for odometry:
                 # wake up in time for the first one's timeout too; for TF, which may come
@@ -175,6 +179,12 @@ class CloudQueue:
                 polling = pose_wait_timeout or self.waiting_for_transform or self.locate is not None
                 self.changed.wait(0.5 if not self.clouds or not polling else 0.02)
             return None
+
+    def finished(self) -> None:
+        """The update thread is done with the cloud ``next`` gave it (integrated or dropped)."""
+        with self.changed:
+            self.in_flight = None
+            self.changed.notify_all()
 
     def _decide(self, timeout: float, clock_ns) -> Decision | None:
         now = clock_ns()

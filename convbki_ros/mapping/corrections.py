@@ -255,14 +255,17 @@ class CorrectionRunner:
         thread integrate them first, for ``longest`` seconds at most: the Path moves them too.
         Arrived means a cloud stamped at or after ``stamp`` is queued or logged: a Path, a small
         message on a topic of its own, can overtake the clouds it reaches, which would then be
-        mapped after the correction at their uncorrected poses. Keyframes more than ``longest``
+        mapped after the correction at their uncorrected poses; the cloud the update thread has
+        taken and not yet logged counts as queued. Keyframes more than ``longest``
         seconds newer than the newest cloud are not waited for (no cloud is that late), nor any
         when no cloud is logged or queued."""
         core, queue = self.core, self.core.queue
         deadline = time.monotonic() + longest
         with queue.changed:
             while not queue.stopping and time.monotonic() < deadline:
-                queued = [stamp_to_ns(p.msg.header.stamp) for p in queue.clouds]
+                # The cloud the update thread is integrating counts as queued: it is not logged yet.
+                queued = [stamp_to_ns(p.msg.header.stamp) for p in queue.clouds] + \
+                    ([] if queue.in_flight is None else [queue.in_flight])
                 logged = core.mapper.scan_log.newest_ns
                 newest = max(queued + ([] if logged is None else [logged]), default=None)
                 # (Nothing logged nor queued: no stream to wait for, e.g. a map loaded without a log.)

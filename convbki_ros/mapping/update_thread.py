@@ -39,6 +39,8 @@ class ScanIntegration:
             except Exception as error:  # never let one scan stop the mapping thread
                 self.status.drop("error")
                 self.node.get_logger().error(f"scan not integrated: {error.__class__.__name__}: {error}")
+            finally:
+                self.queue.finished()
 
     def stop(self) -> None:
         self.queue.stop()

@@ -1,7 +1,8 @@
 """The node's correction thread against the update thread's timing, in one process (no DDS): a
 Path that waits for clouds queued before its newest keyframe lets no logged scan fall out of a
 bounded log meanwhile, so the log it corrects still holds every scan it moves; a Path that
-overtook the clouds it reaches waits for them."""
+overtook the clouds it reaches waits for them, and for the one the update thread is integrating;
+a Path's bytes become keyframes."""
 
 import threading
 import time
@@ -107,6 +108,27 @@ def test_a_path_that_overtook_the_clouds_it_reaches_waits_for_them():
         assert wait_for(lambda: rig.mapper.scan_log.held_from is not None or rig.corrected_logs)
         assert not rig.corrected_logs, "it went on without the keyframe's scan"  # it waits for it
         rig.integrate(BOUND)  # the keyframe's cloud arrives and is mapped
+    finally:
+        rig.thread.join(timeout=30)
+    assert not rig.thread.is_alive()
+    (log,) = rig.corrected_logs
+    assert [index for index, _ in log.scans()] == list(range(BOUND + 1))
+
+
+def test_a_path_waits_for_the_cloud_the_update_thread_is_integrating():
+    # The keyframe's cloud has arrived, and so has a newer one, but the update thread has taken the
+    # keyframe's and not logged it yet: neither queued nor logged, it is still on its way into the map.
+    rig = Rig()
+    queue = rig.queue
+    with queue.changed:
+        queue.in_flight = STAMP_0 + BOUND  # what CloudQueue.next marks for the cloud it hands out
+    queue.push(cloud_stamped(BOUND + 1), limit=10)
+    rig.thread.start()
+    try:
+        assert wait_for(lambda: rig.mapper.scan_log.held_from is not None or rig.corrected_logs)
+        assert not rig.corrected_logs, "it went on without the scan being integrated"  # it waits for it
+        rig.integrate(BOUND)  # the update thread logs it, then says it is done
+        queue.finished()
     finally:
         rig.thread.join(timeout=30)
     assert not rig.thread.is_alive()
