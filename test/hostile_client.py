@@ -169,26 +169,39 @@ def cloud_lies(client: Client, args) -> dict:
 
 
 def path_flood(client: Client, args) -> dict:
-    """A Path of ``--arg`` poses on pose_corrections, then the time a service takes to answer."""
+    """A Path of ``--arg`` poses on pose_corrections, then the time a service takes to answer.
+    Sent as its serialized bytes, as anyone may: rclpy's serializer makes them for three poses
+    (every pose after the first is 8-aligned, so the third's bytes repeat), the rest repeats."""
+    import struct
+
+    from geometry_msgs.msg import PoseStamped
     from nav_msgs.msg import Path
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.serialization import deserialize_message, serialize_message
 
     count = int(args.arg[0])
     publisher = client.node.create_publisher(Path, "pose_corrections", QoSProfile(
         depth=5, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE))
     if not client.spin_until(lambda: publisher.get_subscription_count() > 0):
         raise SystemExit("nobody subscribes pose_corrections")
-    from geometry_msgs.msg import PoseStamped
-
     path = Path()
     path.header.frame_id = "map"
     stamped = PoseStamped()
     stamped.header.frame_id = "map"
     stamped.pose.orientation.w = 1.0
-    path.poses = [stamped] * count
-    publisher.publish(path)
+    path.poses = [stamped] * 2
+    two = serialize_message(path)
+    path.poses = [stamped] * 3
+    three = serialize_message(path)
+    repeated = three[len(two):]
+    count_at = 4 + 8 + 4 + len(b"map\0")  # encapsulation, stamp, frame id: the pose count follows
+    data = bytearray(two + repeated * (count - 2))
+    struct.pack_into("<I", data, count_at, count)
+    assert len(deserialize_message(bytes(two[:count_at]) + struct.pack("<I", 3) + two[count_at + 4:] + repeated,
+                                   Path).poses) == 3  # the bytes are a Path's
+    publisher.publish(bytes(data))
     acknowledged = client.flush(publisher)
-    return {"poses": count, "acknowledged": acknowledged, "then": client.trigger("export_ply")}
+    return {"poses": count, "bytes": len(data), "acknowledged": acknowledged, "then": client.trigger("export_ply")}
 
 
 def tf_flood(client: Client, args) -> dict:

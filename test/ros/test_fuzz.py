@@ -162,7 +162,7 @@ def check_decoded(msg, num_classes) -> str:
     return "decoded"
 
 
-@fuzz(1500)
+@fuzz(800)  # random headers: most fail at the first check; the damaged clouds below reach deeper
 @given(msg=arbitrary_clouds(), num_classes=st.sampled_from([None, 2, 3, -1]))
 def test_arbitrary_pointcloud2_decodes_or_raises_cloud_error(msg, num_classes):
     check_decoded(msg, num_classes)
@@ -280,7 +280,7 @@ def kernel_mappings(draw):
     return data
 
 
-@fuzz(1500)
+@fuzz(800)
 @given(data=st.one_of(kernel_mappings(), st.dictionaries(st.sampled_from(KEYS), yaml_values, max_size=7)))
 def test_kernel_mappings_load_or_raise_kernel_file_error(data):
     check_kernel(lambda: kernel_config_from_dict(data))

@@ -37,16 +37,29 @@ MEMORY_GROWTH_LIMIT_MB = 400
 
 def attack(target: "Target", name: str, *args: str, timeout: float = 120.0) -> dict:
     """Run one attack of hostile_client.py in its own process; its JSON answer."""
-    command = [sys.executable, str(CLIENT), name, "--domain", str(target.rig.domain)]
-    for arg in args:
-        command += ["--arg", arg]
+    return attacks(target, (name, *args), timeout=timeout)[0]
+
+
+def attacks(target: "Target", *runs: tuple[str, ...], timeout: float = 120.0) -> list[dict]:
+    """Run attacks of hostile_client.py side by side, each in its own process (``runs``: the
+    attack's name and its arguments); their JSON answers, in order."""
     # The player's Fast DDS profile: its writers send heartbeats every 0.2 s, so the attacker
     # learns in a fraction of a second (not Fast DDS's 3 s) that the node has what it sent.
     profile = {variable: str(large_data_profile(player=True)) for variable in PROFILE_VARIABLES}
-    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout, cwd=REPO,
-                          env=dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", **profile))
-    assert done.returncode == 0, f"the attack {name} failed itself:\n{done.stdout}\n{done.stderr}"
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    environment = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", **profile)
+    processes = []
+    for name, *args in runs:
+        command = [sys.executable, str(CLIENT), name, "--domain", str(target.rig.domain)]
+        for arg in args:
+            command += ["--arg", arg]
+        processes.append(subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                          cwd=REPO, env=environment))
+    answers = []
+    for (name, *_), process in zip(runs, processes, strict=True):
+        output, errors = process.communicate(timeout=timeout)
+        assert process.returncode == 0, f"the attack {name} failed itself:\n{output}\n{errors}"
+        answers.append(json.loads(output.strip().splitlines()[-1]))
+    return answers
 
 
 def tree(root: Path) -> dict[str, tuple]:
@@ -172,20 +185,17 @@ def test_inputs_over_their_caps_are_refused_before_they_cost(target):
     (The counts that bound the TF and odometry histories: test_tf_buffer.py, test_pose_buffer.py.)"""
     rig = target.rig
     before = rig.stats()
-    assert attack(target, "cloud_lies", str(MAX_CLOUD_MEGABYTES + 3))["acknowledged"]
-    now = rig.wait_stats(lambda s: s.scans_in >= before.scans_in + 3)
-    assert now.reasons.get("bad cloud", 0) - before.reasons.get("bad cloud", 0) == 2, now
-    assert now.reasons.get("too large", 0) - before.reasons.get("too large", 0) == 1, now
     mark = rig.log.mark()
-    flood = attack(target, "path_flood", "300000")
+    clouds, flood, tf, odometry = attacks(target, ("cloud_lies", str(MAX_CLOUD_MEGABYTES + 3)),
+                                          ("path_flood", "300000"), ("tf_flood", "3000", "20000"), ("odometry_lies",))
+    assert clouds["acknowledged"] and tf["acknowledged"] and odometry["acknowledged"], (clouds, tf, odometry)
     assert flood["acknowledged"] and flood["then"]["success"], flood
-    rig.wait_log(rf"Path on .*pose_corrections.*300000 poses are more than max_path_poses = {MAX_PATH_POSES}", mark)
-    tf = attack(target, "tf_flood", "3000", "20000")
-    assert tf["acknowledged"]
-    rig.wait_log(r"1000 frames are known already", mark)
-    assert attack(target, "odometry_lies")["acknowledged"]
-    after = rig.wait_stats(lambda s: s.odometry_in >= before.odometry_in + 1)
+    after = rig.wait_stats(lambda s: s.scans_in >= before.scans_in + 3 and s.odometry_in >= before.odometry_in + 1)
+    assert after.reasons.get("bad cloud", 0) - before.reasons.get("bad cloud", 0) == 2, after
+    assert after.reasons.get("too large", 0) - before.reasons.get("too large", 0) == 1, after
     assert after.odometry_rejected == before.odometry_rejected + 1, after
+    rig.wait_log(rf"Path on .*pose_corrections.*300000 poses are more than max_path_poses = {MAX_PATH_POSES}", mark)
+    rig.wait_log(r"1000 frames are known already", mark)
     assert (after.integrated, after.voxels, after.map_version) == (before.integrated, before.voxels,
                                                                    before.map_version)
     target.expect_alive()
