@@ -22,6 +22,7 @@ much of the time, which slowed the update thread's scans tenfold at times).
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 
@@ -34,6 +35,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -65,6 +67,13 @@ LEVELS = {OK: DiagnosticStatus.OK, WARN: DiagnosticStatus.WARN, ERROR: Diagnosti
 # Odometry is small and may arrive in bursts (a reliable reader delivers in order, so one
 # lost message holds up the rest until it is repeated): keep every pose of such a burst.
 ODOMETRY_DEPTH = 200
+
+
+def memory_values(memory) -> list[tuple[str, object]]:
+    """The map's memory (a ``MemoryState``) as /diagnostics key-value pairs."""
+    return [("map_megabytes", f"{(memory.store_bytes + memory.lent_bytes) / 1e6:.1f}"),
+            ("map_budget_megabytes", f"{memory.budget_bytes / 1e6:g}"), ("map_full", str(memory.full).lower()),
+            ("map_voxels_dropped", memory.voxels_dropped)]
 
 
 class MapperNode(Node):
@@ -223,9 +232,7 @@ class MapperNode(Node):
         prepared = []
         for parameter in map(integers_as_doubles, parameters):
             if parameter.name in ("map_file", "ply_file") and isinstance(parameter.value, str) and parameter.value \
-                    and not parameter.value.startswith("/") and "\0" not in parameter.value:
-                from rclpy.parameter import Parameter
-
+                    and not os.path.isabs(parameter.value):
                 parameter = Parameter(parameter.name, Parameter.Type.STRING, self.files.folder.resolve(parameter.value))
             prepared.append(parameter)
         return prepared
@@ -275,7 +282,8 @@ class MapperNode(Node):
     def _publish_diagnostics(self) -> None:
         snapshot = self._snapshot()
         level, message = self.status.health(snapshot, self.param("odometry_timeout"))
-        for extra in (self.files.health(), self._memory_health()):
+        memory = self.core.mapper.memory_state()
+        for extra in (self.files.health(), self._memory_health(memory)):
             if extra is not None:
                 extra_level, extra_message = extra
                 message = extra_message if level == OK else f"{message}; {extra_message}"
@@ -286,15 +294,14 @@ class MapperNode(Node):
         status.values.append(KeyValue(key="last_save", value=self.files.last_save or ""))
         status.values.append(KeyValue(key="queue_limit", value=str(self.param("cloud_queue_size"))))
         status.values.extend(KeyValue(key=k, value=v) for k, v in self.corrections.diagnostic_values())
-        status.values.extend(KeyValue(key=k, value=str(v)) for k, v in self._guard_values() + self._memory_values())
+        status.values.extend(KeyValue(key=k, value=str(v)) for k, v in self._guard_values() + memory_values(memory))
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_publisher.publish(array)
 
-    def _memory_health(self) -> tuple[int, str] | None:
-        """WARN while the map is full (max_map_megabytes): it stops growing; said once in the log
-        each time it fills."""
-        memory = self.core.mapper.memory_state()
+    def _memory_health(self, memory) -> tuple[int, str] | None:
+        """WARN while the map is full (``memory``: its ``MemoryState``, against max_map_megabytes):
+        it stops growing; said once in the log each time it fills."""
         self._times_full = min(self._times_full, memory.times_full)  # a reset starts the count again
         if memory.times_full > self._times_full:
             self._times_full = memory.times_full
@@ -306,12 +313,6 @@ class MapperNode(Node):
             return None
         return WARN, (f"map full (max_map_megabytes {memory.budget_bytes / 1e6:g}): {memory.voxels_dropped} voxels of "
                       "new ground forgotten")
-
-    def _memory_values(self) -> list[tuple[str, object]]:
-        memory = self.core.mapper.memory_state()
-        return [("map_megabytes", f"{(memory.store_bytes + memory.lent_bytes) / 1e6:.1f}"),
-                ("map_budget_megabytes", f"{memory.budget_bytes / 1e6:g}"), ("map_full", str(memory.full).lower()),
-                ("map_voxels_dropped", memory.voxels_dropped)]
 
     def _guard_values(self) -> list[tuple[str, object]]:
         """What no input may exceed: failed callbacks, refused transforms, the folder files go to."""

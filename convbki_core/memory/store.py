@@ -66,6 +66,12 @@ def _chunk_bytes(chunk: _Chunk) -> int:
     return chunk.offsets.nbytes + chunk.counts.nbytes + chunk.classes.nbytes + chunk.values.nbytes
 
 
+def _subset(chunk: _Chunk, keep: np.ndarray) -> _Chunk:
+    """A new chunk of the voxels of ``chunk`` where ``keep`` (n,) bool is set."""
+    entries = np.repeat(keep, chunk.counts)
+    return _Chunk(chunk.offsets[keep], chunk.counts[keep], chunk.classes[entries], chunk.values[entries])
+
+
 def _chunk_keys(indices: np.ndarray) -> np.ndarray:
     return indices >> CHUNK_SHIFT  # arithmetic shift: floor division, right for negatives
 
@@ -292,10 +298,8 @@ class VoxelStore:
                                                      bounds[1:].tolist()):
                 if not count:
                     continue
-                keep = linear[start:end] < 0
-                entries = np.repeat(keep, chunk.counts)
-                grown = self._replace_chunk(key, chunk, None if count == chunk.offsets.size else _Chunk(
-                    chunk.offsets[keep], chunk.counts[keep], chunk.classes[entries], chunk.values[entries]))
+                grown = self._replace_chunk(key, chunk, None if count == chunk.offsets.size else
+                                            _subset(chunk, linear[start:end] < 0))
                 if bounded:  # the map's all the same: what the window holds counts against the budget
                     self.budget.lend(key, -grown)
         return linear[positions], rows
@@ -366,10 +370,7 @@ class VoxelStore:
             if not inside.any():
                 continue
             removed.append(indices[inside])
-            keep = ~inside
-            entries = np.repeat(keep, chunk.counts)
-            self._replace_chunk(key, chunk, None if inside.all() else _Chunk(
-                chunk.offsets[keep], chunk.counts[keep], chunk.classes[entries], chunk.values[entries]))
+            self._replace_chunk(key, chunk, None if inside.all() else _subset(chunk, ~inside))
         if self.budget.lent:  # chunks the box covers whole: what the window held of them is forgotten with it
             self.budget.release_inside(((lo + _MASK) >> CHUNK_SHIFT).tolist(), ((hi >> CHUNK_SHIFT) - 1).tolist())
         if self.budget.budget_bytes:

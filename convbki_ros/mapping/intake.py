@@ -37,8 +37,9 @@ class InputIntake:
                                f"({len(msg.data) / 1e6:.0f} MB), more than max_points_per_cloud = {limit}")
             return
         problem = self._size_problem(msg, points)
-        if problem is None and frame_id_problem(msg.header.frame_id):
-            problem = "bad cloud", frame_id_problem(msg.header.frame_id)
+        frame_problem = frame_id_problem(msg.header.frame_id) if problem is None else None
+        if frame_problem:
+            problem = "bad cloud", frame_problem
         if problem:
             reason, text = problem
             self.status.drop(reason)
