@@ -384,7 +384,7 @@ class MapperNode(Node):
         """Stop the threads (the scan in progress finishes) and save when asked to; False when
         that save failed (the map of this session is then not on disk)."""
         self.core.stop()
-        self.corrections.stop()
+        self.corrections.stop()  # a correction under way stops before its next scan: the thread is joined
         self.outputs.stop()
         self.update_thread.join(timeout=1.5)
         self.files.close()

@@ -205,6 +205,12 @@ PARAMETERS: tuple[Spec, ...] = (
     Spec("correction_tolerance", 0.05,
          "a Path on pose_corrections leaves a logged scan alone where it moves none of its points within the "
          "local window by this much or more (a fraction of a voxel); metres", 0.0, 1e3, run_time=True),
+    Spec("correction_min_move", -1.0,
+         "a Path on pose_corrections maps scans again only when it moves some logged scan's points within the "
+         "local window by this much or more from where the map has them (or the correction under way puts them); "
+         "a Path that moves less is counted and costs a look at the log, no line (a SLAM re-sends its path many "
+         "times a second, each nudging every pose); metres; -1.0 = half a voxel (resolution / 2)", -1.0, 1e3,
+         run_time=True),
     Spec("map_file_mismatch", "refuse",
          "what a map_file that holds a whole map of another set-up (its resolution, num_classes, prior or frame "
          "differ from this node's) does at start: refuse (exit code 2, naming what differs and the parameter that "
@@ -235,7 +241,8 @@ PARAMETER_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "max_map_megabytes", "pose_wait_timeout", "max_pose_jump", "on_pose_jump", "stamp_backwards_tolerance",
         "reset_on_stamp_backwards", "odometry_timeout",)),
     ("SLAM corrections (a Path of optimised keyframe poses moves the scans the map holds)", (
-        "scan_log", "scan_log_scans", "scan_log_megabytes", "max_path_poses", "correction_tolerance",)),
+        "scan_log", "scan_log_scans", "scan_log_megabytes", "max_path_poses", "correction_tolerance",
+        "correction_min_move",)),
     ("Logs and diagnostics", (
         "stats_period", "diagnostics_period",)),
 )

@@ -15,9 +15,9 @@ from typing import Self
 
 import numpy as np
 
-from convbki_core.correction.replay import CorrectionResult, continue_correction, pose_displacement
+from convbki_core.correction.replay import CorrectionResult, continue_correction, pose_displacements
 from convbki_core.correction.scan_log import ScanLog, Segment
-from convbki_core.geometry.grid import check_pose
+from convbki_core.geometry.grid import check_poses
 
 
 class MapCorrections:
@@ -55,22 +55,26 @@ class MapCorrections:
         log = self.scan_log if log is None else log
         if log is None:
             raise ValueError("this mapper keeps no scan log: nothing can be moved")
-        reach = float(np.max(np.abs(self.geometry.bounds_max))) if reach is None else reach
-        logged = dict(log.scans())
-        moves, skipped, largest = {}, 0, 0.0
-        for index, pose in poses.items():
-            if index not in logged:
-                continue
-            pose = check_pose(pose)
-            if pose_displacement(logged[index].pose, pose, reach) < tolerance:
-                skipped += 1
-                continue
-            moves[index] = pose
-            largest = max(largest, float(np.linalg.norm(pose[:3, 3] - logged[index].pose[:3, 3])))
+        reach = self.correction_reach() if reach is None else reach
+        table = log.table()
+        where = {int(index): row for row, index in enumerate(table.indices)}
+        wanted = [(index, where[index], pose) for index, pose in poses.items() if index in where]
+        if not wanted:
+            return {}, 0, 0.0
+        new = check_poses(np.stack([pose for _, _, pose in wanted]))
+        old = table.poses[[row for _, row, _ in wanted]]
+        moving = pose_displacements(old, new, reach) >= tolerance
+        moves = {index: pose for (index, _, _), pose, move in zip(wanted, new, moving) if move}
+        skipped = int((~moving).sum())
+        largest = float(np.linalg.norm(new[moving, :3, 3] - old[moving, :3, 3], axis=1).max()) if moving.any() else 0.0
         return moves, skipped, largest
 
+    def correction_reach(self) -> float:
+        """How far from the sensor a correction measures a scan's move (m): the window's edge."""
+        return float(np.max(np.abs(self.geometry.bounds_max)))
+
     def corrected(self, poses: dict[int, np.ndarray], tolerance: float = 0.0, until: int | None = None,
-                  reuse: Self | None = None, log: ScanLog | None = None
+                  reuse: Self | None = None, log: ScanLog | None = None, between=None
                   ) -> tuple[Self, CorrectionResult]:
         """This map as it would be had the logged scans been integrated at corrected poses
         (``poses``: map <- sensor by the drive's scan index; scans no longer logged, or moved by
@@ -81,7 +85,8 @@ class MapCorrections:
         into instead of a new one (the one a correction replaced: its window is already in
         memory, where a new window's pages cost more than the scans). ``log``: a copy of this
         mapper's log (``ScanLog.copy``) to read instead of the log, so that this mapper may go
-        on mapping meanwhile (the node's live scans). Returns (the new mapper, or this one when
+        on mapping meanwhile (the node's live scans). ``between``: asked before each scan mapped
+        again (``continue_correction``); False stops the replay there. Returns (the new mapper, or this one when
         nothing moves; the result).
 
         The new mapper has this one's configuration, so its map is held to the same memory budget
@@ -100,7 +105,7 @@ class MapCorrections:
         new = reuse if reuse is not None and reuse is not self else type(self)(self.config, self.layer.kernel)
         new.frame_id = self.frame_id
         new.start_from(segment, log)
-        replayed = continue_correction(new, log, moves, segment.first_index, until)
+        replayed = continue_correction(new, log, moves, segment.first_index, until, between)
         result.replayed = replayed
         result.seconds = time.perf_counter() - started
         return new, result

@@ -20,13 +20,13 @@ takes the old one's place: ``continue_correction``).
 
 from __future__ import annotations
 
-import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.correction.scan_log import LoggedScan, ScanLog
-from convbki_core.geometry.poses import interpolate_pose
+from convbki_core.correction.scan_log import LogTable, ScanLog
+from convbki_core.geometry.poses import matrix_to_quaternion, quaternion_to_matrix, slerp
 
 
 @dataclass
@@ -41,16 +41,20 @@ class CorrectionResult:
 
 
 def continue_correction(mapper, log: ScanLog, moves: dict[int, np.ndarray], since: int,
-                        until: int | None = None) -> int:
+                        until: int | None = None, between: Callable[[int], bool] | None = None) -> int:
     """Integrate into ``mapper`` the scans of ``log`` from index ``since`` on (up to ``until``,
     exclusive), each at its pose in ``moves`` or else the one it was integrated with; returns how
-    many. A correction calls it once from its base, and again for the scans logged meanwhile."""
+    many. A correction calls it once from its base, and again for the scans logged meanwhile.
+    ``between``: asked before each scan with its index; False stops there (a newer Path, a
+    shutdown), and the mapper is the map up to the scans integrated so far."""
     count = 0
     for index, scan in log.scans(since):
         if until is not None and index >= until:
             break
         if index != since + count:  # never a map with a scan missing: the caller holds the log
             raise ValueError(f"scan {since + count} is no longer logged: the correction cannot go on")
+        if between is not None and not between(index):
+            break
         pose = moves.get(index, scan.pose)
         mapper.integrate(scan.points(), scan.values(), pose, stamp_ns=scan.stamp_ns, mount=scan.mount,
                          logged=scan.at(pose) if index in moves else scan)
@@ -61,24 +65,56 @@ def continue_correction(mapper, log: ScanLog, moves: dict[int, np.ndarray], sinc
 def pose_displacement(old: np.ndarray, new: np.ndarray, reach: float) -> float:
     """How far a point ``reach`` metres from the sensor moves from ``old`` to ``new`` (m), at most:
     the translation plus the rotation's arc at that range."""
-    change = new @ np.linalg.inv(old)
-    cosine = (np.trace(change[:3, :3]) - 1.0) / 2.0
-    angle = math.acos(min(1.0, max(-1.0, cosine)))
-    return float(np.linalg.norm(new[:3, 3] - old[:3, 3]) + angle * reach)
+    return float(pose_displacements(np.asarray(old)[None], np.asarray(new)[None], reach)[0])
+
+
+def pose_displacements(old: np.ndarray, new: np.ndarray, reach: float) -> np.ndarray:
+    """``pose_displacement`` of each pair of poses (``old``, ``new``: (n, 4, 4)); (n,) metres."""
+    if not len(old):
+        return np.zeros(0)
+    # The rotation between them: new R times old R transposed (rotations: the inverse is the transpose).
+    turn = np.einsum("nij,nkj->nik", new[:, :3, :3], old[:, :3, :3])
+    cosine = (np.trace(turn, axis1=1, axis2=2) - 1.0) / 2.0
+    angle = np.arccos(np.clip(cosine, -1.0, 1.0))
+    return np.linalg.norm(new[:, :3, 3] - old[:, :3, 3], axis=1) + angle * reach
 
 
 # -- corrected poses from a SLAM's keyframes ---------------------------------------------------
-def _pose_at(stamps: np.ndarray, poses: np.ndarray, stamp: int) -> np.ndarray | None:
-    """The pose at ``stamp`` interpolated between the two of ``poses`` (by ``stamps``, ascending)
-    around it; None outside them."""
-    if not len(stamps) or stamp < stamps[0] or stamp > stamps[-1]:
-        return None
-    after = int(np.searchsorted(stamps, stamp, side="left"))
-    if stamps[after] == stamp:
-        return poses[after]
-    before = after - 1
-    fraction = (stamp - stamps[before]) / (stamps[after] - stamps[before])
-    return interpolate_pose(poses[before], poses[after], float(fraction))
+def poses_at(stamps: np.ndarray, poses: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The poses at the stamps ``at`` (M,), each interpolated between the two of ``poses`` (by
+    ``stamps``, ascending) around it (``interpolate_pose``: translation lerped, rotation
+    slerped). Returns ((M, 4, 4) poses, (M,) whether each stamp lies within ``stamps``; the
+    poses of those outside are zero)."""
+    at = np.asarray(at, np.int64)
+    result = np.zeros((len(at), 4, 4))
+    if not len(stamps):
+        return result, np.zeros(len(at), bool)
+    inside = (at >= stamps[0]) & (at <= stamps[-1])
+    wanted = at[inside]
+    after = np.searchsorted(stamps, wanted, side="left")
+    exact = stamps[after] == wanted
+    before = np.maximum(after - 1, 0)
+    span = np.where(exact, 1, stamps[after] - stamps[before])
+    fraction = np.where(exact, 0.0, (wanted - stamps[before]) / span)
+    start, end = poses[before], poses[after]
+    rotation = quaternion_to_matrix(slerp(matrix_to_quaternion(start[:, :3, :3]), matrix_to_quaternion(end[:, :3, :3]),
+                                          fraction))
+    between = np.zeros((len(wanted), 4, 4))
+    between[:, :3, :3] = rotation
+    between[:, :3, 3] = (1.0 - fraction)[:, None] * start[:, :3, 3] + fraction[:, None] * end[:, :3, 3]
+    between[:, 3, 3] = 1.0
+    between[exact] = end[exact]
+    result[inside] = between
+    return result, inside
+
+
+def _rigid_inverse(poses: np.ndarray) -> np.ndarray:
+    """The inverses of rigid transforms (n, 4, 4): the rotation transposed, the translation turned back."""
+    inverse = np.zeros_like(poses)
+    inverse[:, :3, :3] = np.swapaxes(poses[:, :3, :3], 1, 2)
+    inverse[:, :3, 3] = -np.einsum("nij,nj->ni", inverse[:, :3, :3], poses[:, :3, 3])
+    inverse[:, 3, 3] = 1.0
+    return inverse
 
 
 @dataclass
@@ -91,49 +127,90 @@ class KeyframeCorrection:
     changes: np.ndarray
     first_stamp_ns: int  # the Path's first keyframe: scans logged from here on are its to move
 
-    def poses_for(self, scans: list[tuple[int, LoggedScan]]) -> dict[int, np.ndarray]:
-        """The corrected sensor poses of ``scans`` ((index, scan)) stamped within the keyframes'
-        span: the change interpolated between the two keyframes around the scan's stamp, applied
-        on the left to the pose it was integrated with. A scan before the first keyframe the log
-        reaches but after the Path's first (whose own scans fell out of the log) takes that
-        keyframe's change. Returns the new poses by scan index."""
-        moved = {}
-        for index, scan in scans:
-            change = _pose_at(self.stamps_ns, self.changes, scan.stamp_ns)
-            if change is None and self.first_stamp_ns <= scan.stamp_ns < self.stamps_ns[0]:
-                change = self.changes[0]
-            if change is not None:
-                moved[index] = change @ scan.pose
-        return moved
+    def poses_for(self, scans) -> dict[int, np.ndarray]:
+        """The corrected sensor poses of ``scans`` ((index, scan) pairs or a ``LogTable``) stamped
+        within the keyframes' span: the change interpolated between the two keyframes around the
+        scan's stamp, applied on the left to the pose it was integrated with. A scan before the
+        first keyframe the log reaches but after the Path's first (whose own scans fell out of
+        the log) takes that keyframe's change. Returns the new poses by scan index."""
+        table = scans if isinstance(scans, LogTable) else LogTable.of(scans)
+        poses, reached = self.pose_array(table)
+        return {int(index): pose for index, pose in zip(table.indices[reached], poses[reached])}
+
+    def pose_array(self, table: LogTable) -> tuple[np.ndarray, np.ndarray]:
+        """``poses_for`` as arrays: ((n, 4, 4) the corrected poses, (n,) whether each scan is
+        reached; the others keep the pose they were integrated with)."""
+        changes, reached = poses_at(self.stamps_ns, self.changes, table.stamps_ns)
+        early = ~reached & (table.stamps_ns >= self.first_stamp_ns) & (table.stamps_ns < self.stamps_ns[0])
+        changes[early] = self.changes[0]
+        reached = reached | early
+        poses = table.poses.copy()
+        poses[reached] = changes[reached] @ table.poses[reached]
+        return poses, reached
 
 
-def keyframe_correction(scans: list[tuple[int, LoggedScan]], keyframe_stamps: np.ndarray,
-                        keyframe_poses: np.ndarray) -> KeyframeCorrection | None:
+def correction_moves(correction: KeyframeCorrection, table: LogTable, reach: float) -> np.ndarray:
+    """How far ``correction`` moves each scan of ``table`` it reaches from its logged pose
+    (``pose_displacement`` at ``reach`` m; 0 for those it does not reach), worked out on the
+    changes' translations and quaternions without building a pose: what tells a Path that moves
+    nothing in a few milliseconds on a log of thousands of scans. The rotation between two
+    keyframes' changes is interpolated linearly and normalised, not slerped as the correction
+    does: for the small turns between neighbouring keyframes that moves a point tens of metres
+    away by a fraction of a millimetre."""
+    stamps, keys = table.stamps_ns, correction.stamps_ns
+    translations = correction.changes[:, :3, 3]
+    quaternions = matrix_to_quaternion(correction.changes[:, :3, :3])
+    after = np.clip(np.searchsorted(keys, stamps, side="left"), 1, max(len(keys) - 1, 1))
+    before = after - 1 if len(keys) > 1 else np.zeros_like(after)
+    after = np.minimum(after, len(keys) - 1)
+    span = np.maximum(keys[after] - keys[before], 1)
+    fraction = np.clip((stamps - keys[before]) / span, 0.0, 1.0)[:, None]
+    start, end = quaternions[before], quaternions[after]
+    end = np.where((start * end).sum(axis=1, keepdims=True) < 0.0, -end, end)
+    quaternion = (1.0 - fraction) * start + fraction * end
+    quaternion /= np.sqrt((quaternion * quaternion).sum(axis=1, keepdims=True))
+    translation = (1.0 - fraction) * translations[before] + fraction * translations[after]
+    # The scan's sensor turned about the map's origin and shifted: (R - I) p + t, R from the quaternion.
+    position = table.poses[:, :3, 3]
+    x, y, z, w = quaternion.T
+    px, py, pz = position.T
+    cx, cy, cz = 2.0 * (y * pz - z * py), 2.0 * (z * px - x * pz), 2.0 * (x * py - y * px)  # 2 u x p
+    shift = np.stack([w * cx + (y * cz - z * cy), w * cy + (z * cx - x * cz), w * cz + (x * cy - y * cx)], axis=1)
+    angle = 2.0 * np.arccos(np.minimum(np.abs(w), 1.0))
+    moves = np.sqrt(((shift + translation) ** 2).sum(axis=1)) + angle * reach
+    reached = (stamps >= correction.first_stamp_ns) & (stamps <= keys[-1])  # (those before keys[0]: its first change)
+    return np.where(reached, moves, 0.0)
+
+
+def keyframe_correction(scans, keyframe_stamps: np.ndarray, keyframe_poses: np.ndarray) -> KeyframeCorrection | None:
     """The correction a SLAM's keyframes make of the logged ``scans`` ((the drive's scan index,
-    scan), oldest first, as ``ScanLog.scans`` gives them): keyframe stamps (ns, ascending) and
-    their new poses (K, 4, 4) of the body (map <- body, the body whose pose the scans' mounts
-    give the sensor's on). Each keyframe's pose as the map had it is the logged bodies' poses
-    interpolated at its stamp; keyframes outside the log's span are not used. None when no
-    keyframe lies within the log's span."""
-    if not scans:
+    scan) pairs, oldest first, as ``ScanLog.scans`` gives them, or their ``LogTable``): keyframe
+    stamps (ns, ascending) and their new poses (K, 4, 4) of the body (map <- body, the body whose
+    pose the scans' mounts give the sensor's on). Each keyframe's pose as the map had it is the
+    logged bodies' poses interpolated at its stamp; keyframes outside the log's span are not
+    used. None when no keyframe lies within the log's span."""
+    table = scans if isinstance(scans, LogTable) else LogTable.of(scans)
+    if not len(table):
         return None
-    stamps = np.array([scan.stamp_ns for _, scan in scans], np.int64)
-    bodies = np.stack([scan.pose @ np.linalg.inv(scan.mount) for _, scan in scans])
-    order = np.argsort(stamps, kind="stable")
-    stamps_sorted, bodies_sorted = stamps[order], bodies[order]
-    corrections = []
-    for stamp, pose in zip(keyframe_stamps, keyframe_poses):
-        before = _pose_at(stamps_sorted, bodies_sorted, int(stamp))
-        if before is not None:
-            corrections.append((int(stamp), np.asarray(pose, np.float64) @ np.linalg.inv(before)))
-    if not corrections:
+    keyframe_stamps = np.asarray(keyframe_stamps, np.int64)
+    ascending = bool((np.diff(table.stamps_ns) >= 0).all())  # as logged, nearly always
+    order = None if ascending else np.argsort(table.stamps_ns, kind="stable")
+    stamps = table.stamps_ns if ascending else table.stamps_ns[order]
+    # Only the logged bodies around a keyframe are read: those poses alone are worked out, and
+    # interpolated between as the whole log would be (each keyframe's two neighbours stay neighbours).
+    within = keyframe_stamps[(keyframe_stamps >= stamps[0]) & (keyframe_stamps <= stamps[-1])]
+    if not len(within):
         return None
-    return KeyframeCorrection(np.array([stamp for stamp, _ in corrections], np.int64),
-                              np.stack([change for _, change in corrections]), int(np.min(keyframe_stamps)))
+    after = np.searchsorted(stamps, within, side="left")
+    needed = np.unique(np.concatenate([after, np.maximum(after - 1, 0)]))
+    rows = needed if ascending else order[needed]
+    bodies = table.poses[rows] @ _rigid_inverse(table.mounts[rows])
+    before, inside = poses_at(stamps[needed], bodies, keyframe_stamps)
+    changes = np.asarray(keyframe_poses, np.float64)[inside] @ _rigid_inverse(before[inside])
+    return KeyframeCorrection(keyframe_stamps[inside], changes, int(np.min(keyframe_stamps)))
 
 
-def keyframe_corrections(scans: list[tuple[int, LoggedScan]], keyframe_stamps: np.ndarray,
-                         keyframe_poses: np.ndarray) -> dict[int, np.ndarray]:
+def keyframe_corrections(scans, keyframe_stamps: np.ndarray, keyframe_poses: np.ndarray) -> dict[int, np.ndarray]:
     """The corrected sensor poses of the logged ``scans`` (``keyframe_correction``): a scan
     between two keyframes takes the change interpolated between theirs by time, applied on the
     left to the pose it was integrated with; scans outside the keyframes' span are not moved

@@ -28,102 +28,21 @@ from __future__ import annotations
 
 import ctypes
 import threading
-import zlib
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-# Values of a logged scan's ``kind``: integer labels, or rows of class probabilities.
-LABELS, PROBABILITIES = 0, 1
-# The integer types labels are kept in, the smallest first.
-_LABEL_TYPES = (np.uint8, np.int8, np.uint16, np.int16, np.int32, np.int64)
-# What a logged scan costs besides its data (its fields and their objects), bytes.
-_SCAN_OVERHEAD = 300
+from convbki_core.correction.logged_scan import (  # noqa: F401 (the log's scans, named here too)
+    LABELS,
+    PROBABILITIES,
+    LoggedScan,
+    LogTable,
+    decode_floats,
+    encode_floats,
+)
+
 FELL_OUT = "they fell out of the scan log (its bounds: scans, megabytes)"
-
-
-def encode_floats(values: np.ndarray) -> bytes:
-    """A float32/float64 array as byte planes, the most significant plane compressed."""
-    values = np.ascontiguousarray(values, dtype=values.dtype.newbyteorder("<"))
-    width = values.dtype.itemsize
-    planes = values.reshape(-1).view(np.uint8).reshape(-1, width).T  # little endian: the last plane is the top
-    top = zlib.compress(np.ascontiguousarray(planes[width - 1]).tobytes(), 1)
-    rest = np.ascontiguousarray(planes[:width - 1]).tobytes()
-    return len(top).to_bytes(8, "little") + top + rest
-
-
-def decode_floats(data: bytes, dtype, shape: tuple[int, ...]) -> np.ndarray:
-    """The inverse of ``encode_floats``."""
-    width = np.dtype(dtype).itemsize
-    count = int(np.prod(shape))
-    top_size = int.from_bytes(data[:8], "little")
-    top = np.frombuffer(zlib.decompress(data[8:8 + top_size]), np.uint8)
-    rest = np.frombuffer(data, np.uint8, offset=8 + top_size).reshape(width - 1, count)
-    planes = np.empty((count, width), np.uint8)
-    planes[:, :width - 1] = rest.T
-    planes[:, width - 1] = top
-    return planes.reshape(-1).view(np.dtype(dtype).newbyteorder("<")).astype(dtype, copy=False).reshape(shape)
-
-
-def _label_type(labels: np.ndarray):
-    if not len(labels):
-        return np.uint8
-    low, high = int(labels.min()), int(labels.max())
-    return next(kind for kind in _LABEL_TYPES if np.iinfo(kind).min <= low and high <= np.iinfo(kind).max)
-
-
-@dataclass
-class LoggedScan:
-    """One integrated scan as the log keeps it (see the module docstring)."""
-
-    stamp_ns: int
-    pose: np.ndarray  # (4, 4) float64 map <- sensor, as integrated
-    mount: np.ndarray  # (4, 4) float64 body <- sensor
-    count: int  # points
-    points_dtype: str
-    kind: int  # LABELS or PROBABILITIES
-    values_dtype: str
-    columns: int  # probability columns (0 for labels)
-    points_data: bytes
-    values_data: bytes
-
-    @property
-    def nbytes(self) -> int:
-        """What the scan costs the log: its encoded data and its fixed fields."""
-        return len(self.points_data) + len(self.values_data) + _SCAN_OVERHEAD
-
-    def points(self) -> np.ndarray:
-        return decode_floats(self.points_data, np.dtype(self.points_dtype), (self.count, 3))
-
-    def values(self) -> np.ndarray:
-        if self.kind == LABELS:
-            return np.frombuffer(zlib.decompress(self.values_data), np.dtype(self.values_dtype)).copy()
-        return decode_floats(self.values_data, np.dtype(self.values_dtype), (self.count, self.columns))
-
-    def at(self, pose: np.ndarray) -> LoggedScan:
-        """The same scan at another pose (the data shared)."""
-        return LoggedScan(self.stamp_ns, np.array(pose, np.float64), self.mount, self.count, self.points_dtype,
-                          self.kind, self.values_dtype, self.columns, self.points_data, self.values_data)
-
-    @classmethod
-    def of(cls, points: np.ndarray, values: np.ndarray, pose: np.ndarray, stamp_ns: int,
-           mount: np.ndarray | None = None) -> LoggedScan:
-        """Encode one scan (points (N, 3) float32/float64, labels (N,) or probabilities (N, C))."""
-        points = np.asarray(points)
-        points = points.astype("<f4" if points.dtype == np.float32 else "<f8", copy=False)
-        values = np.asarray(values)
-        if values.ndim == 1:
-            labels = values.astype(_label_type(values))
-            kind, values_dtype, columns = LABELS, labels.dtype.str, 0
-            values_data = zlib.compress(labels.tobytes(), 1)
-        else:
-            probabilities = values.astype("<f8" if values.dtype == np.float64 else "<f4", copy=False)
-            kind, values_dtype, columns = PROBABILITIES, probabilities.dtype.str, int(values.shape[1])
-            values_data = encode_floats(probabilities)
-        mount = np.eye(4) if mount is None else np.array(mount, np.float64)
-        return cls(int(stamp_ns), np.array(pose, np.float64), mount, int(points.shape[0]), points.dtype.str, kind,
-                   values_dtype, columns, encode_floats(points), values_data)
 
 
 def _load_malloc_trim():
@@ -156,10 +75,28 @@ class Segment:
     base_bytes: int = 0  # what the base holds that the map's store does not share (refreshed as the map changes)
     scans: list = field(default_factory=list)
     scan_bytes: int = 0
+    # The table of its scans as far as it was last read (``table``): a segment's scans only grow.
+    _table: LogTable | None = field(default=None, repr=False, compare=False)
 
     @property
     def nbytes(self) -> int:
         return self.base_bytes + self.scan_bytes
+
+    def table(self, count: int | None = None) -> LogTable:
+        """Its first ``count`` scans' stamps and poses (``LogTable``; default: all), the rows read
+        before kept."""
+        known = self._table
+        count = len(self.scans) if count is None else count
+        if known is None:
+            known = LogTable.of([])
+        if len(known) < count:
+            start = len(known)
+            known = LogTable.joined([known, LogTable.of([(self.first_index + number, self.scans[number])
+                                                         for number in range(start, count)])])
+            self._table = known
+        if len(known) > count:
+            known = LogTable(known.indices[:count], known.stamps_ns[:count], known.poses[:count], known.mounts[:count])
+        return known
 
 
 # The per-scan fields a map file keeps of a log (one row per scan), beside the bytes.
@@ -180,6 +117,12 @@ class ScanLog:
         self.frozen_why = ""  # why the frozen scans cannot move, in words (for the one line that says so)
         # Scans from this index on stay while a correction still has to map them (``hold``).
         self.held_from: int | None = None
+        # A SLAM's Path not yet applied (a correction under way, or waiting): (keyframe stamps (K,)
+        # ns, their poses (K, 4, 4) map <- body). Saved with the log, so that ``map_tool correct``
+        # applies it to a map saved before it was.
+        self.pending: tuple[np.ndarray, np.ndarray] | None = None
+        self._changes = 0  # bumped by every change of what the log holds
+        self._table: tuple | None = None  # (``_changes`` then, the ``LogTable``) when last read
         self._segments: deque[Segment] = deque([Segment(0, None, None)])
         self._lock = threading.Lock()
 
@@ -226,13 +169,29 @@ class ScanLog:
             return [(segment.first_index + number, scan) for segment in self._segments
                     for number, scan in enumerate(segment.scans) if segment.first_index + number >= since]
 
+    def table(self, since: int = 0) -> LogTable:
+        """The stamps and poses of the logged scans with an index of at least ``since`` (``LogTable``)."""
+        with self._lock:  # the segments and how many scans each holds now; their scans never change
+            held = [(segment, len(segment.scans)) for segment in self._segments]
+            key = self._changes
+        cached = self._table
+        if cached is not None and cached[0] == key:
+            table = cached[1]
+        else:
+            table = LogTable.joined([segment.table(count) for segment, count in held])
+            self._table = (key, table)
+        if since and len(table) and table.indices[0] < since:
+            keep = table.indices >= since
+            table = LogTable(table.indices[keep], table.stamps_ns[keep], table.poses[keep], table.mounts[keep])
+        return table
+
     def segments(self) -> list[Segment]:
         """The segments as they are now (copies of their lists; bases and scans shared)."""
         with self._lock:
             return self._segment_copies()
 
     def _segment_copies(self) -> list[Segment]:
-        return [Segment(s.first_index, s.base, s.base_position, s.base_bytes, list(s.scans), s.scan_bytes)
+        return [Segment(s.first_index, s.base, s.base_position, s.base_bytes, list(s.scans), s.scan_bytes, s._table)
                 for s in self._segments]
 
     def segment_for(self, index: int) -> Segment | None:
@@ -249,6 +208,7 @@ class ScanLog:
         with self._lock:
             last = self._segments[-1]
             last.scans.append(scan)
+            self._changes += 1
             last.scan_bytes += scan.nbytes
             dropped = self._drop_over_bounds()
         if dropped:
@@ -264,6 +224,7 @@ class ScanLog:
                 (self.max_scans and sum(len(s.scans) for s in self._segments) > self.max_scans)
                 or (self.max_bytes and sum(s.nbytes for s in self._segments) > self.max_bytes)):
             old = self._segments.popleft()
+            self._changes += 1
             dropped += len(old.scans)
             self.frozen += len(old.scans)
             self.frozen_why = FELL_OUT
@@ -291,6 +252,7 @@ class ScanLog:
         the oldest segments fall out past the bounds. Returns how many scans fell out."""
         with self._lock:
             last = self._segments[-1]
+            self._changes += 1
             self._segments.append(Segment(last.first_index + len(last.scans), base,
                                           None if base_position is None else np.array(base_position), base_bytes))
             dropped = self._drop_over_bounds()
@@ -312,31 +274,37 @@ class ScanLog:
         with self._lock:
             kept = [segment for segment in self._segments if segment.first_index < index]
             self._segments = deque(kept + list(segments))
+            self._changes += 1
 
     def clear(self) -> None:
         """Forget every scan; the map from now on is the base of the next one (the caller's)."""
         with self._lock:
             self._segments = deque([Segment(0, None, None)])
+            self._changes += 1
             self.frozen = 0
             self.frozen_stamp_ns = None
             self.frozen_why = ""
+            self.pending = None
 
     def restart(self, base, base_position: np.ndarray | None, base_bytes: int, first_index: int,
                 why: str = "") -> None:
         """Forget every scan and begin again from ``base`` (a map loaded from a file without a
         log, a forgotten box); ``why``: what froze the scans before, in words."""
         with self._lock:
+            self._changes += 1
             self._segments = deque([Segment(first_index, base, None if base_position is None
                                             else np.array(base_position), base_bytes)])
             self.frozen = first_index
             self.frozen_stamp_ns = None
             self.frozen_why = why
+            self.pending = None
 
     def copy(self) -> ScanLog:
         """A copy as it is now (segment lists copied; bases and scans shared: they do not change)."""
         other = ScanLog(self.max_scans, self.max_bytes, self.calibration)
         with self._lock:  # one hold: the segments and what they froze agree
             other.frozen, other.frozen_stamp_ns, other.frozen_why = self.frozen, self.frozen_stamp_ns, self.frozen_why
+            other.pending = self.pending
             other._segments = deque(self._segment_copies())
         return other
 
@@ -375,6 +343,9 @@ class ScanLog:
                 "frozen_why": self.frozen_why,
                 "calibration": None if self.calibration is None else np.asarray(self.calibration).tolist()}
         arrays["scan_log_meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+        if self.pending is not None:
+            arrays["scan_log_pending_stamps"] = np.asarray(self.pending[0], "<i8")
+            arrays["scan_log_pending_poses"] = np.asarray(self.pending[1], "<f8")
         return arrays
 
     @classmethod
@@ -424,6 +395,12 @@ class ScanLog:
         log.frozen = int(meta.get("frozen", 0))
         log.frozen_stamp_ns = meta.get("frozen_stamp_ns")
         log.frozen_why = str(meta.get("frozen_why") or "")
+        stamps, poses = arrays.get("scan_log_pending_stamps"), arrays.get("scan_log_pending_poses")
+        if stamps is not None or poses is not None:
+            if (stamps is None or poses is None or stamps.ndim != 1 or poses.shape != (len(stamps), 4, 4)
+                    or not np.isfinite(poses).all() or (np.diff(stamps) <= 0).any()):
+                raise ValueError("its pending correction's keyframes are damaged")
+            log.pending = (stamps.astype(np.int64), poses.astype(np.float64))
         calibration = meta.get("calibration")
         log.calibration = None if calibration is None else np.asarray(calibration, np.float64)
         return log
@@ -433,9 +410,11 @@ class ScanLog:
         segments fall out (frozen) where they exceed them."""
         with other._lock:
             segments, frozen, frozen_stamp = list(other._segments), other.frozen, other.frozen_stamp_ns
-            calibration, why = other.calibration, other.frozen_why
+            calibration, why, pending = other.calibration, other.frozen_why, other.pending
         with self._lock:
+            self.pending = pending
             self._segments = deque(segments)
+            self._changes += 1
             self.frozen, self.frozen_stamp_ns, self.calibration = frozen, frozen_stamp, calibration
             self.frozen_why = why
             self._drop_over_bounds()

@@ -76,6 +76,21 @@ def check_pose(pose: np.ndarray) -> np.ndarray:
     return pose
 
 
+def check_poses(poses: np.ndarray) -> np.ndarray:
+    """``check_pose`` of each of ``poses`` (n, 4, 4) at once; raises for the first that fails."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must be 4x4 matrices, got shape {poses.shape}")
+    rotations = poses[:, :3, :3]
+    with np.errstate(invalid="ignore"):
+        orthonormal = np.isclose(rotations @ np.swapaxes(rotations, 1, 2), np.eye(3), atol=1e-4).all(axis=(1, 2))
+        good = (np.isfinite(poses).all(axis=(1, 2)) & orthonormal & (np.linalg.det(rotations) >= 0)
+                & np.isclose(poses[:, 3], [0, 0, 0, 1]).all(axis=1))
+    if not good.all():
+        check_pose(poses[int(np.flatnonzero(~good)[0])])
+    return poses
+
+
 def transform_points(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """Points (N, 3) moved by a 4x4 pose, in float64: ((x r0 + y r1) + z r2) + t per axis.
 

@@ -70,7 +70,8 @@ def _log_info(log) -> dict | None:
             "points": int(sum(scan.count for _, scan in scans)), "bytes": int(log.nbytes),
             "bytes_per_scan": round(log.nbytes / len(scans)) if scans else 0, "segments": len(log.segments()),
             "frozen_scans": log.frozen, "frozen_why": log.frozen_why or None,
-            "calibration": log.calibration is not None}
+            "calibration": log.calibration is not None,
+            "pending_correction_keyframes": None if log.pending is None else len(log.pending[0])}
 
 
 def format_info(info: dict) -> str:
@@ -100,6 +101,9 @@ def format_info(info: dict) -> str:
                      f"{_size(log['bytes_per_scan'])} a scan{frozen}")
     else:
         lines.append(f"scan log:    empty; the {log['frozen_scans']} scans are frozen ({log['frozen_why']})")
+    if log is not None and log["pending_correction_keyframes"]:
+        lines.append(f"pending:     a SLAM's Path of {log['pending_correction_keyframes']} keyframes the node had not "
+                     "applied when it saved: `map_tool correct MAP --out FIXED` applies it")
     lines.append(f"memory:      {info['bytes_per_voxel']:g} bytes per voxel in the mapper's store once loaded, "
                  f"{_size(info['memory_bytes'])} in all")
     lines.append(f"classes:     {info['num_classes']} (voxels per expected class; class 0: seen empty by free "

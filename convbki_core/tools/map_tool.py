@@ -186,25 +186,22 @@ def _costmap(args: argparse.Namespace) -> int:
 
 
 # -- correct ------------------------------------------------------------------------------
-def _correct(args: argparse.Namespace) -> int:
-    """Map the logged scans of a map file again at the poses of a poses file."""
-    from convbki_core.config import MapperConfig
+def _pending_poses(path, log, scans) -> dict:
+    """The logged scans' poses by the SLAM's Path a node had not yet applied when it saved the map."""
+    from convbki_core.correction.replay import keyframe_corrections
+
+    if log.pending is None:
+        raise UserError(f"{path}: holds no SLAM correction left to apply (the node applied every Path it took); "
+                        "give --poses POSES.txt")
+    stamps, poses = log.pending
+    return keyframe_corrections(scans, stamps, poses)
+
+
+def _poses_file_poses(args: argparse.Namespace, log, scans) -> dict:
+    """The logged scans' poses by a poses file (one line per logged scan, ``poses.txt``'s format)."""
     from convbki_core.datasets import DatasetError
     from convbki_core.datasets.semantic_kitti import read_calibration, read_poses
-    from convbki_core.io.kernel_file import kernel_config_from_dict
-    from convbki_core.io.map_file import read_map
-    from convbki_core.mapper import ConvBKIMapper
 
-    out = _check_output(args.out, args.force)
-    metadata, indices, alpha = read_map(args.map, with_scan_log=True)
-    log = metadata["scan_log"]
-    if log is None:
-        raise UserError(f"{args.map}: holds no scan log (saved with scan_log off, or by a version before "
-                        "logs), so none of its scans can move")
-    scans = log.scans()
-    if not scans:
-        raise UserError(f"{args.map}: its scan log is empty; its {log.frozen} scans are frozen into the map "
-                        f"({log.frozen_why or 'they cannot move'})")
     calibration = log.calibration
     try:
         if args.calib:
@@ -219,6 +216,28 @@ def _correct(args: argparse.Namespace) -> int:
         raise UserError(f"{args.poses}: {len(poses)} poses for the {len(scans)} logged scans (scans "
                         f"{scans[0][0]}..{scans[-1][0]} of the map); one pose per logged scan, in order"
                         + (f"; the {log.frozen} scans before are frozen ({log.frozen_why})" if log.frozen else ""))
+    return {index: pose for (index, _), pose in zip(scans, poses)}
+
+
+def _correct(args: argparse.Namespace) -> int:
+    """Map the logged scans of a map file again at the poses of a poses file, or of the SLAM's
+    Path the node had not yet applied when it saved the map."""
+    from convbki_core.config import MapperConfig
+    from convbki_core.io.kernel_file import kernel_config_from_dict
+    from convbki_core.io.map_file import read_map
+    from convbki_core.mapper import ConvBKIMapper
+
+    out = _check_output(args.out, args.force)
+    metadata, indices, alpha = read_map(args.map, with_scan_log=True)
+    log = metadata["scan_log"]
+    if log is None:
+        raise UserError(f"{args.map}: holds no scan log (saved with scan_log off, or by a version before "
+                        "logs), so none of its scans can move")
+    scans = log.scans()
+    if not scans:
+        raise UserError(f"{args.map}: its scan log is empty; its {log.frozen} scans are frozen into the map "
+                        f"({log.frozen_why or 'they cannot move'})")
+    wanted = _pending_poses(args.map, log, scans) if args.poses is None else _poses_file_poses(args, log, scans)
     try:
         config = MapperConfig.from_mapping_record(metadata.get("mapping"))
         kernel = kernel_config_from_dict(metadata.get("kernel"))
@@ -228,10 +247,11 @@ def _correct(args: argparse.Namespace) -> int:
     config = config.replace(device="cpu", scan_log_scans=0, scan_log_megabytes=0.0)
     mapper = ConvBKIMapper(config, kernel)
     mapper.replace_with(metadata, indices, alpha)
-    wanted = {index: pose for (index, _), pose in zip(scans, poses)}
     with _steps(1, args.quiet, "mapping the moved scans again") as bar:
         corrected, result = mapper.corrected(wanted, tolerance=args.tolerance)
         bar.update()
+    if corrected.scan_log is not None:
+        corrected.scan_log.pending = None  # applied (or overruled by --poses)
     corrected.save(out)
     print(f"corrected {args.map}: {result.scans} of {len(scans)} logged scans moved (largest move "
           f"{result.largest_move:.2f} m; {result.skipped} moved less than {args.tolerance:g} m, left alone), "
@@ -260,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
         "  map_tool merge MAP MAP [MAP ...] --out MAP [--force]\n"
         "  map_tool export-ply MAP --out PLY [--max-variance V] [--force]\n"
         "  map_tool costmap MAP --out GRID.npz|GRID.png [--profile car|small_robot|FILE] [--force]\n"
-        "  map_tool correct MAP --poses POSES.txt --out FIXED [--calib CALIB.txt] [--tolerance M] [--force]\n"
+        "  map_tool correct MAP [--poses POSES.txt] --out FIXED [--calib CALIB.txt] [--tolerance M] [--force]\n"
         "  --json: one JSON object; --out: the file to write (atomically); --force: replace it if it exists;\n"
         "  --max-variance: only voxels whose expected class has at most this variance; --quiet: no progress bar.\n"
         "`map_tool COMMAND --help` explains each command.")
@@ -306,7 +326,9 @@ def build_parser() -> argparse.ArgumentParser:
                                   "built from scratch with those poses, for every rule of the mapper. `map_tool info` "
                                   "says which scans the log keeps.")
     correct.add_argument("map", metavar="MAP", help="map file with a scan log (node map_file, evaluate --save-map)")
-    correct.add_argument("--poses", required=True, metavar="POSES", help="corrected poses, one per logged scan")
+    correct.add_argument("--poses", default=None, metavar="POSES",
+                         help="corrected poses, one per logged scan (default: the SLAM's Path the node had not "
+                         "yet applied when it saved MAP, kept in its log)")
     correct.add_argument("--out", required=True, metavar="FIXED", help="corrected map file to write (atomically)")
     correct.add_argument("--calib", default=None, metavar="CALIB",
                          help="calib.txt whose Tr reads POSES (default: the one kept in the log)")

@@ -79,6 +79,7 @@ class MapFiles:
         self.core = node.core
         self.folder = folder
         self.saved_version: int | None = 0  # map_version at the last save or load of map_file (None: never)
+        self.saved_pending = None  # the scan log's pending Path at that save or load
         # core.lineage when the map last was what map_file holds (saved or loaded); None: never.
         # While it differs, the map may lack evidence the file holds, and only ~/save_map writes there.
         self.lineage_in_file: int | None = self.core.lineage
@@ -151,6 +152,12 @@ class MapFiles:
     def _file_holds_the_map(self) -> None:
         self.saved_version = self.core.map_version
         self.lineage_in_file = self.core.lineage
+        self.saved_pending = self._pending()
+
+    def _pending(self):
+        """The SLAM Path the map's log holds, not yet applied (None: none)."""
+        log = self.core.mapper.scan_log
+        return None if log is None else log.pending
 
     def file_may_hold_more(self) -> bool:
         """map_file exists and may hold evidence the map lacks (a reset, a forgotten box, another file)."""
@@ -188,6 +195,7 @@ class MapFiles:
         except (OSError, ValueError) as error:
             return self._failed_save(f"could not save {path}: {getattr(error, 'strerror', None) or error}")
         self.saved_version, self.lineage_in_file, self.save_error = version, lineage, None
+        self.saved_pending = None if snapshot.scan_log is None else snapshot.scan_log.pending
         kept = f" (the file before kept as {previous_path(path).name})" if replaces else ""
         self.last_save = f"saved {len(snapshot)} voxels to {path}{kept}{kept_note}"
         return True, self.last_save
@@ -252,7 +260,8 @@ class MapFiles:
         path = self.path
         if not (self.node.param("save_on_shutdown") and path and self.core.map_version):
             return True, None
-        if self.core.map_version == self.saved_version:
+        # A correction stopped by the shutdown leaves its Path in the log: that is worth a save.
+        if self.core.map_version == self.saved_version and self._pending() is self.saved_pending:
             return True, f"the map is unchanged since it was last saved to (or loaded from) {path}"
         return self.save_map(requested=False)
 

@@ -110,6 +110,8 @@ class CloudQueue:
         # The stamp (ns) of the cloud the update thread took and has not finished with: neither
         # queued nor logged yet, it is on its way into the map (a correction waits for it).
         self.in_flight: int | None = None
+        # The stamp (ns) of the newest cloud received: how far the live map lags behind the sensor.
+        self.newest_ns: int | None = None
 
     def push(self, msg, limit: int, byte_limit: int = 0, clock_ns: int = 0) -> Evicted:
         """Queue ``msg`` (``clock_ns``: the node's clock now); the oldest clouds are pushed out
@@ -125,6 +127,8 @@ class CloudQueue:
                     evicted.ready += 1
             self.clouds.append(pending)
             self.bytes += pending.nbytes
+            stamp = stamp_to_ns(msg.header.stamp)
+            self.newest_ns = stamp if self.newest_ns is None else max(self.newest_ns, stamp)
             self.changed.notify_all()
             return evicted
 
@@ -136,6 +140,11 @@ class CloudQueue:
         """The stamp (ns) of the oldest queued cloud, None when none is queued."""
         with self.changed:
             return min((stamp_to_ns(pending.msg.header.stamp) for pending in self.clouds), default=None)
+
+    def ready(self) -> int:
+        """Queued clouds whose odometry has come: the update thread's work at hand."""
+        with self.changed:
+            return sum(not self._waiting(pending) for pending in self.clouds)
 
     def waiting_for_pose(self) -> int:
         """Queued clouds whose odometry has not come yet."""

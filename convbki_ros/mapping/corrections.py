@@ -19,6 +19,11 @@ A correction runs on its own thread, beside the update thread:
    replaced map's voxels that the new one does not have as removed, so a subscriber's copy
    becomes the new map; the view and the costmap are published anew.
 
+A Path that moves no scan by correction_min_move is a look at the log, counted, no line (SLAMs
+re-send their path). A newer Path stops a running correction before its next scan: it goes on
+with the newer poses where they agree on the scans done, else begins again. Live clouds at hand
+go first. A shutdown stops it between scans; the log keeps its Path (``ScanLog.pending``).
+
 A reset, a load or a forgotten box while a correction runs abandons it (its map would bring
 back what they removed): the SLAM's next Path corrects the map as it is then.
 """
@@ -31,49 +36,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from convbki_core.correction.replay import CorrectionResult, continue_correction, keyframe_correction
-from convbki_core.geometry.poses import quaternion_to_matrix
-from convbki_ros.inputs.path_decoding import DecodedPath, PathError, decode_path, path_pose_count
-from convbki_ros.inputs.pose_buffer import QUATERNION_NORM_TOLERANCE, pose_problem
-from convbki_ros.inputs.transforms import stamp_to_ns
+from convbki_core.correction.replay import (
+    CorrectionResult,
+    continue_correction,
+    correction_moves,
+    keyframe_correction,
+    pose_displacements,
+)
+from convbki_ros.inputs.path_decoding import PathError, decode_path, path_pose_count
+from convbki_ros.inputs.path_keyframes import Keyframes, path_keyframes
+from convbki_ros.mapping.correction_waits import let_live_scans_first, wait_for_scans_up_to
 from convbki_ros.outputs.status import problem_key
-
-
-@dataclass
-class Keyframes:
-    """A Path's keyframes, checked: stamps (K,) ns ascending, poses (K, 4, 4) map <- body."""
-
-    stamps_ns: np.ndarray
-    poses: np.ndarray
-    received: float  # time.monotonic() on arrival
-
-
-def path_keyframes(path: DecodedPath, map_frame: str) -> Keyframes | str:
-    """The keyframes of a decoded ``nav_msgs/Path``, or why it cannot be used (one line)."""
-    if path.frame_id != map_frame:
-        return f"its frame is '{path.frame_id}', not the map's '{map_frame}'"
-    if not len(path):
-        return "it holds no pose"
-    outside = path.first_pose_outside(("", map_frame))
-    if outside is not None:
-        return f"pose {outside} is in frame '{path.frame_ids[outside]}', not the map's '{map_frame}'"
-    positions, orientations = path.positions, path.orientations
-    norms = np.linalg.norm(orientations, axis=1)
-    usable = (np.isfinite(positions).all(axis=1) & np.isfinite(norms)
-              & (np.abs(norms - 1.0) <= QUATERNION_NORM_TOLERANCE))
-    if not usable.all():
-        number = int(np.flatnonzero(~usable)[0])
-        return f"pose {number}: {pose_problem(positions[number], orientations[number])}"
-    stamps = path.stamps_ns
-    if (np.diff(stamps) <= 0).any():
-        number = int(np.flatnonzero(np.diff(stamps) <= 0)[0]) + 1
-        return (f"its stamps are not in ascending order (pose {number} at {stamps[number] / 1e9:.3f} s after "
-                f"{stamps[number - 1] / 1e9:.3f} s)")
-    poses = np.zeros((len(path), 4, 4))
-    poses[:, :3, :3] = quaternion_to_matrix(orientations / norms[:, None])
-    poses[:, :3, 3] = positions
-    poses[:, 3, 3] = 1.0
-    return Keyframes(stamps.copy(), poses, time.monotonic())
 
 
 @dataclass
@@ -84,10 +57,40 @@ class CorrectionCounts:
     refused: int = 0  # Paths that did not (bad input, nothing in the log to move)
     pending: int = 0  # 1 while a Path waits or is being applied
     done: int = 0  # corrections applied (the map replaced)
-    unchanged: int = 0  # Paths that moved no scan by the tolerance or more
+    unchanged: int = 0  # Paths that moved no scan by correction_min_move (or by the tolerance): nothing to do
+    superseded: int = 0  # Paths a newer one replaced before their correction began
+    retargeted: int = 0  # newer Paths that took over a running correction's scans not yet mapped again
+    restarted: int = 0  # running corrections a newer Path made stale: begun again from the first scan it moves
     abandoned: int = 0  # corrections a reset, a load or a forgotten box overtook
     last: CorrectionResult | None = None
-    last_received_to_applied_s: float = 0.0
+    last_check_ms: float = 0.0  # the last Path's look at the log (decoding, checks, its moves)
+
+
+@dataclass
+class Progress:
+    """A running correction: scans mapped again of those it has to map (which grows with the live scans)."""
+
+    done: int
+    total: int
+    started: float  # time.monotonic()
+
+    def expected_end_s(self) -> float | None:
+        """Seconds from now to the end at the pace so far; None before any scan is done."""
+        elapsed = time.monotonic() - self.started
+        if not self.done or elapsed <= 0:
+            return None
+        return (self.total - self.done) * elapsed / self.done
+
+
+@dataclass
+class Plan:
+    """What one Path does to the logged scans: ``moves`` (new poses by scan index)."""
+
+    keyframes: Keyframes
+    correction: object  # ``KeyframeCorrection``
+    moves: dict
+    skipped: int
+    frozen_note: str
 
 
 class CorrectionRunner:
@@ -96,26 +99,41 @@ class CorrectionRunner:
     def __init__(self, core, node, warnings):
         self.core, self.node, self.warnings = core, node, warnings
         self.counts = CorrectionCounts()
+        self.progress: Progress | None = None
         self._waiting: Keyframes | None = None
         self._busy = False
         self._stopping = False
         self._changed = threading.Condition()
+        # The poses the running correction maps its moved scans at: (scan indices ascending, (n, 4, 4)).
+        self._target: tuple[np.ndarray, np.ndarray] | None = None
         self._spare = None  # the map the last correction replaced: its window is reused by the next
         self.thread = threading.Thread(target=self._run, name="convbki_correction", daemon=True)
 
     def start(self) -> None:
         self.thread.start()
 
-    def stop(self) -> None:
+    def stop(self, wait: float = 10.0) -> None:
+        """Stop the thread; a correction under way stops before its next scan (the map in service
+        is left as it is, and its log keeps the Path: ``map_tool correct`` applies it to a saved map)."""
         with self._changed:
             self._stopping = True
             self._changed.notify_all()
+        if self.thread.is_alive():
+            self.thread.join(wait)
+
+    def min_move(self) -> float:
+        """correction_min_move in metres (its -1: half a voxel)."""
+        value = float(self.node.param("correction_min_move"))
+        return self.core.mapper.resolution / 2.0 if value < 0 else value
 
     # -- input (executor thread) ---------------------------------------------------------------
     def on_path(self, raw: bytes) -> None:
         """A Path as its serialized bytes (a raw subscription): its pose count is read and checked
         against max_path_poses before anything is decoded, and the poses are then read with numpy,
-        not as hundreds of thousands of Python objects."""
+        not as hundreds of thousands of Python objects. A Path that moves no logged scan by
+        correction_min_move beyond where the map has it (or where the correction under way puts
+        it) ends here: counted, without a line (a SLAM re-sends its path many times a second)."""
+        looked = time.perf_counter()
         topic = self.node.resolve_topic_name("pose_corrections")
         limit = int(self.node.param("max_path_poses"))
         try:
@@ -135,13 +153,42 @@ class CorrectionRunner:
                          "the map is unchanged")
             return
         with self._changed:
-            replaced = self._waiting is not None
-            self._waiting = keyframes
+            waiting = self._waiting is not None
+        same = not waiting and self._moves_nothing(keyframes)
+        with self._changed:
             self.counts.received += 1
+            self.counts.last_check_ms = (time.perf_counter() - looked) * 1e3
+            if same:
+                self.counts.unchanged += 1
+                return
+            self.counts.superseded += int(self._waiting is not None)
+            self._waiting = keyframes
             self.counts.pending = 1
             self._changed.notify_all()
-        if replaced:
-            self.node.get_logger().info("a newer Path on pose_corrections replaces the one still waiting")
+
+    def _moves_nothing(self, keyframes: Keyframes) -> bool:
+        """Whether ``keyframes`` move no logged scan by correction_min_move or more from where the
+        map has it, or the correction under way will put it (stamps and poses only, vectorised)."""
+        mapper = self.core.mapper
+        table = mapper.scan_log.table()
+        correction = keyframe_correction(table, keyframes.stamps_ns, keyframes.poses)
+        if correction is None:
+            return False  # nothing logged in its span yet: the thread waits for its clouds, or says why not
+        with self._changed:
+            target = self._target
+        if target is None:  # against the poses the map has: on the changes alone
+            moved = correction_moves(correction, table, mapper.correction_reach())
+            return bool(moved.max() < self.min_move())
+        # Against where the correction under way puts its scans, and the map the others.
+        poses, reached = correction.pose_array(table)
+        if not reached.any():
+            return False
+        reference = table.poses.copy()
+        rows = np.searchsorted(table.indices, target[0])
+        found = (rows < len(table)) & (table.indices[np.minimum(rows, len(table) - 1)] == target[0])
+        reference[rows[found]] = target[1][found]
+        moved = pose_displacements(reference[reached], poses[reached], mapper.correction_reach())
+        return bool(moved.max() < self.min_move())
 
     def _refuse(self, text: str) -> None:
         with self._changed:
@@ -170,11 +217,12 @@ class CorrectionRunner:
             finally:
                 with self._changed:
                     self._busy = False
+                    self._target = None
+                    self.progress = None
                     self.counts.pending = int(self._waiting is not None)
 
     def _apply(self, keyframes: Keyframes) -> None:
         core, started = self.core, time.monotonic()
-        tolerance = float(self.node.param("correction_tolerance"))
         # While the clouds up to the newest keyframe come and are integrated, a log at its bounds
         # would freeze the oldest scans, which this Path moves: none falls out until the copy.
         with core.map_lock:
@@ -182,7 +230,7 @@ class CorrectionRunner:
             waited_on.hold(waited_on.first_index)
         live = None
         try:
-            self._wait_for_scans_up_to(int(keyframes.stamps_ns[-1]))
+            wait_for_scans_up_to(self.core, int(keyframes.stamps_ns[-1]))
             with core.map_lock:
                 live, lineage = core.mapper, core.lineage
                 log = live.scan_log.copy()
@@ -192,48 +240,101 @@ class CorrectionRunner:
             if live is None or waited_on is not live.scan_log:  # (a load meanwhile gave the map another log)
                 waited_on.hold(None)
         try:
-            self._correct(keyframes, live, lineage, log, tolerance, started)
+            self._correct(keyframes, live, lineage, log, started)
         finally:
             live.scan_log.hold(None)
 
-    def _correct(self, keyframes: Keyframes, live, lineage: int, log, tolerance: float, started: float) -> None:
-        core = self.core
-        scans = log.scans()
-        correction = keyframe_correction(scans, keyframes.stamps_ns, keyframes.poses)
+    def _plan(self, keyframes: Keyframes, live, log) -> Plan | None:
+        """What ``keyframes`` move of ``log``; None (said, counted) when they reach no logged scan
+        or move none by the tolerance."""
+        table = log.table()
+        correction = keyframe_correction(table, keyframes.stamps_ns, keyframes.poses)
         if correction is None:
             self._refuse(self._outside_log(keyframes, log))
-            return
-        moved = correction.poses_for(scans)
+            return None
+        moved = correction.poses_for(table)
         frozen_note = ""
-        if log.frozen and scans and keyframes.stamps_ns[0] < scans[0][1].stamp_ns:
+        if log.frozen and len(table) and keyframes.stamps_ns[0] < table.stamps_ns[0]:
             frozen_note = (f"; its keyframes reach back before the oldest logged scan: the {log.frozen} scans before "
                            f"it stayed where they were ({log.frozen_why or 'frozen into the map'})")
+        tolerance = float(self.node.param("correction_tolerance"))
         moves, skipped, _ = live.plan_correction(moved, tolerance, log=log)
         if not moves:
             with self._changed:
                 self.counts.unchanged += 1
-            self.node.get_logger().info(f"pose_corrections: none of the {len(moved)} scans it reaches moves by "
-                                        f"correction_tolerance = {tolerance:g} m or more; the map is unchanged")
+            return None
+        return Plan(keyframes, correction, moves, skipped, frozen_note)
+
+    def _set_target(self, live, plan: Plan) -> None:
+        indices = np.array(sorted(plan.moves), np.int64)
+        with self._changed:
+            self._target = (indices, np.stack([plan.moves[int(i)] for i in indices]))
+        live.scan_log.pending = (plan.keyframes.stamps_ns, plan.keyframes.poses)
+
+    def _between(self, since: int, live):
+        """``continue_correction``'s check before each scan: the progress; False when a newer Path
+        waits or the node stops."""
+        def between(index: int) -> bool:
+            let_live_scans_first(self.core.queue, lambda: self._stopping)
+            with self._changed:
+                if self.progress is not None:
+                    self.progress.done = index - since
+                    self.progress.total = max(live.scans_integrated - since, self.progress.done)
+                return self._waiting is None and not self._stopping
+        return between
+
+    def _correct(self, keyframes: Keyframes, live, lineage: int, log, started: float) -> None:
+        core = self.core
+        plan = self._plan(keyframes, live, log)
+        if plan is None:
             return
-        new, result = live.corrected(moves, log=log, reuse=self._spare)
-        result.skipped = skipped
-        self._spare = None
-        # Catch up with the live scans without the lock, until one at most is left for the swap.
+        self._set_target(live, plan)
+        result, new, since = CorrectionResult(scans=len(plan.moves), skipped=plan.skipped), None, 0
+        newer = 0
         while True:
+            if new is None:  # (again) from the base of the segment holding the first scan the Path moves
+                segment_start = log.segment_for(min(plan.moves)).first_index
+                with self._changed:
+                    self.progress = Progress(0, live.scans_integrated - segment_start, time.monotonic())
+                new, first = live.corrected(plan.moves, log=log, reuse=self._spare,
+                                            between=self._between(segment_start, live))
+                self._spare = None
+                since = segment_start
+                result.replayed = first.replayed
+                result.largest_move = first.largest_move
+            else:
+                result.replayed += continue_correction(new, log, plan.moves, new.scans_integrated,
+                                                       between=self._between(since, live))
+            with self._changed:
+                stopping, taking_over = self._stopping, self._waiting
+                if taking_over is not None:
+                    self._waiting = None
+            if stopping:
+                return  # the map in service stays; its log keeps the Path (saved with it)
+            if taking_over is not None:
+                newer += 1
+                plan, new = self._take_over(taking_over, live, plan, new, since)
+                if plan is None:
+                    return
+                with core.map_lock:
+                    log = live.scan_log.copy()
+                result.scans = len(plan.moves)
+                continue
+            # Caught up with the copy of the log: catch up with the live scans, until one at most is left.
             with core.map_lock:
                 if core.lineage != lineage or core.mapper is not live:
                     self._abandon()
                     return
                 behind = live.scans_integrated - new.scans_integrated
                 if behind <= 1:
-                    self._extend(moves, correction, live, live.scan_log, new.scans_integrated, tolerance, result)
-                    result.replayed += continue_correction(new, live.scan_log, moves, new.scans_integrated)
+                    self._extend(plan, live, live.scan_log, new.scans_integrated, result)
+                    result.replayed += continue_correction(new, live.scan_log, plan.moves, new.scans_integrated)
                     new.frame_id = live.frame_id
+                    new.scan_log.pending = None
                     core.replace_mapper(new)
                     break
                 log = live.scan_log.copy()
-            self._extend(moves, correction, live, log, new.scans_integrated, tolerance, result)
-            result.replayed += continue_correction(new, log, moves, new.scans_integrated)
+            self._extend(plan, live, log, new.scans_integrated, result)
         result.seconds = time.monotonic() - started
         previous = live.items()[0]  # the replaced map changes no more: read without the lock
         with core.map_lock:
@@ -245,42 +346,52 @@ class CorrectionRunner:
         with self._changed:
             self.counts.done += 1
             self.counts.last = result
+        newer_note = f"; {newer} newer Paths took over while it ran" if newer else ""
         self.node.get_logger().info(
             f"pose_corrections applied: {result.scans} scans moved (largest move {result.largest_move:.2f} m, "
             f"{result.skipped} within correction_tolerance left alone), {result.replayed} mapped again, "
-            f"in {result.seconds:.2f} s{frozen_note}")
+            f"in {result.seconds:.2f} s{newer_note}{plan.frozen_note}")
 
-    def _wait_for_scans_up_to(self, stamp: int, longest: float = 5.0) -> None:
-        """Let the clouds stamped up to ``stamp`` (the newest keyframe's) arrive and the update
-        thread integrate them first, for ``longest`` seconds at most: the Path moves them too.
-        Arrived means a cloud stamped at or after ``stamp`` is queued or logged: a Path, a small
-        message on a topic of its own, can overtake the clouds it reaches, which would then be
-        mapped after the correction at their uncorrected poses; the cloud the update thread has
-        taken and not yet logged counts as queued. Keyframes more than ``longest``
-        seconds newer than the newest cloud are not waited for (no cloud is that late), nor any
-        when no cloud is logged or queued."""
-        core, queue = self.core, self.core.queue
-        deadline = time.monotonic() + longest
-        with queue.changed:
-            while not queue.stopping and time.monotonic() < deadline:
-                # The cloud the update thread is integrating counts as queued: it is not logged yet.
-                queued = [stamp_to_ns(p.msg.header.stamp) for p in queue.clouds] + \
-                    ([] if queue.in_flight is None else [queue.in_flight])
-                logged = core.mapper.scan_log.newest_ns
-                newest = max(queued + ([] if logged is None else [logged]), default=None)
-                # (Nothing logged nor queued: no stream to wait for, e.g. a map loaded without a log.)
-                arrived = newest is None or newest >= stamp or stamp - newest > longest * 1e9
-                if arrived and (not queued or min(queued) > stamp):
-                    return
-                queue.changed.wait(0.05)
+    def _take_over(self, keyframes: Keyframes, live, running: Plan, new, since: int):
+        """A newer Path came while a correction ran: its plan, and the new map to go on with.
+        Where it agrees with the running correction on every scan already mapped again (each
+        within correction_tolerance of where that put it), the correction goes on with the newer
+        poses for the rest; otherwise it begins again from the first scan the newer Path moves.
+        Returns (the plan, the map to go on with or None to begin again); (None, None) when the
+        newer Path moves nothing (the map in service is already where it says)."""
+        wait_for_scans_up_to(self.core, int(keyframes.stamps_ns[-1]))
+        with self.core.map_lock:
+            log = live.scan_log.copy()
+        plan = self._plan(keyframes, live, log)
+        if plan is None:
+            return None, None
+        self._set_target(live, plan)
+        done = new.scans_integrated
+        if min(plan.moves) >= since:
+            table = log.table(since)
+            rows = table.indices < done
+            indices, logged = table.indices[rows], table.poses[rows]
+            before = np.stack([running.moves.get(int(i), pose) for i, pose in zip(indices, logged)]) if len(indices) \
+                else np.zeros((0, 4, 4))
+            after = np.stack([plan.moves.get(int(i), pose) for i, pose in zip(indices, logged)]) if len(indices) \
+                else np.zeros((0, 4, 4))
+            tolerance = float(self.node.param("correction_tolerance"))
+            if not len(indices) or (pose_displacements(before, after, live.correction_reach()) < tolerance).all():
+                with self._changed:
+                    self.counts.retargeted += 1
+                return plan, new
+        with self._changed:
+            self.counts.restarted += 1
+        self._spare = new  # its window is reused for the new start
+        return plan, None
 
-    @staticmethod
-    def _extend(moves, correction, live, log, since: int, tolerance: float, result: CorrectionResult) -> None:
+    def _extend(self, plan: Plan, live, log, since: int, result: CorrectionResult) -> None:
         """Scans logged since the correction began that the keyframes reach (clouds stamped before
         the newest keyframe that came late) move with the others."""
-        late = [(index, scan) for index, scan in log.scans(since) if index not in moves]
-        more, skipped, largest = live.plan_correction(correction.poses_for(late), tolerance, log=log)
-        moves.update(more)
+        late = [(index, scan) for index, scan in log.scans(since) if index not in plan.moves]
+        tolerance = float(self.node.param("correction_tolerance"))
+        more, skipped, largest = live.plan_correction(plan.correction.poses_for(late), tolerance, log=log)
+        plan.moves.update(more)
         result.scans += len(more)
         result.skipped += skipped
         result.largest_move = max(result.largest_move, largest)
@@ -312,16 +423,31 @@ class CorrectionRunner:
             counts = CorrectionCounts(**vars(self.counts))
         values = [("corrections_pending", counts.pending), ("corrections_done", counts.done),
                   ("corrections_refused", counts.refused), ("corrections_unchanged", counts.unchanged),
-                  ("corrections_abandoned", counts.abandoned)]
+                  ("corrections_superseded", counts.superseded), ("corrections_retargeted", counts.retargeted),
+                  ("corrections_restarted", counts.restarted), ("corrections_abandoned", counts.abandoned),
+                  ("correction_min_move_m", f"{self.min_move():.3f}"),
+                  ("path_check_ms_last", f"{counts.last_check_ms:.2f}")]
+        with self._changed:
+            progress = None if self.progress is None else Progress(**vars(self.progress))
+        if progress is not None:
+            end = progress.expected_end_s()
+            values += [("correction_progress", f"{progress.done}/{progress.total}"),
+                       ("correction_running_s", f"{time.monotonic() - progress.started:.1f}"),
+                       ("correction_expected_end_s", "" if end is None else f"{end:.1f}")]
         if counts.last is not None:
             values += [("correction_last_scans", counts.last.scans),
                        ("correction_last_largest_move_m", f"{counts.last.largest_move:.3f}"),
                        ("correction_last_s", f"{counts.last.seconds:.3f}"),
                        ("correction_last_replayed", counts.last.replayed)]
         log = self.core.mapper.scan_log
+        newest_in = self.core.queue.newest_ns
         if log is not None:
-            reach = log.reach_ns
+            reach, newest = log.reach_ns, log.newest_ns
             values += [("scan_log_scans", len(log)), ("scan_log_megabytes", f"{log.nbytes / 1e6:.1f}"),
                        ("scan_log_frozen", log.frozen),
-                       ("scan_log_reach_stamp", "" if reach is None else f"{reach / 1e9:.3f}")]
+                       ("scan_log_reach_stamp", "" if reach is None else f"{reach / 1e9:.3f}"),
+                       ("scan_log_reach_s", "" if reach is None else f"{(newest - reach) / 1e9:.1f}")]
+            if newest_in is not None:
+                lag = 0.0 if newest is None else max(0.0, (newest_in - newest) / 1e9)
+                values.append(("live_lag_s", f"{lag:.2f}"))
         return [(key, str(value)) for key, value in values]

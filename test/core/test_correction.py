@@ -255,3 +255,35 @@ def test_map_tool_correct_moves_a_saved_maps_scans_and_evaluate_measures_the_dri
     assert maps["without correction"]["double_surface"] > maps["corrected"]["double_surface"] + 0.01
     assert drift["correction"]["scans_moved"] >= CLOSURE - 1 and drift["closure_frame"] == CLOSURE
     assert (tmp_path / "report_drift.png").stat().st_size > 10_000
+
+
+def test_the_quick_look_at_a_paths_moves_agrees_with_the_poses_it_makes():
+    """correction_moves (what tells a Path that moves nothing, on the changes alone) gives each
+    scan's pose_displacement from its logged pose to the pose the correction makes, and 0 for
+    the scans the Path does not reach."""
+    from convbki_core.correction.replay import correction_moves, keyframe_correction, pose_displacements
+    from convbki_core.correction.scan_log import LogTable
+
+    rng = np.random.default_rng(4)
+    scans = [(k, LoggedScan.of(np.zeros((0, 3), np.float32), np.zeros(0, np.int64), pose_of(rng, 40.0), 1000 + 100 * k))
+             for k in range(60)]
+    table = LogTable.of(scans)
+    keyframes = np.array([1000 + 100 * k + 30 for k in range(5, 50, 7)])
+    bodies = keyframe_correction(table, keyframes, np.stack([np.eye(4)] * len(keyframes)))
+    def small_change():  # what a SLAM's optimisation does between neighbouring keyframes
+        yaw = rng.uniform(-0.05, 0.05)
+        change = np.eye(4)
+        change[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        change[:3, 3] = rng.uniform(-1.0, 1.0, 3)
+        return change
+
+    new_poses = np.stack([small_change() for _ in keyframes]) @ np.stack(
+        [interpolate_pose(scans[(s - 1000) // 100][1].pose, scans[(s - 1000) // 100 + 1][1].pose, 0.3)
+         for s in keyframes])
+    correction = keyframe_correction(table, keyframes, new_poses)
+    assert bodies is not None and correction is not None
+    poses, reached = correction.pose_array(table)
+    quick = correction_moves(correction, table, 25.0)
+    exact = pose_displacements(table.poses, poses, 25.0)
+    assert reached.sum() == 42 and not quick[~reached].any()  # scans 6 .. 47: between the first and last keyframes
+    np.testing.assert_allclose(quick[reached], exact[reached], atol=1e-3)  # (its rotation lerped, not slerped)

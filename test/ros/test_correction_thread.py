@@ -9,6 +9,7 @@ import time
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from sensor_msgs.msg import PointCloud2
 
 from convbki_core.config import MapperConfig
@@ -50,7 +51,7 @@ class Rig:
         self.keyframes = Keyframes(np.array([STAMP_0, STAMP_0 + BOUND]), np.stack([np.eye(4)] * 2), 0.0)
         self.runner = CorrectionRunner(self.core, SimpleNamespace(param=lambda name: 0.0), warnings=None)
         self.corrected_logs = []
-        self.runner._correct = lambda keyframes, live, lineage, log, tolerance, started: \
+        self.runner._correct = lambda keyframes, live, lineage, log, started: \
             self.corrected_logs.append(log)
         self.thread = threading.Thread(target=self.runner._apply, args=(self.keyframes,))
 
@@ -192,3 +193,97 @@ def test_a_path_becomes_keyframes_from_its_bytes_and_what_cannot_be_used_is_name
     assert keyframes("map", stamps, nan, quaternions).startswith("pose 1: position")
     assert keyframes("map", stamps[::-1], positions, quaternions).startswith(
         "its stamps are not in ascending order (pose 1 at 7.300 s after 7.400 s)")
+
+
+class Logger:
+    def __init__(self):
+        self.lines = []
+
+    def info(self, text):
+        self.lines.append(text)
+
+    warning = error = info
+
+
+def drive_with_paths():
+    """A mapper whose log holds 16 scans (segments of 10), its scans, and two keyframe Paths
+    that move them differently: A turns and shifts the drive from scan 0 on; B is A up to scan
+    7's keyframe and shifts on from there (``agreeing``), or moves every scan otherwise."""
+    rng = np.random.default_rng(11)
+    config = MapperConfig.paper(local_bounds=((-3, -3, -2), (3, 3, 2)), device="cpu", scan_log_scans=20)
+    mapper = ConvBKIMapper(config, ConvBKIKernel("single", NUM_CLASSES, 5, 0.2, ell=[0.4]))
+    scans = []
+    for number in range(16):
+        pose = np.eye(4)
+        pose[:3, 3] = [0.1 * number, 0.0, 0.0]
+        scan = (rng.uniform(-2, 2, (150, 3)).astype(np.float32), rng.integers(0, NUM_CLASSES, 150), pose,
+                STAMP_0 + number)
+        scans.append(scan)
+        mapper.integrate(*scan[:3], stamp_ns=scan[3])
+
+    def moved(yaw: float, shift: float) -> np.ndarray:
+        change = np.eye(4)
+        change[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+        change[1, 3] = shift
+        return change
+
+    a_last = moved(0.05, 0.6) @ scans[15][2]
+    path_a = Keyframes(np.array([STAMP_0, STAMP_0 + 15]), np.stack([scans[0][2], a_last]), 0.0)
+    return mapper, scans, path_a, moved
+
+
+@pytest.mark.parametrize("newer", ["agreeing", "disagreeing"])
+def test_a_newer_path_takes_over_a_running_correction_or_restarts_it(newer):
+    """A Path that comes while a correction runs stops it before its next scan. Where it puts the
+    scans already mapped again where the running one did, the correction goes on with its poses
+    for the rest; otherwise it begins again from the first scan it moves. Either way the map in
+    the end is the one mapped from scratch with the poses each scan was mapped again at."""
+    from convbki_core.correction.replay import keyframe_corrections
+
+    mapper, scans, path_a, moved = drive_with_paths()
+    logged = mapper.scan_log.scans()
+    poses_a = keyframe_corrections(logged, path_a.stamps_ns, path_a.poses)
+    if newer == "agreeing":  # A's poses up to scan 7 (a keyframe there), more of a shift after it
+        seventh = poses_a[7]
+        path_b = Keyframes(np.array([STAMP_0, STAMP_0 + 7, STAMP_0 + 15]),
+                           np.stack([scans[0][2], seventh, moved(0.0, 0.3) @ path_a.poses[1]]), 0.0)
+    else:
+        path_b = Keyframes(path_a.stamps_ns, np.stack([scans[0][2], moved(-0.04, -0.5) @ scans[15][2]]), 0.0)
+    poses_b = keyframe_corrections(logged, path_b.stamps_ns, path_b.poses)
+    switch = 8  # the scan before which B comes (A and B agree up to scan 7)
+
+    core = SimpleNamespace(map_lock=threading.Lock(), mapper=mapper, lineage=0, queue=CloudQueue(max_pose_jump=10.0))
+    core.replace_mapper = lambda new: setattr(core, "mapper", new)
+    logger = Logger()
+    node = SimpleNamespace(param={"correction_tolerance": 1e-6, "correction_min_move": 0.0}.get,
+                           get_logger=lambda: logger, outputs=SimpleNamespace(map_replaced=lambda: None))
+    runner = CorrectionRunner(core, node, warnings=None)
+    plain_between = runner._between
+
+    def between(since, live):
+        check = plain_between(since, live)
+
+        def look(index):
+            if index == switch and runner.counts.retargeted + runner.counts.restarted == 0:
+                with runner._changed:
+                    runner._waiting = path_b  # what on_path does with a Path that moves something
+            return check(index)
+        return look
+
+    runner._between = between
+    runner._apply(path_a)
+    assert core.mapper is not mapper and runner.counts.done == 1
+    assert (runner.counts.retargeted, runner.counts.restarted) == ((1, 0) if newer == "agreeing" else (0, 1))
+    assert "1 newer Paths took over" in logger.lines[-1]
+
+    # From scratch: each scan at the pose it was mapped again at.
+    fresh = ConvBKIMapper(mapper.config, mapper.kernel)
+    for number, (points, labels, pose, stamp) in enumerate(scans):
+        wanted = poses_a if newer == "agreeing" and number < switch else poses_b
+        fresh.integrate(points, labels, wanted.get(number, pose), stamp_ns=stamp)
+    got_indices, got_alpha = core.mapper.items()
+    want_indices, want_alpha = fresh.items()
+    got, want = np.lexsort(got_indices.T[::-1]), np.lexsort(want_indices.T[::-1])
+    np.testing.assert_array_equal(got_indices[got], want_indices[want])
+    np.testing.assert_array_equal(got_alpha[got], want_alpha[want])
+    assert core.mapper.scan_log.pending is None

@@ -21,6 +21,7 @@ from convbki_core.io.map_file import MapSnapshot, read_map
 from convbki_core.mapper import ConvBKIMapper
 from convbki_core.outputs.records import RECORD, apply_records, packed_palette, records_from_alpha
 from convbki_core.paths import config_dir
+from convbki_core.tools import map_tool
 from convbki_ros.inputs.transforms import poses_to_path
 from convbki_ros.tools.kitti_to_bag import EPOCH_NS
 from convbki_ros.tools.kitti_to_bag import main as kitti_to_bag
@@ -110,7 +111,7 @@ def start_node(domain: int, tmp_path, setup: str, *parameters: str):
                  "-r", "cloud_in:=/kitti/velo/pointcloud", "-r", "odom:=/kitti/odom", "-p", "device:=cpu",
                  "-p", f"local_bounds:={BOUNDS}", "-p", "publish_period:=0.2", "-p", "map_period:=1.0",
                  "-p", "diagnostics_period:=0.2", "-p", "map_frame:=map", "-p", f"free_space:={setup != 'paper'}",
-                 "-p", "correction_tolerance:=0.0", *parameters)
+                 "-p", "correction_tolerance:=0.0", "-p", "correction_min_move:=0.0", *parameters)
 
 
 def set_parameters(probe, **values) -> list:
@@ -253,7 +254,7 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
     assert len(metadata["scan_log"]) == CLOSURE
 
     # The second run starts from that file; the SLAM's Path comes after the restart.
-    node = start_node(domain, tmp_path, "defaults", "-p", f"map_file:={map_file}", "-p", "save_on_shutdown:=false")
+    node = start_node(domain, tmp_path, "defaults", "-p", f"map_file:={map_file}")
     log = NodeLog(node)
     probe = Probe(domain)
     try:
@@ -279,7 +280,11 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
                (path(keyframe_stamps=stamps[:0], keyframe_poses=poses[:0]), "it holds no pose"),
                (path(keyframe_poses=nan), "pose 2: position"),
                (path(keyframe_stamps=stamps[::-1].copy()), "not in ascending order"),
-               (path(keyframe_stamps=stamps + 3600 * 10**9), "bracket no logged scan")]
+               (path(keyframe_stamps=stamps + 3600 * 10**9), "bracket no logged scan"),
+               # RTAB-Map's periodic mapPath: every pose stamped with the update's time.
+               (path(keyframe_stamps=np.full_like(stamps, stamps[-1])),
+                "all share one stamp .* publish_map service publishes mapPath with each node's own stamp, e.g. "
+                "ros2 service call /rtabmap/rtabmap/publish_map")]
         for msg, words in bad:
             mark = log.mark()
             publisher.publish(msg)
@@ -292,21 +297,15 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
         assert after["map_version"] == before["map_version"]
         assert after["corrections_done"] == "0"
 
-        # A tolerance no scan's move reaches leaves the map as it is; back at 0 the Path moves them.
-        for tolerance, said in ((1000.0, r"none of the \d+ scans it reaches moves by correction_tolerance = 1000 m"),
-                                (0.0, r"pose_corrections applied: \d+ scans moved")):
-            assert all(r.successful for r in set_parameters(probe, correction_tolerance=tolerance))
-            mark = log.mark()
-            publisher.publish(path())
-            assert log.wait_for(said, mark, 60), log.text(mark)
-        saved = probe.call(Trigger, "/convbki_mapper/save_map")
-        assert saved.success, saved.message
-        # The same map as a correction without the restart (``want``).
-        metadata, indices, alpha = read_map(map_file)
-        got = records_from_alpha(indices, alpha, metadata["resolution"], packed_palette(LABELS.colors))
-        got = {(float(r["x"]), float(r["y"]), float(r["z"])): r for r in got[got["label"] != 0]}
-        assert same_records(got, want)
-
+        # A Path that moves no scan by correction_min_move (here 1000 m) is a look at the log's
+        # poses: counted, no line (a SLAM re-sends its path many times a second).
+        unchanged = int(after["corrections_unchanged"])
+        assert all(r.successful for r in set_parameters(probe, correction_min_move=1000.0))
+        mark = log.mark()
+        publisher.publish(path())
+        assert probe.spin_until(lambda: int(diagnostics(reports[-1])["corrections_unchanged"]) == unchanged + 1,
+                                WAIT), diagnostics(reports[-1])
+        assert "pose_corrections" not in log.text(mark) and diagnostics(reports[-1])["corrections_done"] == "0"
         # A map file without a log (an older version's): it loads, and a Path then says in one
         # line that its scans cannot move.
         bare = tmp_path / "bare.npz"
@@ -318,7 +317,27 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
         publisher.publish(path())
         assert log.wait_for(r"the \d+ scans before cannot move: they came from a map file without a scan log",
                             mark, WAIT), log.text(mark)
+        # The saved map back, with its log; at half a voxel (every scan's move mapped again at a
+        # tolerance of 0) the Path moves its scans, and Ctrl-C comes while the correction runs.
+        assert all(r.successful for r in set_parameters(probe, map_file=str(map_file)))
+        assert probe.call(Trigger, "/convbki_mapper/load_map").success
+        assert all(r.successful for r in set_parameters(probe, correction_min_move=-1.0, correction_tolerance=0.0))
+        publisher.publish(path())
+        assert probe.spin_until(lambda: "correction_progress" in diagnostics(reports[-1]), WAIT)
     finally:
         probe.close()
-        output = stop(node)
-    assert "Traceback" not in output and "[ERROR]" not in output, output
+        output = log.close()  # Ctrl-C (while the correction runs, when all went well)
+    assert node.returncode == 0, output
+    assert "terminate called" not in output and "Traceback" not in output and "[ERROR]" not in output, output
+    assert "pose_corrections applied" not in output, "the correction ended before Ctrl-C: nothing was stopped"
+    # The map saved then is the map as it was, with the Path in its log: map_tool correct finishes the job.
+    metadata, _, _ = read_map(map_file, with_scan_log=True)
+    assert metadata["scan_log"].pending is not None and len(metadata["scan_log"].pending[0]) == len(stamps)
+    fixed = tmp_path / "fixed.npz"
+    assert map_tool.main(["correct", str(map_file), "--out", str(fixed), "--quiet"]) == 0
+    metadata, indices, alpha = read_map(fixed, with_scan_log=True)
+    assert metadata["scan_log"].pending is None
+    got = records_from_alpha(indices, alpha, metadata["resolution"], packed_palette(LABELS.colors))
+    got = {(float(r["x"]), float(r["y"]), float(r["z"])): r for r in got[got["label"] != 0]}
+    assert same_records(got, want)
+

@@ -88,6 +88,7 @@ SET_AT_START = {
     "scan_log_scans": CORRECTED + " via start_node",
     "scan_log_megabytes": CORRECTED + " via start_node",
     "correction_tolerance": RESTARTED + " via start_node",
+    "correction_min_move": RESTARTED + " via start_node",
     "map_folder": HOSTILE_FILES + " via target",
     "max_kept_maps": "test_hostile.py::test_resets_and_forgotten_boxes_followed_by_saves_never_lose_the_last_map via "
                      "target",
@@ -122,6 +123,7 @@ CHANGED_AT_RUN_TIME = {
     "reset_on_stamp_backwards": RUN_TIME,
     "odometry_timeout": RUN_TIME,
     "correction_tolerance": RESTARTED + " via set_parameters",
+    "correction_min_move": RESTARTED + " via set_parameters",
 }
 
 
