@@ -62,14 +62,10 @@ def continue_correction(mapper, log: ScanLog, moves: dict[int, np.ndarray], sinc
     return count
 
 
-def pose_displacement(old: np.ndarray, new: np.ndarray, reach: float) -> float:
-    """How far a point ``reach`` metres from the sensor moves from ``old`` to ``new`` (m), at most:
-    the translation plus the rotation's arc at that range."""
-    return float(pose_displacements(np.asarray(old)[None], np.asarray(new)[None], reach)[0])
-
-
 def pose_displacements(old: np.ndarray, new: np.ndarray, reach: float) -> np.ndarray:
-    """``pose_displacement`` of each pair of poses (``old``, ``new``: (n, 4, 4)); (n,) metres."""
+    """How far a point ``reach`` metres from the sensor moves from each of ``old`` to the same
+    of ``new`` ((n, 4, 4) each), at most: the translation plus the rotation's arc at that
+    range; (n,) metres."""
     if not len(old):
         return np.zeros(0)
     # The rotation between them: new R times old R transposed (rotations: the inverse is the transpose).
@@ -151,7 +147,7 @@ class KeyframeCorrection:
 
 def correction_moves(correction: KeyframeCorrection, table: LogTable, reach: float) -> np.ndarray:
     """How far ``correction`` moves each scan of ``table`` it reaches from its logged pose
-    (``pose_displacement`` at ``reach`` m; 0 for those it does not reach), worked out on the
+    (``pose_displacements`` at ``reach`` m; 0 for those it does not reach), worked out on the
     changes' translations and quaternions without building a pose: what tells a Path that moves
     nothing in a few milliseconds on a log of thousands of scans. The rotation between two
     keyframes' changes is interpolated linearly and normalised, not slerped as the correction

@@ -313,11 +313,9 @@ class CorrectionRunner:
                 return  # the map in service stays; its log keeps the Path (saved with it)
             if taking_over is not None:
                 newer += 1
-                plan, new = self._take_over(taking_over, live, plan, new, since)
+                plan, new, log = self._take_over(taking_over, live, plan, new, since)
                 if plan is None:
                     return
-                with core.map_lock:
-                    log = live.scan_log.copy()
                 result.scans = len(plan.moves)
                 continue
             # Caught up with the copy of the log: catch up with the live scans, until one at most is left.
@@ -357,33 +355,33 @@ class CorrectionRunner:
         Where it agrees with the running correction on every scan already mapped again (each
         within correction_tolerance of where that put it), the correction goes on with the newer
         poses for the rest; otherwise it begins again from the first scan the newer Path moves.
-        Returns (the plan, the map to go on with or None to begin again); (None, None) when the
-        newer Path moves nothing (the map in service is already where it says)."""
+        Returns (the plan, the map to go on with or None to begin again, the log copy it was
+        planned on); a plan of None when the newer Path is refused or moves nothing (the map in
+        service is then where it says)."""
         wait_for_scans_up_to(self.core, int(keyframes.stamps_ns[-1]))
         with self.core.map_lock:
             log = live.scan_log.copy()
         plan = self._plan(keyframes, live, log)
         if plan is None:
-            return None, None
+            return None, None, log
         self._set_target(live, plan)
-        done = new.scans_integrated
         if min(plan.moves) >= since:
             table = log.table(since)
-            rows = table.indices < done
-            indices, logged = table.indices[rows], table.poses[rows]
-            before = np.stack([running.moves.get(int(i), pose) for i, pose in zip(indices, logged)]) if len(indices) \
-                else np.zeros((0, 4, 4))
-            after = np.stack([plan.moves.get(int(i), pose) for i, pose in zip(indices, logged)]) if len(indices) \
-                else np.zeros((0, 4, 4))
+            done = table.indices < new.scans_integrated
+            indices, logged = table.indices[done], table.poses[done]
+
+            def poses_by(moves):
+                return np.array([moves.get(int(i), pose) for i, pose in zip(indices, logged)]).reshape(-1, 4, 4)
             tolerance = float(self.node.param("correction_tolerance"))
-            if not len(indices) or (pose_displacements(before, after, live.correction_reach()) < tolerance).all():
+            moved = pose_displacements(poses_by(running.moves), poses_by(plan.moves), live.correction_reach())
+            if (moved < tolerance).all():
                 with self._changed:
                     self.counts.retargeted += 1
-                return plan, new
+                return plan, new, log
         with self._changed:
             self.counts.restarted += 1
         self._spare = new  # its window is reused for the new start
-        return plan, None
+        return plan, None, log
 
     def _extend(self, plan: Plan, live, log, since: int, result: CorrectionResult) -> None:
         """Scans logged since the correction began that the keyframes reach (clouds stamped before

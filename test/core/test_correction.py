@@ -259,7 +259,7 @@ def test_map_tool_correct_moves_a_saved_maps_scans_and_evaluate_measures_the_dri
 
 def test_the_quick_look_at_a_paths_moves_agrees_with_the_poses_it_makes():
     """correction_moves (what tells a Path that moves nothing, on the changes alone) gives each
-    scan's pose_displacement from its logged pose to the pose the correction makes, and 0 for
+    scan's pose_displacements from its logged pose to the pose the correction makes, and 0 for
     the scans the Path does not reach."""
     from convbki_core.correction.replay import correction_moves, keyframe_correction, pose_displacements
     from convbki_core.correction.scan_log import LogTable
