@@ -245,8 +245,8 @@ class CorrectionRunner:
             live.scan_log.hold(None)
 
     def _plan(self, keyframes: Keyframes, live, log) -> Plan | None:
-        """What ``keyframes`` move of ``log``; None (said, counted) when they reach no logged scan
-        or move none by the tolerance."""
+        """What ``keyframes`` move of ``log``: None (said, counted) when they reach no logged scan;
+        a plan without moves (counted) when they move none by the tolerance."""
         table = log.table()
         correction = keyframe_correction(table, keyframes.stamps_ns, keyframes.poses)
         if correction is None:
@@ -262,7 +262,6 @@ class CorrectionRunner:
         if not moves:
             with self._changed:
                 self.counts.unchanged += 1
-            return None
         return Plan(keyframes, correction, moves, skipped, frozen_note)
 
     def _set_target(self, live, plan: Plan) -> None:
@@ -286,7 +285,7 @@ class CorrectionRunner:
     def _correct(self, keyframes: Keyframes, live, lineage: int, log, started: float) -> None:
         core = self.core
         plan = self._plan(keyframes, live, log)
-        if plan is None:
+        if plan is None or not plan.moves:
             return
         self._set_target(live, plan)
         result, new, since = CorrectionResult(scans=len(plan.moves), skipped=plan.skipped), None, 0
@@ -362,7 +361,9 @@ class CorrectionRunner:
         with self.core.map_lock:
             log = live.scan_log.copy()
         plan = self._plan(keyframes, live, log)
-        if plan is None:
+        if plan is not None and not plan.moves:
+            live.scan_log.pending = None  # the map in service is already where the newest Path says
+        if plan is None or not plan.moves:
             return None, None, log
         self._set_target(live, plan)
         if min(plan.moves) >= since:

@@ -287,3 +287,32 @@ def test_a_newer_path_takes_over_a_running_correction_or_restarts_it(newer):
     np.testing.assert_array_equal(got_indices[got], want_indices[want])
     np.testing.assert_array_equal(got_alpha[got], want_alpha[want])
     assert core.mapper.scan_log.pending is None
+
+
+def test_a_newer_path_that_moves_nothing_ends_the_running_correction_and_its_pending_path():
+    """A newer Path that puts every scan where the map has it: the running correction stops, the
+    map in service stays, and its log keeps no Path to apply (a save would otherwise carry the
+    stale one to map_tool correct)."""
+    mapper, scans, path_a, _ = drive_with_paths()
+    as_mapped = Keyframes(path_a.stamps_ns, np.stack([scans[0][2], scans[15][2]]), 0.0)
+    core = SimpleNamespace(map_lock=threading.Lock(), mapper=mapper, lineage=0, queue=CloudQueue(max_pose_jump=10.0))
+    node = SimpleNamespace(param={"correction_tolerance": 1e-6, "correction_min_move": 0.0}.get,
+                           get_logger=lambda: Logger())
+    runner = CorrectionRunner(core, node, warnings=None)
+    plain_between = runner._between
+
+    def between(since, live):
+        check = plain_between(since, live)
+
+        def look(index):
+            if index == 5:
+                assert mapper.scan_log.pending is not None  # A's, while it runs
+                with runner._changed:
+                    runner._waiting = as_mapped
+            return check(index)
+        return look
+
+    runner._between = between
+    runner._apply(path_a)
+    assert core.mapper is mapper and runner.counts.done == 0 and runner.counts.unchanged == 1
+    assert mapper.scan_log.pending is None
