@@ -362,7 +362,7 @@ class CorrectionRunner:
             log = live.scan_log.copy()
         plan = self._plan(keyframes, live, log)
         if plan is not None and not plan.moves:
-            live.scan_log.pending = None  # the map in service is already where the newest Path says
+            live.scan_log.pending = None  # the map already is where the newest Path says
         if plan is None or not plan.moves:
             return None, None, log
         self._set_target(live, plan)
