@@ -51,7 +51,7 @@ from convbki_ros.mapping.corrections import CorrectionRunner
 from convbki_ros.outputs.cloud_encoding import encode_cloud
 from convbki_ros.outputs.publisher import MapOutputs
 from convbki_ros.outputs.status import ERROR, OK, WARN, MapperStatus, WarningThrottle, diagnostic_values
-from convbki_ros.param_checks import check_box, check_choice, choice_problem
+from convbki_ros.param_checks import check_box, check_choice, choice_problem, min_move_problem
 from convbki_ros.params import (
     MIN_AUTOSAVE_PERIOD,
     NODE_NAME,
@@ -249,6 +249,8 @@ class MapperNode(Node):
                           f"{MIN_AUTOSAVE_PERIOD:g} s"
             elif parameter.name in ("clear_box_min", "clear_box_max"):
                 problem = check_box(parameter.name, parameter.value)
+            elif parameter.name == "correction_min_move":
+                problem = min_move_problem(parameter.value)
             elif parameter.name in SPECS and SPECS[parameter.name].choices:
                 problem = choice_problem(parameter.name, parameter.value)
             else:

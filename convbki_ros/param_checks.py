@@ -32,6 +32,13 @@ def check_local_bounds(bounds) -> tuple[tuple[float, ...], tuple[float, ...]]:
     return tuple(low), tuple(high)
 
 
+def min_move_problem(value: float) -> str | None:
+    """Why correction_min_move cannot be ``value`` (its only negative value is -1.0, half a voxel)."""
+    if value < 0.0 and value != -1.0:
+        return f"parameter correction_min_move: {value:g} m: -1.0 (half a voxel) or a distance of at least 0"
+    return None
+
+
 def check_box(name: str, values) -> str | None:
     """Why ``values`` is not a box corner [x, y, z] (finite, metres); None when it is."""
     values = list(values)

@@ -209,7 +209,8 @@ PARAMETERS: tuple[Spec, ...] = (
          "a Path on pose_corrections maps scans again only when it moves some logged scan's points within the "
          "local window by this much or more from where the map has them (or the correction under way puts them); "
          "a Path that moves less is counted and costs a look at the log, no line (a SLAM re-sends its path many "
-         "times a second, each nudging every pose); metres; -1.0 = half a voxel (resolution / 2)", -1.0, 1e3,
+         "times a second, each nudging every pose); metres; -1.0 = half a voxel (resolution / 2), no other negative "
+         "value", -1.0, 1e3,
          run_time=True),
     Spec("map_file_mismatch", "refuse",
          "what a map_file that holds a whole map of another set-up (its resolution, num_classes, prior or frame "

@@ -18,7 +18,7 @@ from convbki_core.costmap.profile import TraversabilityProfile
 from convbki_core.io.kernel_file import KernelConfig, load_kernel_file
 from convbki_core.paths import kernel_path
 from convbki_ros.outputs.costmap import profile_of
-from convbki_ros.param_checks import check_choice, check_local_bounds, check_mount
+from convbki_ros.param_checks import check_choice, check_local_bounds, check_mount, min_move_problem
 from convbki_ros.params import (
     KERNEL_DECIDES,
     MIN_AUTOSAVE_PERIOD,
@@ -84,6 +84,9 @@ def read_start_settings(node, label_map) -> StartSettings:
     if 0.0 < autosave < MIN_AUTOSAVE_PERIOD:
         raise StartupError(f"parameter autosave_period: {autosave:g} s is too often: 0 (never) or at least "
                            f"{MIN_AUTOSAVE_PERIOD:g} s")
+    problem = min_move_problem(node.param("correction_min_move"))
+    if problem:
+        raise StartupError(problem)
     return StartSettings(kernel_file, kernel, mapper, pose_source, map_frame, mount,
                          profile_of(node, label_map.class_names))
 

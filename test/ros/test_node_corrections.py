@@ -300,6 +300,8 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
         # A Path that moves no scan by correction_min_move (here 1000 m) is a look at the log's
         # poses: counted, no line (a SLAM re-sends its path many times a second).
         unchanged = int(after["corrections_unchanged"])
+        (refused,) = set_parameters(probe, correction_min_move=-0.5)  # its only negative value is -1
+        assert not refused.successful and "-1.0 (half a voxel)" in refused.reason, refused.reason
         assert all(r.successful for r in set_parameters(probe, correction_min_move=1000.0))
         mark = log.mark()
         publisher.publish(path())

@@ -47,6 +47,8 @@ BAD_STARTS = {
                         r"parameter costmap_profile: /nowhere/robot.yaml: cannot read the traversability profile"),
     "tf without map_frame": (["-p", "pose_source:=tf"], r"pose_source tf needs map_frame"),
     "pose source": (["-p", "pose_source:=gps"], r"parameter pose_source: 'gps' is not one of odometry, tf"),
+    "min move": (["-p", "correction_min_move:=-0.5"],
+                 r"parameter correction_min_move: -0.5 m: -1.0 \(half a voxel\) or a distance of at least 0"),
 }
 if not torch.cuda.is_available():
     BAD_STARTS["no cuda"] = (["-p", "device:=cuda"], r"device 'cuda' requested, but .* no CUDA")
