@@ -61,12 +61,15 @@ class FreeSpaceConfig:
 @dataclass(frozen=True)
 class ScanLogConfig:
     """The scan log (``scan_log``): every integrated scan kept bit for bit with its pose, so a
-    SLAM's correction can move it (``correction``); the oldest fall out past ``max_scans``
-    scans or ``max_megabytes`` of memory (0: no such bound), and are frozen into the map."""
+    SLAM's correction can move it (``correction``). In memory only, the oldest fall out past
+    ``max_scans`` scans or ``max_megabytes`` (0: no such bound), frozen into the map. With a
+    folder (``use_log_folder``: the node's) memory keeps ``max_megabytes`` of the newest, the
+    folder the rest, and the oldest fall out past ``max_scans`` or ``disk_gigabytes`` there."""
 
     enabled: bool = True
-    max_scans: int = 3000
-    max_megabytes: float = 1024.0
+    max_scans: int = 0
+    max_megabytes: float = 256.0
+    disk_gigabytes: float = 8.0
 
 
 @dataclass(frozen=True)
@@ -114,6 +117,7 @@ _FLAT = {
     "track_changes": ("store", "track_changes"), "max_map_megabytes": ("store", "max_megabytes"),
     "scan_log": ("scan_log", "enabled"), "scan_log_scans": ("scan_log", "max_scans"),
     "scan_log_megabytes": ("scan_log", "max_megabytes"),
+    "scan_log_disk_gigabytes": ("scan_log", "disk_gigabytes"),
     "label_map": ("classes", "label_map"), "ignore_classes": ("classes", "ignore_classes"),
     "movable_classes": ("classes", "movable_classes"), "ground_classes": ("classes", "ground_classes"),
     "kernel_file": (None, "kernel_file"), "frame_id": (None, "frame_id"),

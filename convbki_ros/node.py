@@ -44,7 +44,13 @@ from convbki_core.compiled import kernel_cache
 from convbki_core.io.labels import load_label_map
 from convbki_core.outputs.records import packed_palette
 from convbki_ros.files.map_files import MapFiles
-from convbki_ros.files.start import check_map_file_at_start, read_map_file_at_start
+from convbki_ros.files.start import (
+    check_map_file_at_start,
+    close_scan_log_folder,
+    read_map_file_at_start,
+    scan_log_folder_at_start,
+    use_scan_log_folder,
+)
 from convbki_ros.guard import CallbackGuard
 from convbki_ros.inputs.cloud_decoding import decode_cloud
 from convbki_ros.mapping.corrections import CorrectionRunner
@@ -98,12 +104,14 @@ class MapperNode(Node):
         settings = read_start_settings(self, self.label_map)
         write_folder = check_map_file_at_start(self)
         start_map = read_map_file_at_start(self)
+        self.log_place = scan_log_folder_at_start(self, write_folder)
         # The mapper (torch, compiled kernels) is loaded only once every parameter has passed: a
         # bad one is said at once, not after seconds of loading.
         from convbki_ros.mapping.mapping_thread import MappingCore
 
         self.core = MappingCore(self, settings, self.status, self.warnings, self.label_map)
         self.files = MapFiles(self, write_folder)
+        use_scan_log_folder(self, self.core.mapper, self.log_place)
         self.files.load_at_start(start_map)
         self._warm_up()
 
@@ -391,6 +399,7 @@ class MapperNode(Node):
         self.update_thread.join(timeout=1.5)
         self.files.close()
         saved, message = self.files.save_on_shutdown()
+        close_scan_log_folder(self.core.mapper, self.log_place)  # after the save: the files it names stay
         if message:
             what = "on shutdown" if saved else "error on shutdown"
             print(f"[{NODE_NAME}] {what}: {message}", file=sys.stderr)

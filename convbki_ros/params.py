@@ -192,14 +192,25 @@ PARAMETERS: tuple[Spec, ...] = (
          "starting with an empty map; bool"),
     Spec("scan_log", DEFAULTS.scan_log.enabled,
          "keep every integrated scan (its points, labels or probabilities, stamp and pose; about 9 bytes a "
-         "point) so that a SLAM's Path on pose_corrections can move it, and save the log in map_file; false: "
+         "point) so that a SLAM's Path on pose_corrections can move it, and save the log with map_file; false: "
          "corrections are refused; bool"),
     Spec("scan_log_scans", DEFAULTS.scan_log.max_scans,
          "the most scans the log keeps: older ones fall out, frozen into the map where no correction can move "
-         "them; count; 0 = no bound but scan_log_megabytes", 0, 10_000_000),
+         "them; count; 0 = no bound but the bytes", 0, 10_000_000),
     Spec("scan_log_megabytes", DEFAULTS.scan_log.max_megabytes,
-         "the most memory the log (and the map as it was where its segments begin) may take, and so what it "
-         "adds to map_file; megabytes (1e6 bytes); 0.0 = no bound but scan_log_scans", 0.0, 1e7),
+         "the most memory the log (and the map as it was where its segments begin) takes: past it the oldest "
+         "scans are only in scan_log_folder (read back by a correction), or, with scan_log_disk_gigabytes 0, "
+         "fall out frozen (and the log is saved inside map_file); megabytes (1e6 bytes); 0.0 = no bound",
+         0.0, 1e7),
+    Spec("scan_log_disk_gigabytes", DEFAULTS.scan_log.disk_gigabytes,
+         "the most the log takes in scan_log_folder (its scans, about 9.5 bytes a point, and the map where each "
+         "segment begins): past it the oldest scans fall out, frozen into the map; a map_file saved names the "
+         "folder's files, it never copies them; gigabytes (1e9 bytes); 0.0 = no folder, the log in memory only",
+         0.0, 1e5),
+    Spec("scan_log_folder", "",
+         "where the scan log's files go (made at start, owner only): empty = beside map_file as "
+         "<map_file>.scan_log, or without map_file a folder of this process under $XDG_CACHE_HOME (~/.cache) "
+         "removed at shutdown; path"),
     Spec("max_path_poses", 100_000,
          "a Path on pose_corrections with more poses is refused before it is decoded; count", 1, 10_000_000),
     Spec("correction_tolerance", 0.05,
@@ -242,7 +253,8 @@ PARAMETER_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "max_map_megabytes", "pose_wait_timeout", "max_pose_jump", "on_pose_jump", "stamp_backwards_tolerance",
         "reset_on_stamp_backwards", "odometry_timeout",)),
     ("SLAM corrections (a Path of optimised keyframe poses moves the scans the map holds)", (
-        "scan_log", "scan_log_scans", "scan_log_megabytes", "max_path_poses", "correction_tolerance",
+        "scan_log", "scan_log_scans", "scan_log_megabytes", "scan_log_disk_gigabytes", "scan_log_folder",
+        "max_path_poses", "correction_tolerance",
         "correction_min_move",)),
     ("Logs and diagnostics", (
         "stats_period", "diagnostics_period",)),

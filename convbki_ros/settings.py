@@ -103,4 +103,5 @@ def config_from_node(node, label_map) -> MapperConfig:
         free_space=node.param("free_space"), max_concentration=node.param("max_concentration"),
         forget_movers=node.param("forget_movers"), scan_log=node.param("scan_log"),
         scan_log_scans=node.param("scan_log_scans"), scan_log_megabytes=node.param("scan_log_megabytes"),
+        scan_log_disk_gigabytes=node.param("scan_log_disk_gigabytes"),
         max_map_megabytes=node.param("max_map_megabytes"))

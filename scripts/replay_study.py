@@ -6,7 +6,9 @@ optionally stops the player with SIGSTOP for some seconds and resumes it, and pr
 line per replay: scans integrated and dropped, the queue's peak, how many "no usable odometry"
 warnings the node logged, the worst ``/diagnostics`` level it published, the odometry delay it
 reported last, the corrections it applied (a drift bag's ``/pose_corrections``), and play_bag's
-exit code and seconds.
+exit code and seconds; with ``--measure``, also the node's peak RSS, its last ``/diagnostics``
+figures of the scan log and corrections, the seconds a ``~/save_map`` takes at the end, the
+map file's size and its scan log folder's.
 
     scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --replays 10
     scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --stop-after 4 --stop-for 20
@@ -52,6 +54,7 @@ class DiagnosticsWatch:
         self.node = rclpy.create_node("replay_study_diagnostics", context=self.context)
         self.worst = -1
         self.messages = []
+        self.last: dict[str, str] = {}
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_message, 50)
         self.executor = rclpy.executors.SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -68,11 +71,25 @@ class DiagnosticsWatch:
     def _on_message(self, message) -> None:
         for status in message.status:
             if "convbki" in status.name or "mapper" in status.name:
+                self.last = {item.key: item.value for item in status.values}
                 level = int.from_bytes(status.level, "little") if isinstance(status.level, bytes) else int(status.level)
                 if level > self.worst:
                     self.worst = level
                 if level >= 2:
                     self.messages.append(status.message)
+
+    def save_seconds(self) -> float | None:
+        """Call the node's ~/save_map and time it (None: it failed)."""
+        from std_srvs.srv import Trigger
+
+        client = self.node.create_client(Trigger, "/convbki_mapper/save_map")
+        if not client.wait_for_service(timeout_sec=30):
+            return None
+        started = time.monotonic()
+        future = client.call_async(Trigger.Request())
+        while not future.done() and time.monotonic() - started < 600:
+            time.sleep(0.01)
+        return round(time.monotonic() - started, 2) if future.done() and future.result().success else None
 
     def close(self) -> None:
         self.rclpy.shutdown(context=self.context)
@@ -134,12 +151,22 @@ def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
                 if player.poll() is not None and integrated + dropped == scans_in and queued == 0 \
                         and scans_in >= args.expect and len(corrections) >= args.expect_corrections:
                     break
-                if player.poll() is not None and time.monotonic() - started > 600:
+                if player.poll() is not None and time.monotonic() - started > args.give_up:
                     break
             result["play_bag_seconds"] = round(time.monotonic() - started, 1)
             result["play_bag_rc"] = player.wait()
             pump.join(5)
             result["play_bag_said"] = [line.strip() for line in player_out if line.strip()][-3:]
+            if args.measure:
+                result["save_map_s"] = watch.save_seconds()
+                status = Path(f"/proc/{node.pid}/status").read_text()
+                result["peak_rss_mb"] = int(re.search(r"VmHWM:\s+(\d+)", status).group(1)) // 1000
+                result["diagnostics"] = {key: value for key, value in watch.last.items()
+                                         if key.startswith(("scan_log", "correction", "live_lag", "queue"))}
+                folder = Path(f"{map_file}.scan_log")
+                result["map_file_mb"] = round(map_file.stat().st_size / 1e6, 1) if map_file.exists() else None
+                result["log_folder_mb"] = round(sum(f.stat().st_size for f in folder.iterdir()) / 1e6, 1) \
+                    if folder.is_dir() else None
             node.send_signal(signal.SIGINT)
             node.wait(timeout=30)
             reader.finish()
@@ -166,6 +193,11 @@ def main() -> int:
                         help="wait for the node to apply N corrections (a drift bag's /pose_corrections)")
     parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="a node parameter more (e.g. map_frame:=map for a drift bag's corrections)")
+    parser.add_argument("--give-up", type=float, default=600.0, metavar="S",
+                        help="seconds from the start of play after which a finished player's replay ends")
+    parser.add_argument("--measure", action="store_true",
+                        help="also the node's peak RSS, its last /diagnostics figures, a timed ~/save_map and the "
+                        "sizes of the map file and its scan log folder")
     parser.add_argument("--out", default="out/replay_study")
     args = parser.parse_args()
     out = Path(args.out)

@@ -8,7 +8,8 @@ then the next, ...), the top plane (sign and exponent, nearly constant over a sc
 with zlib and the others as they are (the mantissa's bytes are noise to a compressor, and
 compressing them would cost the update thread time for little); its labels (the smallest
 integer type that holds them, compressed) or its class probabilities (byte planes like the
-points).
+points). The encoded bytes (``ScanBytes``) are shared by every copy of the scan at another
+pose, and live in memory, in a file of the log's folder (``log_folder``), or both.
 """
 
 from __future__ import annotations
@@ -56,6 +57,50 @@ def _label_type(labels: np.ndarray):
     return next(kind for kind in _LABEL_TYPES if np.iinfo(kind).min <= low and high <= np.iinfo(kind).max)
 
 
+class ScanBytes:
+    """A logged scan's encoded points and values: in memory until the log's folder holds them
+    (``place``) and the log lets them go (``release``); read back from the file then. One
+    object for every copy of the scan (``LoggedScan.at``), so a scan is written once."""
+
+    __slots__ = ("__weakref__", "_data", "place", "points_size", "values_size")
+
+    def __init__(self, points_data: bytes, values_data: bytes, place: tuple | None = None):
+        self.points_size, self.values_size = len(points_data), len(values_data)
+        self._data: tuple[bytes, bytes] | None = (points_data, values_data)
+        self.place = place  # (the ``LogFolder``, its file's name, the offset there) once written
+
+    @classmethod
+    def in_file(cls, place: tuple, points_size: int, values_size: int) -> ScanBytes:
+        """The bytes of a scan a file holds (a map file's log read back)."""
+        data = cls(b"", b"", place)
+        data.points_size, data.values_size, data._data = int(points_size), int(values_size), None
+        return data
+
+    @property
+    def size(self) -> int:
+        return self.points_size + self.values_size
+
+    @property
+    def in_memory(self) -> bool:
+        return self._data is not None
+
+    def parts(self) -> tuple[bytes, bytes]:
+        """(points bytes, values bytes), from memory or from the file."""
+        data = self._data  # read once: the writer may release it meanwhile
+        if data is not None:
+            return data
+        folder, name, offset = self.place
+        raw = folder.read(name, offset, self.size)
+        return raw[:self.points_size], raw[self.points_size:]
+
+    def release(self) -> int:
+        """Let the memory copy go where the file holds the bytes; returns the bytes let go."""
+        if self.place is None or self._data is None:
+            return 0
+        self._data = None
+        return self.size
+
+
 @dataclass
 class LoggedScan:
     """One integrated scan as the log keeps it (see the module docstring)."""
@@ -68,13 +113,20 @@ class LoggedScan:
     kind: int  # LABELS or PROBABILITIES
     values_dtype: str
     columns: int  # probability columns (0 for labels)
-    points_data: bytes
-    values_data: bytes
+    data: ScanBytes
+
+    @property
+    def points_data(self) -> bytes:
+        return self.data.parts()[0]
+
+    @property
+    def values_data(self) -> bytes:
+        return self.data.parts()[1]
 
     @property
     def nbytes(self) -> int:
         """What the scan costs the log: its encoded data and its fixed fields."""
-        return len(self.points_data) + len(self.values_data) + _SCAN_OVERHEAD
+        return self.data.size + _SCAN_OVERHEAD
 
     def points(self) -> np.ndarray:
         return decode_floats(self.points_data, np.dtype(self.points_dtype), (self.count, 3))
@@ -84,10 +136,18 @@ class LoggedScan:
             return np.frombuffer(zlib.decompress(self.values_data), np.dtype(self.values_dtype)).copy()
         return decode_floats(self.values_data, np.dtype(self.values_dtype), (self.count, self.columns))
 
+    def decoded(self) -> tuple[np.ndarray, np.ndarray]:
+        """(points, values), the bytes read once."""
+        points_data, values_data = self.data.parts()
+        points = decode_floats(points_data, np.dtype(self.points_dtype), (self.count, 3))
+        if self.kind == LABELS:
+            return points, np.frombuffer(zlib.decompress(values_data), np.dtype(self.values_dtype)).copy()
+        return points, decode_floats(values_data, np.dtype(self.values_dtype), (self.count, self.columns))
+
     def at(self, pose: np.ndarray) -> LoggedScan:
         """The same scan at another pose (the data shared)."""
         return LoggedScan(self.stamp_ns, np.array(pose, np.float64), self.mount, self.count, self.points_dtype,
-                          self.kind, self.values_dtype, self.columns, self.points_data, self.values_data)
+                          self.kind, self.values_dtype, self.columns, self.data)
 
     @classmethod
     def of(cls, points: np.ndarray, values: np.ndarray, pose: np.ndarray, stamp_ns: int,
@@ -106,7 +166,7 @@ class LoggedScan:
             values_data = encode_floats(probabilities)
         mount = np.eye(4) if mount is None else np.array(mount, np.float64)
         return cls(int(stamp_ns), np.array(pose, np.float64), mount, int(points.shape[0]), points.dtype.str, kind,
-                   values_dtype, columns, encode_floats(points), values_data)
+                   values_dtype, columns, ScanBytes(encode_floats(points), values_data))
 
 
 @dataclass

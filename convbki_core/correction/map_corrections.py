@@ -25,6 +25,18 @@ class MapCorrections:
     restarted where the map changed other than by a scan, which scans a correction moves,
     the corrected map, and a new mapper started from a segment."""
 
+    def use_log_folder(self, path, keep_named_by=()) -> None:
+        """Keep the scan log's scans and bases in the folder ``path`` too (made when missing; its
+        bound: the configuration's ``disk_gigabytes``), so that memory holds only its newest part
+        and a correction reaches back over the drive (``scan_log``). ``keep_named_by``: map files
+        saved before, whose logs' files there are never deleted. OSError where it cannot be made."""
+        from convbki_core.correction.log_folder import LogFolder
+
+        if self.scan_log is not None:
+            folder = LogFolder(path, int(self.config.scan_log.disk_gigabytes * 1e9))
+            folder.keep_named_by(keep_named_by)
+            self.scan_log.use_folder(folder)
+
     def base_copy(self):
         """The map as it is now, as a store of its own (a log segment's base): the global
         store's chunks shared, the window's voxels written into it. Returns (store, the memory
@@ -116,7 +128,8 @@ class MapCorrections:
         if self.scans_integrated or len(self) or self.sensor_position is not None:
             self._clear()  # a fresh mapper is already empty: its window is not filled twice
         if segment.base is not None:
-            self.store = segment.base.copy()
+            store = segment.base_store()  # a store read from the log's folder is this mapper's own already
+            self.store = store.copy() if segment.base.in_memory else store
             self.window.store = self.store
             self._bound_store()  # the corrected map is held to this mapper's budget, full at once if over it
         self.scans_integrated = segment.first_index
@@ -131,6 +144,6 @@ class MapCorrections:
             self.scan_log.frozen, self.scan_log.frozen_stamp_ns = log.frozen, log.frozen_stamp_ns
             self.scan_log.frozen_why = log.frozen_why
             self.scan_log.calibration = log.calibration
-            self.scan_log.replace_from(0, [*older, Segment(segment.first_index, segment.base, segment.base_position,
-                                                           segment.base_bytes)])
+            self.scan_log.use_folder(log.folder)  # the corrected log's new bases go where the scans are
+            self.scan_log.replace_from(0, [*older, Segment(segment.first_index, segment.base, segment.base_position)])
 

@@ -56,7 +56,8 @@ def continue_correction(mapper, log: ScanLog, moves: dict[int, np.ndarray], sinc
         if between is not None and not between(index):
             break
         pose = moves.get(index, scan.pose)
-        mapper.integrate(scan.points(), scan.values(), pose, stamp_ns=scan.stamp_ns, mount=scan.mount,
+        points, values = scan.decoded()  # one read where the log's folder holds the scan
+        mapper.integrate(points, values, pose, stamp_ns=scan.stamp_ns, mount=scan.mount,
                          logged=scan.at(pose) if index in moves else scan)
         count += 1
     return count

@@ -17,11 +17,19 @@ poses gives (``correction``). The log keeps what that takes:
 * the map as it was when each *segment* of the log began (``Segment.base``: a copy of the
   global store, which shares every chunk the map has not changed since).
 
-The log is bounded by a number of scans and by bytes (what its scans and bases hold in
-memory, and add to the map file it is saved with). A segment closes when it holds half the
-bound; when the log exceeds the bound its oldest segment falls out: those scans are frozen
-into the map (their evidence stays, no correction can move them), and a correction reaches
-back at least half the bound and at most all of it (``reach_ns``).
+Without a folder the log lives in memory, bounded by a number of scans and by bytes (what its
+scans and bases hold, and add to the map file it is saved with). A segment closes when it
+holds half the byte bound; when the log exceeds a bound its oldest segment falls out: those
+scans are frozen into the map (their evidence stays, no correction can move them), and a
+correction reaches back at least half the bound and at most all of it (``reach_ns``).
+
+With a folder (``use_folder``, ``log_folder``) every scan and base is also written there, off
+the mapping thread; the byte bound is then on memory (past it the oldest segments written
+leave memory, read back from their files when a correction needs them), a segment closes at a
+quarter of it (a correction maps again from the base of the segment that holds its first
+moved scan: shorter segments, less mapped again for nothing), and the folder's own bound
+(``LogFolder.max_bytes``) is where the oldest segments fall out. A map file saved then names
+the folder's files instead of holding the scans (``log_file``).
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from convbki_core.correction.log_folder import LogFolder, SegmentBase
 from convbki_core.correction.logged_scan import (  # noqa: F401 (the log's scans, named here too)
     LABELS,
     PROBABILITIES,
@@ -42,7 +51,7 @@ from convbki_core.correction.logged_scan import (  # noqa: F401 (the log's scans
     encode_floats,
 )
 
-FELL_OUT = "they fell out of the scan log (its bounds: scans, megabytes)"
+FELL_OUT = "they fell out of the scan log (its bounds: scans, megabytes, disk gigabytes)"
 
 
 def _load_malloc_trim():
@@ -70,17 +79,41 @@ class Segment:
     """Consecutive logged scans and the map as it was before the first of them."""
 
     first_index: int  # the drive's index of its first scan (the map had integrated this many)
-    base: object | None  # a ``VoxelStore`` copy of the map before its first scan; None: an empty map
+    base: SegmentBase | None  # the map before its first scan; None: an empty map
     base_position: np.ndarray | None  # the sensor's position then (map frame, m)
-    base_bytes: int = 0  # what the base holds that the map's store does not share (refreshed as the map changes)
     scans: list = field(default_factory=list)
-    scan_bytes: int = 0
+    scan_bytes: int = 0  # its scans' encoded bytes (and fixed fields)
+    resident: bool = True  # its scans' bytes are in memory (False: only in the log's folder)
     # The table of its scans as far as it was last read (``table``): a segment's scans only grow.
     _table: LogTable | None = field(default=None, repr=False, compare=False)
 
     @property
     def nbytes(self) -> int:
-        return self.base_bytes + self.scan_bytes
+        """The memory it takes: its scans' bytes while resident, its base's while in memory."""
+        base = self.base.memory_bytes if self.base is not None and self.base.in_memory else 0
+        return base + (self.scan_bytes if self.resident else _RELEASED_SCAN_BYTES * len(self.scans))
+
+    @property
+    def disk_bytes(self) -> int:
+        """What it takes in the log's folder (once written)."""
+        return self.scan_bytes + (self.base.disk_bytes if self.base is not None else 0)
+
+    def written(self) -> bool:
+        """Its scans and base are all in the log's folder."""
+        return (self.base is None or self.base.place is not None) and all(
+            scan.data.place is not None for scan in self.scans)
+
+    def release(self) -> None:
+        """Let the memory copies of its scans and base go (written: ``written``)."""
+        for scan in self.scans:
+            scan.data.release()
+        if self.base is not None:
+            self.base.release()
+        self.resident = False
+
+    def base_store(self):
+        """The map as it was where the segment began (a ``VoxelStore``; None: an empty map)."""
+        return None if self.base is None else self.base.store()
 
     def table(self, count: int | None = None) -> LogTable:
         """Its first ``count`` scans' stamps and poses (``LogTable``; default: all), the rows read
@@ -99,18 +132,18 @@ class Segment:
         return known
 
 
-# The per-scan fields a map file keeps of a log (one row per scan), beside the bytes.
-_TABLE = np.dtype([("stamp_ns", "<i8"), ("pose", "<f8", (4, 4)), ("mount", "<f8", (4, 4)), ("count", "<i8"),
-                   ("points_dtype", "S4"), ("kind", "<i1"), ("values_dtype", "S4"), ("columns", "<i4"),
-                   ("points_bytes", "<i8"), ("values_bytes", "<i8")])
+# What a scan whose bytes left memory still costs it (its pose, mount and fields).
+_RELEASED_SCAN_BYTES = 450
 
 
 class ScanLog:
-    """The log's segments, oldest first, within ``max_scans`` scans and ``max_bytes`` bytes (0:
-    no such bound). Thread-safe: the mapper appends while a correction reads."""
+    """The log's segments, oldest first, within ``max_scans`` scans and ``max_bytes`` bytes of
+    memory (0: no such bound), and, with a folder, its folder's bound. Thread-safe: the mapper
+    appends while a correction reads."""
 
     def __init__(self, max_scans: int = 0, max_bytes: int = 0, calibration: np.ndarray | None = None):
         self.max_scans, self.max_bytes = int(max_scans), int(max_bytes)
+        self.folder: LogFolder | None = None  # where its scans and bases are written (``use_folder``)
         self.calibration = calibration  # velodyne -> camera of the dataset the scans came from, if any
         self.frozen = 0  # scans before the oldest segment: frozen into the map
         self.frozen_stamp_ns: int | None = None  # the stamp of the newest frozen scan
@@ -133,8 +166,47 @@ class ScanLog:
 
     @property
     def nbytes(self) -> int:
+        """The memory it takes."""
         with self._lock:
             return sum(segment.nbytes for segment in self._segments)
+
+    @property
+    def disk_bytes(self) -> int:
+        """What it takes in its folder (0 without one)."""
+        if self.folder is None:
+            return 0
+        with self._lock:
+            return sum(segment.disk_bytes for segment in self._segments)
+
+    def use_folder(self, folder: LogFolder | None) -> None:
+        """Write its scans and bases to ``folder`` from now on, those it holds already too."""
+        with self._lock:
+            self.folder = folder
+            segments = list(self._segments)
+        if folder is None:
+            return
+        folder.hold(self)
+        for segment in segments:
+            if segment.base is not None and segment.base.place is None:
+                folder.put_base(segment.base)
+            for scan in segment.scans:
+                if scan.data.place is None:
+                    folder.put_scan(scan.data)
+
+    def file_names(self, folder: LogFolder) -> set[str]:
+        """The files of ``folder`` its scans and bases are in."""
+        with self._lock:
+            segments = list(self._segments)
+        names = set()
+        for segment in segments:
+            for place in [scan.data.place for scan in list(segment.scans)] + \
+                    [segment.base.place if segment.base is not None else None]:
+                if place is not None and folder.same(place[0]):
+                    names.add(place[1])
+            base = segment.base
+            if base is not None and base.place is not None and folder.same(base.place[0]):
+                names |= base.depends
+        return names
 
     @property
     def first_index(self) -> int:
@@ -191,7 +263,7 @@ class ScanLog:
             return self._segment_copies()
 
     def _segment_copies(self) -> list[Segment]:
-        return [Segment(s.first_index, s.base, s.base_position, s.base_bytes, list(s.scans), s.scan_bytes, s._table)
+        return [Segment(s.first_index, s.base, s.base_position, list(s.scans), s.scan_bytes, s.resident, s._table)
                 for s in self._segments]
 
     def segment_for(self, index: int) -> Segment | None:
@@ -205,6 +277,8 @@ class ScanLog:
     def append(self, scan: LoggedScan) -> int:
         """Log the newest scan; the oldest segments fall out past the bounds. Returns how many
         scans fell out."""
+        if self.folder is not None and scan.data.place is None:
+            self.folder.put_scan(scan.data)
         with self._lock:
             last = self._segments[-1]
             last.scans.append(scan)
@@ -215,14 +289,38 @@ class ScanLog:
             return_freed_memory()
         return dropped
 
+    def _release_over_memory(self) -> None:
+        """With a folder: while the log takes more memory than its bound, let the oldest written
+        segments (never the newest) leave memory (lock held)."""
+        if self.folder is None or not self.max_bytes:
+            return
+        total = sum(s.nbytes for s in self._segments)
+        for segment in list(self._segments)[:-1]:
+            if total <= self.max_bytes:
+                return
+            if segment.resident and segment.written():
+                before = segment.nbytes
+                segment.release()
+                total -= before - segment.nbytes
+
+    def _over_bounds(self) -> bool:
+        if self.max_scans and sum(len(s.scans) for s in self._segments) > self.max_scans:
+            return True
+        if self.folder is None:
+            return bool(self.max_bytes) and sum(s.nbytes for s in self._segments) > self.max_bytes
+        if self.folder.max_bytes and sum(s.disk_bytes for s in self._segments) > self.folder.max_bytes:
+            return True
+        # Writes that fail (a full disk) keep scans in memory: memory bounds the log again then.
+        return self.folder.error is not None and bool(self.max_bytes) and \
+            sum(s.nbytes for s in self._segments) > self.max_bytes
+
     def _drop_over_bounds(self) -> int:
         """Drop the oldest segments while the log is over a bound (lock held); what they held is
         frozen into the map. Returns how many scans fell out."""
+        self._release_over_memory()
         dropped = 0
         while len(self._segments) > 1 and (self.held_from is None or self._segments[1].first_index <= self.held_from) \
-                and (
-                (self.max_scans and sum(len(s.scans) for s in self._segments) > self.max_scans)
-                or (self.max_bytes and sum(s.nbytes for s in self._segments) > self.max_bytes)):
+                and self._over_bounds():
             old = self._segments.popleft()
             self._changes += 1
             dropped += len(old.scans)
@@ -230,7 +328,15 @@ class ScanLog:
             self.frozen_why = FELL_OUT
             if old.scans:
                 self.frozen_stamp_ns = old.scans[-1].stamp_ns
+        if dropped and self.folder is not None:
+            self.folder.tidy()
         return dropped
+
+    def trim(self) -> int:
+        """Let the oldest segments fall out where the log is over a bound now (a bound is checked at
+        each scan logged; the folder counts a base once written). Returns how many scans fell out."""
+        with self._lock:
+            return self._drop_over_bounds()
 
     def hold(self, index: int | None) -> None:
         """Keep the scans from ``index`` on, whatever the bounds, until ``hold(None)``: a
@@ -244,29 +350,41 @@ class ScanLog:
         """The newest segment holds half the bound: the next one should begin (``begin_segment``)."""
         with self._lock:  # the scans alone: a base larger than half the bound must not begin one a scan
             last = self._segments[-1]
+            share = 4 if self.folder is not None else 2
             return bool(last.scans) and bool((self.max_scans and 2 * len(last.scans) >= self.max_scans)
-                                             or (self.max_bytes and 2 * last.scan_bytes >= self.max_bytes))
+                                             or (self.max_bytes and share * last.scan_bytes >= self.max_bytes))
+
+    def _new_base(self, store, base_bytes: int) -> SegmentBase | None:
+        if store is None:
+            return None
+        base = SegmentBase(store, base_bytes)
+        if self.folder is not None:
+            self.folder.put_base(base)
+        return base
 
     def begin_segment(self, base, base_position: np.ndarray | None, base_bytes: int) -> int:
         """Begin a segment whose base is the map as it is now (``base``: a ``VoxelStore`` copy);
         the oldest segments fall out past the bounds. Returns how many scans fell out."""
+        segment_base = self._new_base(base, base_bytes)
         with self._lock:
             last = self._segments[-1]
             self._changes += 1
-            self._segments.append(Segment(last.first_index + len(last.scans), base,
-                                          None if base_position is None else np.array(base_position), base_bytes))
+            self._segments.append(Segment(last.first_index + len(last.scans), segment_base,
+                                          None if base_position is None else np.array(base_position)))
             dropped = self._drop_over_bounds()
         if dropped:
             return_freed_memory()
         return dropped
 
     def refresh_base_bytes(self, store) -> None:
-        """Count again what each base holds beside ``store`` (the map's): a base shares the
-        store's chunks when it is made, and comes to own those the map rewrites since."""
+        """Count again what each base in memory holds beside ``store`` (the map's): a base shares
+        the store's chunks when it is made, and comes to own those the map rewrites since."""
         with self._lock:
-            bases = [segment for segment in self._segments if segment.base is not None]
-        for segment in bases:  # outside the lock: a base never changes, and the count takes a while
-            segment.base_bytes = segment.base.bytes_not_shared_with(store)
+            bases = [segment.base for segment in self._segments if segment.base is not None]
+        for base in bases:  # outside the lock: a base never changes, and the count takes a while
+            held = base.held_store()
+            if held is not None:
+                base.memory_bytes = held.bytes_not_shared_with(store)
 
     def replace_from(self, index: int, segments: list[Segment]) -> None:
         """Replace the segments from the one whose first scan is ``index`` on with ``segments``
@@ -275,6 +393,9 @@ class ScanLog:
             kept = [segment for segment in self._segments if segment.first_index < index]
             self._segments = deque(kept + list(segments))
             self._changes += 1
+            self._drop_over_bounds()  # the replaced segments' bases may leave memory now
+        if self.folder is not None:
+            self.folder.tidy()
 
     def clear(self) -> None:
         """Forget every scan; the map from now on is the base of the next one (the caller's)."""
@@ -285,19 +406,24 @@ class ScanLog:
             self.frozen_stamp_ns = None
             self.frozen_why = ""
             self.pending = None
+        if self.folder is not None:
+            self.folder.tidy()
 
     def restart(self, base, base_position: np.ndarray | None, base_bytes: int, first_index: int,
                 why: str = "") -> None:
         """Forget every scan and begin again from ``base`` (a map loaded from a file without a
         log, a forgotten box); ``why``: what froze the scans before, in words."""
+        segment_base = self._new_base(base, base_bytes)
         with self._lock:
             self._changes += 1
-            self._segments = deque([Segment(first_index, base, None if base_position is None
-                                            else np.array(base_position), base_bytes)])
+            self._segments = deque([Segment(first_index, segment_base, None if base_position is None
+                                            else np.array(base_position))])
             self.frozen = first_index
             self.frozen_stamp_ns = None
             self.frozen_why = why
             self.pending = None
+        if self.folder is not None:
+            self.folder.tidy()
 
     def copy(self) -> ScanLog:
         """A copy as it is now (segment lists copied; bases and scans shared: they do not change)."""
@@ -306,108 +432,15 @@ class ScanLog:
             other.frozen, other.frozen_stamp_ns, other.frozen_why = self.frozen, self.frozen_stamp_ns, self.frozen_why
             other.pending = self.pending
             other._segments = deque(self._segment_copies())
+            other.folder = self.folder
+        if other.folder is not None:
+            other.folder.hold(other)
         return other
 
-    # -- in a map file -----------------------------------------------------------------------
-    def to_arrays(self) -> dict[str, np.ndarray]:
-        """The log as map-file members: per segment ``scan_log_{i}_table`` (one row per scan),
-        ``scan_log_{i}_data`` (its scans' bytes) and its base's rows (``scan_log_{i}_base_index``,
-        ``_count``, ``_class``, ``_value``, as the map's own), and ``scan_log_meta`` (JSON)."""
-        import json
-
-        from convbki_core.memory.compact_rows import compress_rows
-
-        arrays, segments = {}, self.segments()
-        described = []
-        for number, segment in enumerate(segments):
-            table = np.zeros(len(segment.scans), _TABLE)
-            for row, scan in zip(table, segment.scans):
-                row["stamp_ns"], row["pose"], row["mount"] = scan.stamp_ns, scan.pose, scan.mount
-                row["count"], row["points_dtype"], row["kind"] = scan.count, scan.points_dtype.encode(), scan.kind
-                row["values_dtype"], row["columns"] = scan.values_dtype.encode(), scan.columns
-                row["points_bytes"], row["values_bytes"] = len(scan.points_data), len(scan.values_data)
-            arrays[f"scan_log_{number}_table"] = table
-            arrays[f"scan_log_{number}_data"] = np.frombuffer(
-                b"".join(part for scan in segment.scans for part in (scan.points_data, scan.values_data)), np.uint8)
-            if segment.base is not None:
-                indices, alpha = segment.base.items()
-                counts, classes, values = compress_rows(alpha, segment.base.prior)
-                arrays[f"scan_log_{number}_base_index"] = indices.astype(np.int32)
-                arrays[f"scan_log_{number}_base_count"] = counts
-                arrays[f"scan_log_{number}_base_class"] = classes
-                arrays[f"scan_log_{number}_base_value"] = values.view(np.float32)
-            described.append({"first_index": segment.first_index, "base": segment.base is not None,
-                              "base_position": None if segment.base_position is None
-                              else [float(v) for v in segment.base_position]})
-        meta = {"segments": described, "frozen": self.frozen, "frozen_stamp_ns": self.frozen_stamp_ns,
-                "frozen_why": self.frozen_why,
-                "calibration": None if self.calibration is None else np.asarray(self.calibration).tolist()}
-        arrays["scan_log_meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-        if self.pending is not None:
-            arrays["scan_log_pending_stamps"] = np.asarray(self.pending[0], "<i8")
-            arrays["scan_log_pending_poses"] = np.asarray(self.pending[1], "<f8")
-        return arrays
-
-    @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray], meta: dict, num_classes: int, prior: float) -> ScanLog:
-        """The log of map-file members (``to_arrays``); raises ValueError when they do not fit."""
-        from convbki_core.memory.compact_rows import expand_rows
-        from convbki_core.memory.store import VoxelStore
-
-        log = cls()
-        segments = []
-        described = meta.get("segments")
-        if not isinstance(described, list) or not described:
-            raise ValueError("its metadata lists no segment")
-        for number, about in enumerate(described):
-            table, data = arrays.get(f"scan_log_{number}_table"), arrays.get(f"scan_log_{number}_data")
-            if table is None or data is None or table.dtype != _TABLE or data.dtype != np.uint8 or data.ndim != 1:
-                raise ValueError(f"segment {number}'s scans are missing or of unexpected types")
-            sizes = table["points_bytes"].astype(np.int64) + table["values_bytes"]
-            if (sizes < 0).any() or int(sizes.sum()) != data.size:
-                raise ValueError(f"segment {number}'s table names {int(sizes.sum())} bytes, its data holds {data.size}")
-            if not np.isfinite(table["pose"]).all() or not np.isfinite(table["mount"]).all():
-                raise ValueError(f"segment {number} holds a pose that is not finite")
-            scans, offset, raw = [], 0, data.tobytes()
-            for row in table:
-                points_end = offset + int(row["points_bytes"])
-                values_end = points_end + int(row["values_bytes"])
-                scans.append(LoggedScan(int(row["stamp_ns"]), row["pose"].copy(), row["mount"].copy(),
-                                        int(row["count"]), row["points_dtype"].decode(), int(row["kind"]),
-                                        row["values_dtype"].decode(), int(row["columns"]), raw[offset:points_end],
-                                        raw[points_end:values_end]))
-                offset = values_end
-            base, base_bytes = None, 0
-            if about.get("base"):
-                parts = [arrays.get(f"scan_log_{number}_base_{name}") for name in ("index", "count", "class", "value")]
-                if any(part is None for part in parts):
-                    raise ValueError(f"segment {number}'s base is missing")
-                index, counts, classes, values = parts
-                base = VoxelStore(num_classes, prior)
-                base.write(index.astype(np.int64), expand_rows(counts, classes, values.astype(np.float32), prior,
-                                                               num_classes))
-                base_bytes = base.resident_bytes
-            position = about.get("base_position")
-            segments.append(Segment(int(about.get("first_index", 0)), base,
-                                    None if position is None else np.asarray(position, np.float64), base_bytes, scans,
-                                    sum(scan.nbytes for scan in scans)))
-        log._segments = deque(segments)
-        log.frozen = int(meta.get("frozen", 0))
-        log.frozen_stamp_ns = meta.get("frozen_stamp_ns")
-        log.frozen_why = str(meta.get("frozen_why") or "")
-        stamps, poses = arrays.get("scan_log_pending_stamps"), arrays.get("scan_log_pending_poses")
-        if stamps is not None or poses is not None:
-            if (stamps is None or poses is None or stamps.ndim != 1 or poses.shape != (len(stamps), 4, 4)
-                    or not np.isfinite(poses).all() or (np.diff(stamps) <= 0).any()):
-                raise ValueError("its pending correction's keyframes are damaged")
-            log.pending = (stamps.astype(np.int64), poses.astype(np.float64))
-        calibration = meta.get("calibration")
-        log.calibration = None if calibration is None else np.asarray(calibration, np.float64)
-        return log
-
     def adopt(self, other: ScanLog) -> None:
-        """Take ``other``'s segments (a map file's log), keeping this log's bounds: its oldest
-        segments fall out (frozen) where they exceed them."""
+        """Take ``other``'s segments (a map file's log), keeping this log's bounds and folder (what
+        the map file held itself is written there): its oldest segments fall out (frozen) where
+        they exceed the bounds."""
         with other._lock:
             segments, frozen, frozen_stamp = list(other._segments), other.frozen, other.frozen_stamp_ns
             calibration, why, pending = other.calibration, other.frozen_why, other.pending
@@ -418,3 +451,4 @@ class ScanLog:
             self.frozen, self.frozen_stamp_ns, self.calibration = frozen, frozen_stamp, calibration
             self.frozen_why = why
             self._drop_over_bounds()
+        self.use_folder(self.folder)

@@ -125,8 +125,13 @@ class MapSnapshot:
             "value": values.view(np.float32),
         }
         if self.scan_log is not None:
-            arrays.update(self.scan_log.to_arrays())
+            from convbki_core.correction.log_file import log_arrays
+
+            arrays.update(log_arrays(self.scan_log, Path(os.path.abspath(path)).parent))
         atomic_write_with(path, lambda handle: np.savez(handle, **arrays), keep_previous=True, new_mode=new_mode)
+        folder = None if self.scan_log is None else self.scan_log.folder
+        if folder is not None:  # the folder keeps the files this map file (and its .prev) name
+            folder.keep_for(os.path.abspath(path), self.scan_log.file_names(folder))
 
 
 # A map file's metadata is a small JSON object; a member claiming more is not one of ours.
@@ -227,14 +232,19 @@ def read_map(path: str | Path, with_scan_log: bool = False) -> tuple[dict, np.nd
 
 
 def _scan_log(path: Path, arrays: dict, metadata: dict):
-    """The scan log of a version 3 file (a ``ScanLog`` without bounds), checked."""
-    from convbki_core.correction.scan_log import ScanLog
+    """The scan log of a version 3 file (a ``ScanLog`` without bounds), checked. A log whose
+    folder's files are gone leaves the map usable: None, the reason in ``metadata["scan_log_missing"]``."""
+    from convbki_core.correction.log_file import MissingLogFiles, log_of_arrays
 
     try:
         meta = json.loads(arrays[f"{SCAN_LOG_PREFIX}meta"].tobytes().decode())
         if not isinstance(meta, dict):
             raise ValueError("its metadata is not a JSON object")
-        return ScanLog.from_arrays(arrays, meta, metadata["num_classes"], float(metadata.get("prior") or 1e-3))
+        return log_of_arrays(arrays, meta, metadata["num_classes"], float(metadata.get("prior") or 1e-3),
+                             Path(os.path.abspath(path)).parent)
+    except MissingLogFiles as error:
+        metadata["scan_log_missing"] = f"the files of its scan log are gone ({str(error)[:200]})"
+        return None
     except (ValueError, TypeError, KeyError, json.JSONDecodeError, UnicodeDecodeError) as error:
         raise MapFileError(f"{path}: corrupted scan log ({str(error).splitlines()[0][:200]})") from None
 

@@ -91,8 +91,8 @@ class MapFiles:
             self.window.move_to(self.geometry.origin_for(self.sensor_position))
         if self.scan_log is not None and metadata.get("scan_log") is not None:
             self.scan_log.adopt(metadata["scan_log"])
-        else:  # a file without a log: its map is where corrections begin
-            self._restart_log("they came from a map file without a scan log")
+        else:  # a file without a (usable) log: its map is where corrections begin
+            self._restart_log(metadata.get("scan_log_missing") or "they came from a map file without a scan log")
         self._everything_changed = True
 
     def export_ply(self, path: str | Path, max_variance: float | None = None) -> int:

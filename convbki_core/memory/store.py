@@ -38,7 +38,8 @@ _MASK = CHUNK_EDGE - 1
 class _Chunk:
     """The voxels of one chunk; every array owns its memory (no views of shared buffers)."""
 
-    __slots__ = ("classes", "counts", "offsets", "values")
+    # (__weakref__: a scan log folder notes where it wrote a chunk, for as long as the chunk lives)
+    __slots__ = ("__weakref__", "classes", "counts", "offsets", "values")
 
     def __init__(self, offsets: np.ndarray, counts: np.ndarray, classes: np.ndarray, values: np.ndarray):
         self.offsets = offsets  # (n,) uint16 sorted chunk-local offsets (x << 8 | y << 4 | z)

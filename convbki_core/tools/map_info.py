@@ -56,6 +56,7 @@ def map_info(path: str | Path) -> dict:
         "bytes_per_voxel": round(memory / len(indices), 1) if len(indices) else 0.0, "memory_bytes": memory,
         "merged_from": metadata.get("merged_from"),
         "scan_log": _log_info(metadata.get("scan_log")),
+        "scan_log_missing": metadata.get("scan_log_missing"),
     }
 
 
@@ -64,11 +65,13 @@ def _log_info(log) -> dict | None:
     if log is None:
         return None
     scans = log.scans()
-    return {"scans": len(scans), "first_scan": scans[0][0] if scans else None,
+    size = int(sum(scan.nbytes for _, scan in scans))
+    folders = sorted({str(scan.data.place[0].path) for _, scan in scans if scan.data.place is not None})
+    return {"scans": len(scans), "first_scan": scans[0][0] if scans else None, "folders": folders,
             "first_stamp_s": scans[0][1].stamp_ns / 1e9 if scans else None,
             "last_stamp_s": scans[-1][1].stamp_ns / 1e9 if scans else None,
-            "points": int(sum(scan.count for _, scan in scans)), "bytes": int(log.nbytes),
-            "bytes_per_scan": round(log.nbytes / len(scans)) if scans else 0, "segments": len(log.segments()),
+            "points": int(sum(scan.count for _, scan in scans)), "bytes": size,
+            "bytes_per_scan": round(size / len(scans)) if scans else 0, "segments": len(log.segments()),
             "frozen_scans": log.frozen, "frozen_why": log.frozen_why or None,
             "calibration": log.calibration is not None,
             "pending_correction_keyframes": None if log.pending is None else len(log.pending[0])}
@@ -92,13 +95,17 @@ def format_info(info: dict) -> str:
     if info["merged_from"]:
         lines.append(f"merged from: {', '.join(map(str, info['merged_from']))}")
     log = info["scan_log"]
-    if log is None:
+    if log is None and info.get("scan_log_missing"):
+        lines.append(f"scan log:    unusable: {info['scan_log_missing']} (no scan of this map can be moved)")
+    elif log is None:
         lines.append("scan log:    none (no scan of this map can be moved by map_tool correct)")
     elif log["scans"]:
         frozen = f"; the {log['frozen_scans']} before are frozen ({log['frozen_why']})" if log["frozen_scans"] else ""
         lines.append(f"scan log:    scans {log['first_scan']}..{log['first_scan'] + log['scans'] - 1} (stamped "
                      f"{log['first_stamp_s']:.3f}..{log['last_stamp_s']:.3f} s), {_size(log['bytes'])}, "
                      f"{_size(log['bytes_per_scan'])} a scan{frozen}")
+        if log["folders"]:
+            lines.append(f"             its scans' bytes in {', '.join(log['folders'])}")
     else:
         lines.append(f"scan log:    empty; the {log['frozen_scans']} scans are frozen ({log['frozen_why']})")
     if log is not None and log["pending_correction_keyframes"]:

@@ -246,6 +246,9 @@ def _correct(args: argparse.Namespace) -> int:
     # The log as the file holds it, unbounded; the device where no GPU is asked for.
     config = config.replace(device="cpu", scan_log_scans=0, scan_log_megabytes=0.0)
     mapper = ConvBKIMapper(config, kernel)
+    if any(scan.data.place is not None for _, scan in scans):
+        # A log in a folder: FIXED names MAP's scans there, and its own new bases go beside it.
+        mapper.use_log_folder(f"{out}.scan_log")
     mapper.replace_with(metadata, indices, alpha)
     with _steps(1, args.quiet, "mapping the moved scans again") as bar:
         corrected, result = mapper.corrected(wanted, tolerance=args.tolerance)
@@ -253,6 +256,8 @@ def _correct(args: argparse.Namespace) -> int:
     if corrected.scan_log is not None:
         corrected.scan_log.pending = None  # applied (or overruled by --poses)
     corrected.save(out)
+    if corrected.scan_log is not None and corrected.scan_log.folder is not None:
+        corrected.scan_log.folder.close(remove_folder=True)  # (removed only when FIXED names none of it)
     print(f"corrected {args.map}: {result.scans} of {len(scans)} logged scans moved (largest move "
           f"{result.largest_move:.2f} m; {result.skipped} moved less than {args.tolerance:g} m, left alone), "
           f"{result.replayed} mapped again in {result.seconds:.2f} s: {out} ({len(corrected)} voxels)")

@@ -9,6 +9,9 @@ of compiling; ``MapFiles.load_at_start`` then puts the file read here into the m
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,6 +74,99 @@ def _warn_if_no_room(node, path: str) -> None:
     if free < size:
         node.get_logger().warning(f"map_file {path}: {free / 1e6:.1f} MB free on its disk, less than the "
                                   f"{size / 1e6:.1f} MB of the map there: a save is likely to fail")
+
+
+@dataclass(frozen=True)
+class LogPlace:
+    """Where the scan log's files go (``scan_log_folder``), and what they must not lose."""
+
+    path: str
+    cache: bool  # a folder of this process only (no map_file): removed at shutdown when left empty
+    keep_named_by: tuple[str, ...]  # map files saved before, whose logs' files there stay
+
+
+def scan_log_folder_at_start(node, write_folder: WriteFolder) -> LogPlace | None:
+    """The scan log's folder, made (owner only) and checked writable, else ``StartupError``; None
+    when the log stays in memory (``scan_log`` false, ``scan_log_disk_gigabytes`` 0). Empty
+    ``scan_log_folder``: ``<map_file>.scan_log`` beside map_file, else a folder of this process in
+    the user's cache folder. The map files in the folder the node writes in, and map_file with
+    its ``.prev``, keep the files their logs name there."""
+    if not node.param("scan_log") or node.param("scan_log_disk_gigabytes") <= 0:
+        return None
+    chosen, map_file = node.param("scan_log_folder"), node.param("map_file")
+    cache = not chosen and not map_file
+    if cache:
+        root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        chosen = os.path.join(root, "convbki_ros", f"scan_log-{os.getpid()}")
+        _remove_logs_of_dead_processes(os.path.dirname(chosen))
+    elif not chosen:
+        chosen = f"{map_file}.scan_log"
+    path = os.path.abspath(chosen)
+    try:
+        os.makedirs(path, mode=0o700, exist_ok=True)
+        if not os.path.isdir(path) or not os.access(path, os.W_OK | os.X_OK):
+            raise PermissionError(errno.EACCES, "not a folder it can write")
+    except (OSError, ValueError) as error:
+        why = f"scan_log_folder {path} cannot be used ({getattr(error, 'strerror', None) or error})"
+        if node.param("scan_log_folder"):  # the user's own choice: said at once
+            raise StartupError(f"{why}; set scan_log_folder to a folder the node can write, or "
+                               "scan_log_disk_gigabytes 0 to keep the log in memory") from None
+        node.get_logger().warning(f"{why}: the scan log is kept in memory only (scan_log_megabytes bounds it)")
+        return None
+    maps = [map_file, str(previous_path(map_file))] if map_file else []
+    if write_folder.root:
+        with contextlib.suppress(OSError):
+            maps += [entry.path for entry in os.scandir(write_folder.root)
+                     if entry.is_file(follow_symlinks=False) and entry.path not in maps]
+    return LogPlace(path, cache, tuple(maps))
+
+
+def _remove_logs_of_dead_processes(parent: str) -> None:
+    """The cache folders of nodes that are gone (killed before their shutdown removed them): their
+    log files, then the folder. Only this project's file names are deleted."""
+    from convbki_core.correction.log_folder import is_log_file
+
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(parent):
+            pid = entry.name.removeprefix("scan_log-")
+            if not entry.name.startswith("scan_log-") or not pid.isdigit() or _alive(int(pid)):
+                continue
+            with contextlib.suppress(OSError):
+                for file in os.scandir(entry.path):
+                    if is_log_file(file.name):
+                        os.unlink(file.path)
+                os.rmdir(entry.path)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # another user's process: alive
+    return True
+
+
+def use_scan_log_folder(node, mapper, place: LogPlace | None) -> None:
+    """Give ``mapper``'s scan log the folder chosen at start (``scan_log_folder_at_start``)."""
+    if place is None:
+        return
+    try:
+        mapper.use_log_folder(place.path, place.keep_named_by)
+    except OSError as error:
+        raise StartupError(f"scan_log_folder {place.path} cannot be used "
+                           f"({getattr(error, 'strerror', None) or error})") from None
+    node.get_logger().info(f"scan log in {place.path} (up to {node.param('scan_log_disk_gigabytes'):g} GB there, "
+                           f"{node.param('scan_log_megabytes'):g} MB in memory)")
+
+
+def close_scan_log_folder(mapper, place: LogPlace | None) -> None:
+    """At shutdown, after the last save: write what is handed over, delete what no saved map names
+    (and a cache folder left empty)."""
+    log = mapper.scan_log
+    if log is not None and log.folder is not None:
+        log.folder.close(remove_folder=place is not None and place.cache)
 
 
 # What a map file moved aside is named after: why it could not be loaded.

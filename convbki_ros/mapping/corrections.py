@@ -46,6 +46,7 @@ from convbki_core.correction.replay import (
 from convbki_ros.inputs.path_decoding import PathError, decode_path, path_pose_count
 from convbki_ros.inputs.path_keyframes import Keyframes, path_keyframes
 from convbki_ros.mapping.correction_waits import let_live_scans_first, wait_for_scans_up_to
+from convbki_ros.mapping.log_status import scan_log_values
 from convbki_ros.outputs.status import problem_key
 
 
@@ -439,14 +440,6 @@ class CorrectionRunner:
                        ("correction_last_s", f"{counts.last.seconds:.3f}"),
                        ("correction_last_replayed", counts.last.replayed)]
         log = self.core.mapper.scan_log
-        newest_in = self.core.queue.newest_ns
         if log is not None:
-            reach, newest = log.reach_ns, log.newest_ns
-            values += [("scan_log_scans", len(log)), ("scan_log_megabytes", f"{log.nbytes / 1e6:.1f}"),
-                       ("scan_log_frozen", log.frozen),
-                       ("scan_log_reach_stamp", "" if reach is None else f"{reach / 1e9:.3f}"),
-                       ("scan_log_reach_s", "" if reach is None else f"{(newest - reach) / 1e9:.1f}")]
-            if newest_in is not None:
-                lag = 0.0 if newest is None else max(0.0, (newest_in - newest) / 1e9)
-                values.append(("live_lag_s", f"{lag:.2f}"))
+            values += scan_log_values(log, self.core.queue.newest_ns)
         return [(key, str(value)) for key, value in values]

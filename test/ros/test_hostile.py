@@ -63,9 +63,14 @@ def attacks(target: "Target", *runs: tuple[str, ...], timeout: float = 120.0) ->
 
 
 def tree(root: Path) -> dict[str, tuple]:
-    """Every entry under ``root``: (kind, content hash or link target)."""
+    """Every entry under ``root``: (kind, content hash or link target); a node's scan log folder
+    as a folder only (its files change as the node maps)."""
     entries = {}
     for folder, names, files in os.walk(root):
+        logs = [name for name in names if name.endswith(".scan_log")]
+        names[:] = [name for name in names if name not in logs]  # os.walk does not go into them
+        for name in logs:
+            entries[str(Path(folder, name).relative_to(root))] = ("folder",)
         for name in names + files:
             path = Path(folder, name)
             if path.is_symlink():

@@ -175,4 +175,5 @@ def test_a_map_of_another_set_up_stops_the_start_and_two_mistaken_restarts_lose_
     assert kept[0] != kept[1]
     assert kept[0].read_bytes() == fine_map and kept[1].read_bytes() == coarse_map
     expect_file_holds(map_file, one_scan)
-    assert sorted(path.name for path in map_file.parent.iterdir()) == sorted(["map.npz", *(p.name for p in kept)])
+    assert sorted(path.name for path in map_file.parent.iterdir()) == \
+        sorted(["map.npz", "map.npz.scan_log", *(p.name for p in kept)])

@@ -148,9 +148,9 @@ def test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scrat
         frozen_offline = frozen_counts(dataset, closure, megabytes)
         assert frozen_offline[CLOSURE + 10] == 0 and frozen_offline[-1] >= 8, \
             f"scans frozen after each scan with {megabytes} MB: {frozen_offline}; choose another bound"
-        bound = ("-p", f"scan_log_megabytes:={megabytes}")
+        bound = ("-p", f"scan_log_megabytes:={megabytes}", "-p", "scan_log_disk_gigabytes:=0.0")  # in memory only
     else:
-        bound = ("-p", "scan_log_scans:=32")
+        bound = ("-p", "scan_log_scans:=32")  # in its folder, beside map_file by default
     domain = domain_id()
     node = start_node(domain, tmp_path, setup, "-p", f"map_file:={tmp_path / 'map.npz'}", *bound)
     log = NodeLog(node)
@@ -215,8 +215,10 @@ def test_a_drift_drive_through_the_node_is_corrected_to_the_map_built_from_scrat
         if setup == "paper":
             assert frozen == frozen_offline[-1], counters
             assert float(counters["scan_log_megabytes"]) <= megabytes, counters
+            assert counters["scan_log_folder"] == "" and counters["scan_log_disk_megabytes"] == "0.0", counters
         else:
             assert int(counters["scan_log_scans"]) <= 32, counters
+            assert counters["scan_log_folder"] == f"{tmp_path / 'map.npz'}.scan_log", counters
         if frozen < FRAMES:  # corrections reach back to the oldest scan still logged
             assert float(counters["scan_log_reach_stamp"]) == pytest.approx(
                 (EPOCH_NS + closure.stamps_ns[frozen]) / 1e9, abs=1e-3)
@@ -236,8 +238,13 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
     closure = read_loop_closure(dataset)
     map_file = tmp_path / "map.npz"
     domain = domain_id()
+    # The log's folder; memory for 8 scans: a segment every 2, the older ones on disk only.
+    frame = dataset[0]
+    scan_megabytes = LoggedScan.of(frame.points, frame.input_values, np.eye(4), 0).nbytes / 1e6
+    on_disk = ("-p", f"scan_log_folder:={tmp_path / 'logs'}", "-p", "scan_log_disk_gigabytes:=2.0",
+               "-p", f"scan_log_megabytes:={8 * scan_megabytes}")
     # The first run maps the scans before the loop closes and saves them, with their log, on shutdown.
-    first_run = NodeLog(start_node(domain, tmp_path, "defaults", "-p", f"map_file:={map_file}"))
+    first_run = NodeLog(start_node(domain, tmp_path, "defaults", "-p", f"map_file:={map_file}", *on_disk))
     player = start("convbki_ros.tools.play_bag", domain, drive / "before", "--wait-for-node")
     # The map the second run must end with (the same as a correction without the restart: the
     # scans at their corrected poses), worked out while the first run starts and maps.
@@ -247,14 +254,23 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
     try:
         reports = probe.subscribe(DiagnosticArray, "/diagnostics")
         assert probe.spin_until(lambda: reports and Stats.parse(reports[-1]).integrated == CLOSURE, WAIT)
+        status = diagnostics(reports[-1])
     finally:
         probe.close()
+    assert status["scan_log_folder"] == str(tmp_path / "logs") and status["scan_log_write_error"] == "", status
+    assert float(status["scan_log_megabytes"]) < 0.5 * float(status["scan_log_disk_megabytes"]), status
     assert "saved" in first_run.close()  # Ctrl-C: the node saves on shutdown
     metadata, _, _ = read_map(map_file, with_scan_log=True)
-    assert len(metadata["scan_log"]) == CLOSURE
+    # The map file names the folder's files: it holds none of the scans' bytes itself.
+    scans = metadata["scan_log"].scans()
+    assert len(scans) == CLOSURE and all(scan.data.place[0].path == tmp_path / "logs" for _, scan in scans)
+    plain, indices, alpha = read_map(map_file)
+    MapSnapshot(plain, indices, alpha).write(tmp_path / "no_log.npz")
+    log_in_file = map_file.stat().st_size - (tmp_path / "no_log.npz").stat().st_size
+    assert 0 < log_in_file < 0.1 * sum(scan.data.size for _, scan in scans)
 
     # The second run starts from that file; the SLAM's Path comes after the restart.
-    node = start_node(domain, tmp_path, "defaults", "-p", f"map_file:={map_file}")
+    node = start_node(domain, tmp_path, "defaults", "-p", f"map_file:={map_file}", *on_disk)
     log = NodeLog(node)
     probe = Probe(domain)
     try:

@@ -299,7 +299,7 @@ def test_a_folder_that_refuses_writes_after_the_start_fails_every_save_and_keeps
     assert code == 1, output  # a supervisor learns that this session's map was not saved
     assert f"[convbki_mapper] error on shutdown: could not save {map_file}: Permission denied" in output, output
     assert map_file.read_bytes() == before
-    assert sorted(p.name for p in map_file.parent.iterdir()) == ["map.npz"]
+    assert sorted(p.name for p in map_file.parent.iterdir()) == ["map.npz", "map.npz.scan_log"]
 
 
 def test_a_map_file_on_a_full_disk_is_refused_at_start_and_an_error_while_mapping_and_at_shutdown(tmp_path,
@@ -333,4 +333,4 @@ def test_a_map_file_on_a_full_disk_is_refused_at_start_and_an_error_while_mappin
     assert code == 1, output  # a supervisor learns that this session's map was not saved
     assert f"[convbki_mapper] error on shutdown: could not save {map_file}: No space left on device" in output, output
     assert map_file.read_bytes() == before
-    assert sorted(p.name for p in small_disk.iterdir()) == ["filler", "map.npz"]
+    assert sorted(p.name for p in small_disk.iterdir()) == ["filler", "map.npz", "map.npz.scan_log"]

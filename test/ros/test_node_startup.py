@@ -47,6 +47,7 @@ BAD_STARTS = {
                         r"parameter costmap_profile: /nowhere/robot.yaml: cannot read the traversability profile"),
     "tf without map_frame": (["-p", "pose_source:=tf"], r"pose_source tf needs map_frame"),
     "pose source": (["-p", "pose_source:=gps"], r"parameter pose_source: 'gps' is not one of odometry, tf"),
+    "log folder": (["-p", "scan_log_folder:=/proc/no_log_here"], r"scan_log_folder /proc/no_log_here cannot be used"),
     "min move": (["-p", "correction_min_move:=-0.5"],
                  r"parameter correction_min_move: -0.5 m: -1.0 \(half a voxel\) or a distance of at least 0"),
 }

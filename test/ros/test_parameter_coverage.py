@@ -87,6 +87,8 @@ SET_AT_START = {
     "scan_log": MAP_SETTINGS,
     "scan_log_scans": CORRECTED + " via start_node",
     "scan_log_megabytes": CORRECTED + " via start_node",
+    "scan_log_disk_gigabytes": CORRECTED + " via start_node",
+    "scan_log_folder": RESTARTED,
     "correction_tolerance": RESTARTED + " via start_node",
     "correction_min_move": RESTARTED + " via start_node",
     "map_folder": HOSTILE_FILES + " via target",
