@@ -338,14 +338,16 @@ class LogFolder:
                 os.fsync(self._data[1])
 
     # -- freeing ------------------------------------------------------------------------------
-    def held_names(self) -> set[str]:
-        """The files some log of this process or a map file this process knows holds (the logs'
-        become this object's to delete once they let them go)."""
+    def held_names(self, logs: bool = True) -> set[str]:
+        """The files some log of this process (``logs``) or a map file this process knows holds (the
+        logs' become this object's to delete once they let them go)."""
         names: set[str] = set()
         for log in list(self._holders):
             names |= log.file_names(self)
         with self._lock:
             self._own |= names
+            if not logs:
+                names = set()
             for kept in self._kept.values():
                 names |= kept
             for current in (self._data, self._chunks):
@@ -353,10 +355,10 @@ class LogFolder:
                     names.add(current[0])
         return names
 
-    def remove_unheld(self) -> int:
+    def remove_unheld(self, logs: bool = True) -> int:
         """Delete the log files of this object's (written or held) that nothing holds now
-        (``held_names``); returns how many."""
-        held = self.held_names()
+        (``held_names``; ``logs`` false: only what map files name counts); returns how many."""
+        held = self.held_names(logs)
         removed = 0
         with self._lock:  # no scan is placed in a new file meanwhile
             for current in (self._data, self._chunks):
@@ -377,8 +379,8 @@ class LogFolder:
         return removed
 
     def close(self, remove_folder: bool = False) -> None:
-        """Write what is handed over, stop the writer, delete what nothing holds; ``remove_folder``:
-        also remove the folder when it is left empty (a cache folder of this process)."""
+        """Write what is handed over, stop the writer, delete what no map file names (the logs of
+        the process end with it); ``remove_folder``: also remove the folder when it is left empty."""
         if self._closed:
             return
         self.flush()
@@ -391,7 +393,7 @@ class LogFolder:
             if self._chunks is not None:
                 os.close(self._chunks[1])
                 self._chunks = None
-        self.remove_unheld()
+        self.remove_unheld(logs=False)
         if remove_folder:
             with contextlib.suppress(OSError):
                 os.rmdir(self.path)

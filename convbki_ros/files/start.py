@@ -81,7 +81,7 @@ class LogPlace:
     """Where the scan log's files go (``scan_log_folder``), and what they must not lose."""
 
     path: str
-    cache: bool  # a folder of this process only (no map_file): removed at shutdown when left empty
+    ours: bool  # chosen by the node (not scan_log_folder): removed at shutdown when left empty
     keep_named_by: tuple[str, ...]  # map files saved before, whose logs' files there stay
 
 
@@ -118,7 +118,7 @@ def scan_log_folder_at_start(node, write_folder: WriteFolder) -> LogPlace | None
         with contextlib.suppress(OSError):
             maps += [entry.path for entry in os.scandir(write_folder.root)
                      if entry.is_file(follow_symlinks=False) and entry.path not in maps]
-    return LogPlace(path, cache, tuple(maps))
+    return LogPlace(path, not node.param("scan_log_folder"), tuple(maps))
 
 
 def _remove_logs_of_dead_processes(parent: str) -> None:
@@ -163,10 +163,10 @@ def use_scan_log_folder(node, mapper, place: LogPlace | None) -> None:
 
 def close_scan_log_folder(mapper, place: LogPlace | None) -> None:
     """At shutdown, after the last save: write what is handed over, delete what no saved map names
-    (and a cache folder left empty)."""
+    (and the folder, where the node chose it and it is left empty)."""
     log = mapper.scan_log
     if log is not None and log.folder is not None:
-        log.folder.close(remove_folder=place is not None and place.cache)
+        log.folder.close(remove_folder=place is not None and place.ours)
 
 
 # What a map file moved aside is named after: why it could not be loaded.

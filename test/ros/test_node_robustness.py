@@ -396,7 +396,7 @@ def test_a_save_that_fails_answers_why_keeps_the_old_file_and_mapping_goes_on(ri
     assert not failed.success
     assert failed.message == f"could not save {rig.map_file}: File too large", failed.message
     assert rig.map_file.read_bytes() == before
-    assert sorted(p.name for p in rig.map_file.parent.iterdir()) == ["map.npz"]
+    assert sorted(p.name for p in rig.map_file.parent.iterdir()) == ["map.npz", "map.npz.scan_log"]
     # Until a save succeeds, /diagnostics says the map is not saved (ERROR, with the reason).
     unsaved = rig.wait_stats(lambda s: s.level == 2)
     assert failed.message in unsaved.message and unsaved.last_save == failed.message, unsaved
