@@ -1,8 +1,10 @@
 """A bag of a long drive with a LIO-SAM-like SLAM beside it (docs/slam.md, the long-drive run).
 
-``--scans`` 64-beam scans at 10 Hz: the scans of a short ``synth`` drive (``--source``)
-cycled, on the poses of ``long_drive_study`` (10 m/s on a gentle curve; the odometry drifts 8
-degrees per 100 m and 1 % in scale). As LIO-SAM does, the SLAM publishes its whole path on
+``--scans`` 64-beam scans at 10 Hz. From a ``synth --drift`` drive at least that long
+(``--source``): its scans, route and drifting odometry (a town's density, its streets revisited,
+as on KITTI 00). From a shorter one: its scans cycled on the poses of ``long_drive_study`` (10 m/s
+on a gentle curve; the odometry drifts 8 degrees per 100 m and 1 % in scale; denser than a real
+drive: the cycled scenes do not join up). As LIO-SAM does, the SLAM publishes its whole path on
 ``/pose_corrections`` (``nav_msgs/Path`` in ``map``, a keyframe a second, each with its scan's
 stamp) five times a second, every keyframe's position nudged by a centimetre or two afresh each
 second (an iSAM2 graph at each new factor), and ``map -> odom`` on /tf. At each ``--closures
@@ -10,7 +12,9 @@ SCAN:SECONDS`` it closes a loop reaching SECONDS back: every pose after the revi
 the drift accumulated since, and ``map -> odom`` follows. Written with the topics and frames of
 ``kitti_to_bag``'s drift bags, so the node runs on it with ``map_frame:=map``.
 
-    .venv/bin/python scripts/long_drive_bag.py --source out/synth60 --scans 4500 \
+    .venv/bin/python -m convbki_core.tools.synth --out out/long/data --frames 4500 --seed 7 --movers 40 \
+        --drift 8 --drift-scale 0.01
+    .venv/bin/python scripts/long_drive_bag.py --source out/long/data --scans 4500 \
         --closures 1500:145 4499:444 --out out/long/bag
 """
 
@@ -26,6 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from long_drive_study import drive_poses
 
+from convbki_core.datasets.drift import read_loop_closure
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
 from convbki_ros.tools.kitti_to_bag import (
     CLOUD_TOPIC,
@@ -36,8 +41,8 @@ from convbki_ros.tools.kitti_to_bag import (
     ODOM_TOPIC,
     SENSOR_FRAME,
     TF_TOPIC,
+    add_connections,
     cloud_fields,
-    data_qos,
 )
 
 PATH_EVERY, KEYFRAME_EVERY, NUDGE_EVERY, NUDGE_M = 2, 10, 10, 0.01
@@ -63,8 +68,14 @@ def main() -> int:
 
     closures = {int(item.split(":")[0]): int(float(item.split(":")[1]) * 10) for item in args.closures}
     source = SemanticKittiSequence(args.source, "00")
-    fields = [cloud_fields(source[k], False) for k in range(len(source))]
-    true, odometry = drive_poses(args.scans)
+    closure = read_loop_closure(source)
+    if len(source) >= args.scans and closure is not None:
+        # A drive as long as the bag (``synth --drift``): its own route, revisits and drifting odometry.
+        true, odometry = source.poses[:args.scans], closure.odometry[:args.scans]
+        fields = None
+    else:
+        true, odometry = drive_poses(args.scans)
+        fields = [cloud_fields(source[k], False) for k in range(len(source))]  # cycled
     stamps = EPOCH_NS + np.arange(args.scans, dtype=np.int64) * 100_000_000
     estimate = odometry.copy()  # map <- lidar as the SLAM has it now
     map_from_odom = np.eye(4)
@@ -75,15 +86,10 @@ def main() -> int:
     shutil.rmtree(args.out, ignore_errors=True)
     paths = 0
     with Writer(args.out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        qos = [data_qos()]
-        tf_conn = writer.add_connection(TF_TOPIC, "tf2_msgs/msg/TFMessage", typestore=typestore,
-                                        offered_qos_profiles=qos)
-        odom_conn = writer.add_connection(ODOM_TOPIC, "nav_msgs/msg/Odometry", typestore=typestore,
-                                          offered_qos_profiles=qos)
-        cloud_conn = writer.add_connection(CLOUD_TOPIC, "sensor_msgs/msg/PointCloud2", typestore=typestore,
-                                           offered_qos_profiles=qos)
-        path_conn = writer.add_connection(CORRECTIONS_TOPIC, "nav_msgs/msg/Path", typestore=typestore,
-                                          offered_qos_profiles=qos)
+        connections = add_connections(writer, typestore, {
+            TF_TOPIC: "tf2_msgs/msg/TFMessage", ODOM_TOPIC: "nav_msgs/msg/Odometry",
+            CLOUD_TOPIC: "sensor_msgs/msg/PointCloud2", CORRECTIONS_TOPIC: "nav_msgs/msg/Path"})
+        tf_conn, odom_conn, cloud_conn, path_conn = connections.values()
         for k in range(args.scans):
             stamp = int(stamps[k])
             estimate[k] = map_from_odom @ odometry[k]
@@ -103,7 +109,8 @@ def main() -> int:
             transforms = [pose_to_transform_stamped(map_from_odom, stamp, MAP_FRAME, ODOM_FRAME, types)]
             tf_msg = types("tf2_msgs/msg/TFMessage")(transforms=transforms)
             odom = pose_to_odometry(odometry[k], stamp, ODOM_FRAME, SENSOR_FRAME, types)
-            cloud = encode_cloud(stamp, SENSOR_FRAME, fields[k % len(fields)], types=types)
+            frame_fields = cloud_fields(source[k], False) if fields is None else fields[k % len(fields)]
+            cloud = encode_cloud(stamp, SENSOR_FRAME, frame_fields, types=types)
             writer.write(tf_conn, stamp, typestore.serialize_cdr(tf_msg, tf_msg.__msgtype__))
             writer.write(odom_conn, stamp, typestore.serialize_cdr(odom, odom.__msgtype__))
             writer.write(cloud_conn, stamp, typestore.serialize_cdr(cloud, cloud.__msgtype__))

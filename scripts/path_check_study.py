@@ -41,7 +41,7 @@ def drive_log(scans: int, segment: int = 100) -> ScanLog:
         pose[:3, 3] = [number * 1.0, 0.1 * number, 0.0]
         log.append(LoggedScan.of(points, np.zeros(10, np.int64), pose, EPOCH_NS + number * 100_000_000))
         if number % segment == segment - 1:
-            log.begin_segment(None, None, 0)
+            log.begin_segment(None, None)
     return log
 
 

@@ -8,7 +8,8 @@ warnings the node logged, the worst ``/diagnostics`` level it published, the odo
 reported last, the corrections it applied (a drift bag's ``/pose_corrections``), and play_bag's
 exit code and seconds; with ``--measure``, also the node's peak RSS, its last ``/diagnostics``
 figures of the scan log and corrections, the seconds a ``~/save_map`` takes at the end, the
-map file's size and its scan log folder's.
+map file's size and its scan log folder's, and every 2 s the node's RSS beside the memory it
+reports (``memory_N.jsonl``).
 
     scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --replays 10
     scripts/venv_exec.sh .venv/bin/python scripts/replay_study.py out/demo/bag --stop-after 4 --stop-for 20
@@ -96,6 +97,27 @@ class DiagnosticsWatch:
         self.thread.join(5)
 
 
+MEMORY_KEYS = ("map_megabytes", "scan_log_megabytes", "scan_log_disk_megabytes", "scan_log_write_backlog_megabytes",
+               "correction_progress", "corrections_done", "live_lag_s")
+
+
+def sample_memory(node: subprocess.Popen, watch: DiagnosticsWatch, path: Path, started: float) -> None:
+    """Append the node's RSS (MB) and its last /diagnostics figures of memory to ``path`` every
+    2 s while it runs (JSON lines)."""
+    with path.open("w") as stream:
+        while node.poll() is None:
+            try:
+                status = Path(f"/proc/{node.pid}/status").read_text()
+            except OSError:
+                return
+            row = {"s": round(time.monotonic() - started, 1),
+                   "rss_mb": int(re.search(r"VmRSS:\s+(\d+)", status).group(1)) // 1000,
+                   **{key: watch.last.get(key) for key in MEMORY_KEYS}}
+            stream.write(json.dumps(row) + "\n")
+            stream.flush()
+            time.sleep(2.0)
+
+
 def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
     domain = str(random.randint(1, 100))
     env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
@@ -122,6 +144,10 @@ def replay(args: argparse.Namespace, index: int, out: Path) -> dict:
             started = time.monotonic()
             player = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             stopped = False
+            if args.measure:  # the node's memory beside what it says it holds, every 2 s
+                sampler = threading.Thread(target=sample_memory, daemon=True,
+                                           args=(node, watch, out / f"memory_{index}.jsonl", started))
+                sampler.start()
             player_out: list[str] = []
             pump = threading.Thread(target=lambda: player_out.extend(player.stdout), daemon=True)
             pump.start()

@@ -54,11 +54,20 @@ def is_log_file(name: str) -> bool:
 class SegmentBase:
     """A segment's base: the map (a ``VoxelStore``) as it was where the segment began, in
     memory, in a file of the log's folder (``place``), or both. Shared by every copy of the
-    segment, so that it is written once."""
+    segment, so that it is written once.
+
+    ``window``: the window's voxels then, (indices, alpha), not yet written into ``store`` (a
+    copy of the global store then): the base is built (``store``) on the log's writer thread, or
+    by the first reader, so that the update thread only gathers the window."""
 
     def __init__(self, store, memory_bytes: int = 0, place: tuple | None = None, num_classes: int = 0,
-                 prior: float = 0.0, depends: frozenset[str] = frozenset()):
+                 prior: float = 0.0, depends: frozenset[str] = frozenset(),
+                 window: tuple[np.ndarray, np.ndarray] | None = None):
         self._store = store  # None once released (the files hold it)
+        self._window = window  # still to be written into the store (None: built)
+        self._build_lock = threading.Lock()
+        if window is not None:
+            memory_bytes = sum(part.nbytes for part in window)
         self.memory_bytes = int(memory_bytes)  # what it holds beside the map's own store
         # (the ``LogFolder``, its index file's name, the bytes it added to the folder) once written
         self.place = place
@@ -71,20 +80,36 @@ class SegmentBase:
         return self._store is not None
 
     @property
+    def built(self) -> bool:
+        return self._window is None
+
+    @property
     def disk_bytes(self) -> int:
         return 0 if self.place is None else int(self.place[2])
+
+    def build(self) -> None:
+        """Write the window's voxels into the store (once; any thread): the map as it was. What it
+        holds beside the map then is about the window's voxels, compacted."""
+        with self._build_lock:
+            if self._window is None:
+                return
+            before = self._store.copy()  # the chunks shared with the map when the base was taken
+            self._store.write(*self._window, bounded=False)  # the map as it was, whatever its budget
+            self.memory_bytes = self._store.bytes_not_shared_with(before)
+            self._window = None
 
     def store(self):
         """The base's store: the one in memory, else read from its file (a new store each time)."""
         store = self._store
         if store is not None:
+            self.build()
             return store
         folder, name, _ = self.place
         return folder.read_base(name, self.num_classes, self.prior)
 
     def held_store(self):
-        """The store while it is in memory (None once released): what a recount reads."""
-        return self._store
+        """The store while it is in memory and built (else None): what a recount reads."""
+        return self._store if self._window is None else None
 
     def release(self) -> int:
         """Let the store go where the file holds it; returns the memory let go."""
@@ -107,6 +132,7 @@ class LogFolder:
         self.max_bytes = int(max_bytes)
         self.error: str | None = None  # the last write that failed, in words (None: none)
         self.written_bytes = 0
+        self.backlog_bytes = 0  # scan bytes handed over and not yet written
         self._tasks: queue.Queue = queue.Queue()
         self._lock = threading.Lock()  # the data file being appended, and the files a tidy-up may delete
         self._data: tuple[str, int, int] | None = None  # (name, descriptor, size) of the data file appended
@@ -138,6 +164,10 @@ class LogFolder:
 
     def put_scan(self, data) -> None:
         """Write a scan's bytes (``ScanBytes``) to the data file; sets its ``place`` when done."""
+        if self._closed:
+            return
+        with self._lock:
+            self.backlog_bytes += data.size
         self._submit(("scan", data))
 
     def put_base(self, base: SegmentBase) -> None:
@@ -216,7 +246,11 @@ class LogFolder:
                 if kind == "stop":
                     return
                 if kind == "scan":
-                    self._write_scan(item)
+                    try:
+                        self._write_scan(item)
+                    finally:
+                        with self._lock:
+                            self.backlog_bytes -= item.size
                 elif kind == "base":
                     self._write_base(item)
                 elif kind == "tidy":
@@ -249,8 +283,11 @@ class LogFolder:
         from convbki_core.memory.store_parts import chunks_of
 
         self._next_data_file()
+        if base.place is not None or not base.in_memory:
+            return
+        base.build()
         store = base.held_store()
-        if base.place is not None or store is None:
+        if store is None:  # released meanwhile (only a written base is)
             return
         chunks = chunks_of(store)
         count = len(chunks)

@@ -15,6 +15,7 @@ from typing import Self
 
 import numpy as np
 
+from convbki_core.correction.log_folder import SegmentBase
 from convbki_core.correction.replay import CorrectionResult, continue_correction, pose_displacements
 from convbki_core.correction.scan_log import ScanLog, Segment
 from convbki_core.geometry.grid import check_poses
@@ -37,25 +38,21 @@ class MapCorrections:
             folder.keep_named_by(keep_named_by)
             self.scan_log.use_folder(folder)
 
-    def base_copy(self):
-        """The map as it is now, as a store of its own (a log segment's base): the global
-        store's chunks shared, the window's voxels written into it. Returns (store, the memory
-        it takes beside the map's store: about the window's voxels)."""
-        base = self.store.copy()
-        base.write(*self.window.items(), bounded=False)  # the map as it is, whatever its budget
-        return base, base.bytes_not_shared_with(self.store)
+    def segment_base(self) -> SegmentBase:
+        """The map as it is now (a log segment's base): a copy of the global store (its chunks
+        shared) and the window's voxels, gathered; the base writes them into the copy when it is
+        built (``SegmentBase.build``: the log's writer thread, else at once)."""
+        return SegmentBase(self.store.copy(), window=self.window.items())
 
     def _begin_log_segment(self) -> None:
         self.scan_log.refresh_base_bytes(self.store)  # the bound counts what the older bases own by now
-        base, nbytes = self.base_copy()
-        self.scan_log.begin_segment(base, self.sensor_position, nbytes)
+        self.scan_log.begin_segment(self.segment_base(), self.sensor_position)
 
     def _restart_log(self, why: str) -> None:
         """The map changed other than by a scan (a load, a forgotten box): a correction can
         reach back to here only, from the map as it is now; ``why`` the scans before cannot move."""
         if self.scan_log is not None:
-            base, nbytes = self.base_copy()
-            self.scan_log.restart(base, self.sensor_position, nbytes, self.scans_integrated, why)
+            self.scan_log.restart(self.segment_base(), self.sensor_position, self.scans_integrated, why)
 
     def plan_correction(self, poses: dict[int, np.ndarray], tolerance: float = 0.0, reach: float | None = None,
                         log: ScanLog | None = None) -> tuple[dict[int, np.ndarray], int, float]:

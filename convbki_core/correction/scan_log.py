@@ -350,22 +350,26 @@ class ScanLog:
         """The newest segment holds half the bound: the next one should begin (``begin_segment``)."""
         with self._lock:  # the scans alone: a base larger than half the bound must not begin one a scan
             last = self._segments[-1]
+            if self.folder is not None and self.folder.error is None and last.base is not None \
+                    and last.base.place is None:
+                return False  # one base at most waits for the writer: the segment grows meanwhile
             share = 4 if self.folder is not None else 2
             return bool(last.scans) and bool((self.max_scans and 2 * len(last.scans) >= self.max_scans)
                                              or (self.max_bytes and share * last.scan_bytes >= self.max_bytes))
 
-    def _new_base(self, store, base_bytes: int) -> SegmentBase | None:
-        if store is None:
+    def _new_base(self, base: SegmentBase | None) -> SegmentBase | None:
+        if base is None:
             return None
-        base = SegmentBase(store, base_bytes)
-        if self.folder is not None:
-            self.folder.put_base(base)
+        if self.folder is not None and self.folder.error is None:
+            self.folder.put_base(base)  # built there, off the update thread
+        else:
+            base.build()
         return base
 
-    def begin_segment(self, base, base_position: np.ndarray | None, base_bytes: int) -> int:
-        """Begin a segment whose base is the map as it is now (``base``: a ``VoxelStore`` copy);
+    def begin_segment(self, base: SegmentBase | None, base_position: np.ndarray | None) -> int:
+        """Begin a segment whose base is the map as it is now (``base``: None for an empty map);
         the oldest segments fall out past the bounds. Returns how many scans fell out."""
-        segment_base = self._new_base(base, base_bytes)
+        segment_base = self._new_base(base)
         with self._lock:
             last = self._segments[-1]
             self._changes += 1
@@ -409,11 +413,11 @@ class ScanLog:
         if self.folder is not None:
             self.folder.tidy()
 
-    def restart(self, base, base_position: np.ndarray | None, base_bytes: int, first_index: int,
+    def restart(self, base: SegmentBase | None, base_position: np.ndarray | None, first_index: int,
                 why: str = "") -> None:
         """Forget every scan and begin again from ``base`` (a map loaded from a file without a
         log, a forgotten box); ``why``: what froze the scans before, in words."""
-        segment_base = self._new_base(base, base_bytes)
+        segment_base = self._new_base(base)
         with self._lock:
             self._changes += 1
             self._segments = deque([Segment(first_index, segment_base, None if base_position is None

@@ -15,6 +15,7 @@ def scan_log_values(log, newest_received_ns: int | None) -> list[tuple[str, obje
               ("scan_log_reach_s", "" if reach is None else f"{(newest - reach) / 1e9:.1f}"),
               ("scan_log_folder", "" if folder is None else str(folder.path)),
               ("scan_log_disk_megabytes", f"{log.disk_bytes / 1e6:.1f}"),
+              ("scan_log_write_backlog_megabytes", "" if folder is None else f"{folder.backlog_bytes / 1e6:.1f}"),
               ("scan_log_write_error", "" if folder is None or folder.error is None else folder.error)]
     if newest_received_ns is not None:
         lag = 0.0 if newest is None else max(0.0, (newest_received_ns - newest) / 1e9)

@@ -107,6 +107,14 @@ def cloud_fields(frame, probabilities: bool) -> dict[str, np.ndarray]:
     return fields
 
 
+def add_connections(writer, typestore, types_by_topic: dict[str, str], latched=frozenset()) -> dict:
+    """A rosbags ``Writer``'s connection for each topic (``types_by_topic``: topic -> message
+    type), offered with ``data_qos`` (``latched``: the topics offered as tf2 offers /tf_static)."""
+    return {topic: writer.add_connection(topic, msgtype, typestore=typestore,
+                                         offered_qos_profiles=[data_qos(latched=topic in latched)])
+            for topic, msgtype in types_by_topic.items()}
+
+
 def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, probabilities: bool,
               closure=None) -> dict[str, int]:
     """Write the frames at ``positions`` of ``sequence`` into a new bag at ``path``; counts per
@@ -134,18 +142,13 @@ def write_bag(sequence, positions: Sequence[int], path: Path, storage: str, prob
     previous = None
     mount = sequence.calibration  # camera_gray_left <- velo_link
     with Writer(path, version=9, storage_plugin=plugin) as writer:
-        qos = [data_qos()]
-        static_conn = writer.add_connection(TF_STATIC_TOPIC, "tf2_msgs/msg/TFMessage", typestore=typestore,
-                                            offered_qos_profiles=[data_qos(latched=True)])
-        tf_conn = writer.add_connection(TF_TOPIC, "tf2_msgs/msg/TFMessage", typestore=typestore,
-                                        offered_qos_profiles=qos)
-        odom_conn = writer.add_connection(ODOM_TOPIC, "nav_msgs/msg/Odometry", typestore=typestore,
-                                          offered_qos_profiles=qos)
-        cloud_conn = writer.add_connection(CLOUD_TOPIC, "sensor_msgs/msg/PointCloud2", typestore=typestore,
-                                           offered_qos_profiles=qos)
+        topics = {TF_STATIC_TOPIC: "tf2_msgs/msg/TFMessage", TF_TOPIC: "tf2_msgs/msg/TFMessage",
+                  ODOM_TOPIC: "nav_msgs/msg/Odometry", CLOUD_TOPIC: "sensor_msgs/msg/PointCloud2"}
         if closes:
-            path_conn = writer.add_connection(CORRECTIONS_TOPIC, "nav_msgs/msg/Path", typestore=typestore,
-                                              offered_qos_profiles=qos)
+            topics[CORRECTIONS_TOPIC] = "nav_msgs/msg/Path"
+        connections = add_connections(writer, typestore, topics, latched={TF_STATIC_TOPIC})
+        static_conn, tf_conn, odom_conn, cloud_conn = (connections[topic] for topic in list(topics)[:4])
+        path_conn = connections.get(CORRECTIONS_TOPIC)
         for position in progress(positions, total=len(positions), description=PROG):
             frame = sequence[position]
             stamp = EPOCH_NS + seconds_to_ns(frame.stamp)

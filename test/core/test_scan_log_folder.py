@@ -152,3 +152,35 @@ def test_the_folders_bound_freezes_the_oldest_scans_and_deletes_their_files(drif
     # The saved map still reads its whole log, though the live log let those scans go.
     metadata, _, _ = read_map(tmp_path / "map.npz", with_scan_log=True)
     assert len(metadata["scan_log"]) == saved_after and metadata["scan_log"].scans()[0][1].points().shape[1] == 3
+
+
+def test_a_base_is_built_by_the_writer_and_one_at_most_waits_for_it(drift_drive, tmp_path):
+    dataset = SemanticKittiSequence(drift_drive, "00")
+    robot = read_loop_closure(dataset).robot_poses()
+    # Memory for 4 scans: a segment would begin after every scan.
+    config = MapperConfig().replace(device="cpu", local_bounds=WINDOW, scan_log_megabytes=4 * scan_megabytes(dataset))
+    live = ConvBKIMapper(config)
+    live.use_log_folder(tmp_path / "log")
+    folder = live.scan_log.folder
+    handed = []
+    folder._submit = handed.append  # the writer is held back: nothing is written until the test says
+    map_drive(live, dataset, robot, 6, np.arange(6) * 100_000_000)
+    segments = live.scan_log.segments()
+    # The base taken after the first scan waits unbuilt (the window's voxels only); the segment
+    # it begins grows meanwhile instead of queueing more bases.
+    assert [len(s.scans) for s in segments] == [1, 5]
+    waiting = segments[1].base
+    assert not waiting.built and waiting.place is None and folder.backlog_bytes > 0
+    assert waiting.memory_bytes >= 12 * len(waiting._window[0])  # counted against the log's memory bound
+    del folder._submit
+    for task in handed:
+        folder._submit(task)
+    folder.flush()
+    assert waiting.built and waiting.place is not None and folder.backlog_bytes == 0
+    map_drive(live, dataset, robot, 7, np.arange(7) * 100_000_000, first=6)
+    assert [len(s.scans) for s in live.scan_log.segments()] == [1, 6, 0]  # the next segment begins at once
+    # The base the writer built is the map after the first scan: a replay from it gives the live map.
+    fixed, _ = live.corrected({k: robot[k] for k in range(1, 7)}, tolerance=-1.0)
+    got, want = sorted_items(fixed), sorted_items(live)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])

@@ -258,6 +258,7 @@ def test_a_saved_log_is_corrected_after_a_restart_and_bad_paths_change_nothing(d
     finally:
         probe.close()
     assert status["scan_log_folder"] == str(tmp_path / "logs") and status["scan_log_write_error"] == "", status
+    assert float(status["scan_log_write_backlog_megabytes"]) >= 0.0, status
     assert float(status["scan_log_megabytes"]) < 0.5 * float(status["scan_log_disk_megabytes"]), status
     assert "saved" in first_run.close()  # Ctrl-C: the node saves on shutdown
     metadata, _, _ = read_map(map_file, with_scan_log=True)
