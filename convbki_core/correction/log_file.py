@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from convbki_core.correction.log_folder import LogFolder, SegmentBase
+from convbki_core.correction.log_folder import LogFolder, SegmentBase, files_of_meta
 from convbki_core.correction.logged_scan import LoggedScan, ScanBytes
 from convbki_core.correction.scan_log import ScanLog, Segment
 
@@ -47,8 +47,13 @@ def log_arrays(log: ScanLog, map_folder: str | Path) -> dict[str, np.ndarray]:
     map_folder = os.path.realpath(map_folder)
     arrays, files, described = {}, {}, []
 
+    real_folders: dict[Path, str] = {}  # a folder's real path, looked up once (thousands of scans name it)
+
     def file_number(place) -> int:
-        path = os.path.realpath(place[0].path / place[1])
+        folder = place[0].path
+        if folder not in real_folders:
+            real_folders[folder] = os.path.realpath(folder)
+        path = os.path.join(real_folders[folder], place[1])
         shown = os.path.relpath(path, map_folder) if path.startswith(map_folder + os.sep) else path
         return files.setdefault(shown, len(files))
 
@@ -98,10 +103,7 @@ def log_arrays(log: ScanLog, map_folder: str | Path) -> dict[str, np.ndarray]:
 def named_files(arrays: dict[str, np.ndarray], map_folder: str | Path) -> list[Path]:
     """The folder files a log's members (``log_arrays``) name, as absolute paths."""
     meta = json.loads(arrays["scan_log_meta"].tobytes().decode())
-    files = meta.get("files") or []
-    if not isinstance(files, list) or not all(isinstance(name, str) for name in files):
-        raise ValueError("its list of files is damaged")
-    return [Path(os.path.normpath(os.path.join(map_folder, name))) for name in files]
+    return [Path(os.path.normpath(os.path.join(map_folder, name))) for name in files_of_meta(meta)]
 
 
 def log_of_arrays(arrays: dict[str, np.ndarray], meta: dict, num_classes: int, prior: float,

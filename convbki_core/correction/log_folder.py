@@ -436,15 +436,23 @@ class LogFolder:
                 os.rmdir(self.path)
 
 
+def files_of_meta(meta: dict) -> list[str]:
+    """The files a map file's log metadata names (relative to the map file's folder, or absolute);
+    ValueError where the list is damaged."""
+    files = meta.get("files") or []
+    if not isinstance(files, list) or not all(isinstance(name, str) for name in files):
+        raise ValueError("its list of files is damaged")
+    return files
+
+
 def referenced_files(map_path: str | Path, folder: Path) -> set[str]:
     """The files of ``folder`` the scan log of the map file at ``map_path`` names (read from its
     log's metadata alone; none where it is not such a file)."""
     try:
         with zipfile.ZipFile(map_path) as archive, archive.open("scan_log_meta.npy") as member:
             meta = json.loads(np.lib.format.read_array(io.BytesIO(member.read()), allow_pickle=False).tobytes())
-        files = meta.get("files") or []
-        base = Path(map_path).parent
-        return {Path(name).name for name in files if isinstance(name, str)
-                and os.path.realpath(base / name).startswith(os.path.realpath(folder) + os.sep)}
+        base, real_folder = Path(map_path).parent, os.path.realpath(folder)
+        return {Path(name).name for name in files_of_meta(meta)
+                if os.path.realpath(base / name).startswith(real_folder + os.sep)}
     except (OSError, KeyError, ValueError, zipfile.BadZipFile, AttributeError, TypeError):
         return set()
