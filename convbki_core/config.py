@@ -69,7 +69,7 @@ class ScanLogConfig:
     enabled: bool = True
     max_scans: int = 0
     max_megabytes: float = 256.0
-    disk_gigabytes: float = 8.0
+    disk_gigabytes: float = 16.0
 
 
 @dataclass(frozen=True)

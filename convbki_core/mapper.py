@@ -286,6 +286,8 @@ class ConvBKIMapper(MapContents, MapFiles, MapCorrections):
         self.sensor_position = pose[:3, 3].copy()
         self.present_movers = movers
         finished = time.perf_counter()
+        if self._everything_changed and self.window.track_changes:
+            self.window.forget_evicted_changes()  # every voxel is the next change: none need be kept
         if self.scan_log is not None:
             stamp = stamp_ns if stamp_ns is not None else (self.scans_integrated - 1) * 100_000_000
             self.scan_log.append(logged if logged is not None else LoggedScan.of(points, values, pose, stamp, mount))

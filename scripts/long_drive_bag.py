@@ -99,7 +99,7 @@ def main() -> int:
                 map_from_odom = estimate[k] @ np.linalg.inv(odometry[k])
             if k % NUDGE_EVERY == 0:
                 nudge = rng.normal(0.0, NUDGE_M, (args.scans, 3))
-            if k % PATH_EVERY == 0 and k >= KEYFRAME_EVERY:
+            if (k % PATH_EVERY == 0 or k in closures) and k >= KEYFRAME_EVERY:  # a closure is sent at once
                 keys = np.arange(0, k + 1, KEYFRAME_EVERY)
                 poses = estimate[keys].copy()
                 poses[:, :3, 3] += nudge[keys]

@@ -141,6 +141,11 @@ class RollingWindow:
         if changed.any():
             self._evicted_changes.append((indices[changed], rows[changed]))
 
+    def forget_evicted_changes(self) -> None:
+        """Let the changes of voxels that left the window go: the map's next changes are all of
+        it anyway (a correction's map mapping again, a loaded map), and they would pile up."""
+        self._evicted_changes = []
+
     def take_dropped(self) -> np.ndarray:
         """Global indices (n, 3) of the voxels a full store dropped since the last call (kept only
         with ``track_changes``): they left the map."""

@@ -33,13 +33,16 @@ def wait_for_scans_up_to(core, stamp: int, longest: float = 5.0) -> None:
             queue.changed.wait(0.05)
 
 
-def let_live_scans_first(queue, stopping, longest: float = 1.0) -> None:
+def let_live_scans_first(queue, stopping, longest: float = 1.0, backlog: int = 4) -> None:
     """Before each scan mapped again: while clouds ready to integrate wait in the queue, let
-    the update thread take them first (``longest`` seconds at most a scan, so a stream the
-    update thread cannot keep up with still leaves the correction a share): the live map
-    never waits for a correction."""
+    the update thread take them first. While at most ``backlog`` wait, for ``longest`` seconds
+    at most a scan, so that a stream the update thread only just keeps up with still leaves the
+    correction a share; while more wait, until they are fewer, so that a correction never
+    makes the live map fall behind and drop clouds (it goes on when the stream pauses or ends)."""
     deadline = time.monotonic() + longest
     with queue.changed:
-        while (not queue.stopping and not stopping() and time.monotonic() < deadline
-               and queue.ready() > 0):
+        while not queue.stopping and not stopping():
+            ready = queue.ready()
+            if ready == 0 or (ready <= backlog and time.monotonic() >= deadline):
+                return
             queue.changed.wait(0.02)

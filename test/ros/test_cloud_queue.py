@@ -61,3 +61,45 @@ def test_a_time_limit_runs_in_the_nodes_clock():
     clock[0] += int(0.1 * SECOND)
     decision = queue._decide(2.0, lambda: clock[0])
     assert decision.verdict is Verdict.NO_POSE and len(queue) == 0 and queue.bytes == 0
+
+
+def test_a_correction_lets_the_live_map_take_its_clouds_first_and_never_makes_it_drop_one():
+    import threading
+
+    from convbki_ros.mapping.correction_waits import let_live_scans_first
+
+    queue = CloudQueue(max_pose_jump=10.0)
+    queue.add_odometry(0, np.eye(4), "velo_link")
+    queue.add_odometry(20 * SECOND, np.eye(4), "velo_link")
+    for number in range(6):
+        queue.push(cloud(number * SECOND), limit=100)
+    assert queue.ready() == 6
+    # More than `backlog` clouds wait: the correction waits whatever its time share (`longest`).
+    waiting = threading.Thread(target=let_live_scans_first, args=(queue, lambda: False, 0.0, 4))
+    waiting.start()
+    waiting.join(0.5)
+    assert waiting.is_alive()
+    for _ in range(2):  # the update thread takes two: four are left, and the share is spent
+        assert queue.next(0.0).verdict is Verdict.PLACE
+    waiting.join(10.0)
+    assert not waiting.is_alive() and queue.ready() == 4
+    # A short queue: the correction waits for it to empty, `longest` seconds at most.
+    started = threading.Event()
+
+    def wait_long():
+        started.set()
+        let_live_scans_first(queue, lambda: False, 60.0, 4)
+
+    waiting = threading.Thread(target=wait_long)
+    waiting.start()
+    started.wait(10.0)
+    waiting.join(0.5)
+    assert waiting.is_alive()
+    while queue.ready():
+        queue.next(0.0)
+    waiting.join(10.0)
+    assert not waiting.is_alive()
+    # The node stopping ends any wait.
+    for number in range(6, 12):
+        queue.push(cloud(number * SECOND), limit=100)
+    let_live_scans_first(queue, lambda: True, 0.0, 4)
