@@ -114,6 +114,12 @@ class MapContents:
         self.window.items(indices[stored:], alpha[stored:])
         return indices, alpha
 
+    def voxel_keys(self) -> np.ndarray:
+        """The linear keys (``voxel_keys``) of every voxel with evidence, without their
+        concentrations (a map of tens of millions of voxels would take gigabytes with them)."""
+        window_indices, _ = self.window.items()
+        return np.concatenate([self.store.voxel_keys(), voxel_keys(window_indices)])
+
     def voxels(self) -> VoxelSet:
         """Every voxel that ever received evidence, with its statistics."""
         return self.voxel_set(*self.items())
@@ -223,10 +229,10 @@ class MapContents:
         return changes.removed, changes.indices, records_from_alpha(changes.indices, changes.alpha, self.resolution,
                                                                     palette)
 
-    def announce_replacement(self, previous_indices: np.ndarray) -> None:
+    def announce_replacement(self, previous_keys: np.ndarray) -> None:
         """This map took the place of another (a correction's): the next changes are every voxel,
-        and the other's voxels (``previous_indices``, (n, 3)) this map does not have as removed,
-        so a copy kept from the changes becomes this map."""
-        self._replaced_keys = np.unique(voxel_keys(previous_indices))
+        and the other's voxels (``previous_keys``: its ``voxel_keys()``) this map does not have as
+        removed, so a copy kept from the changes becomes this map."""
+        self._replaced_keys = np.unique(previous_keys)
         self._everything_changed = True
 

@@ -23,7 +23,7 @@ import sys
 import numpy as np
 
 from convbki_core.compiled import HAVE_NUMBA
-from convbki_core.geometry.grid import linear_index, unravel_linear
+from convbki_core.geometry.grid import linear_index, unravel_linear, voxel_keys
 from convbki_core.memory.budget import MemoryState, StoreBudget
 from convbki_core.memory.compact_rows import compress_rows, entry_ranges, entry_starts, expand_rows
 
@@ -407,6 +407,11 @@ class VoxelStore:
         return alpha, found
 
     # -- whole map -------------------------------------------------------------------------
+    def voxel_keys(self) -> np.ndarray:
+        """Every stored voxel's linear key (``voxel_keys``), chunk order."""
+        return np.concatenate([np.zeros(0, np.int64)] + [voxel_keys(_decode_offsets(c.offsets) + (
+            np.asarray(k, np.int64) << CHUNK_SHIFT)) for k, c in self._chunks.items()])
+
     def items(self, indices: np.ndarray | None = None,
               alpha: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Every stored voxel: (global indices (N, 3) int64, alpha (N, C) float32), chunk order.

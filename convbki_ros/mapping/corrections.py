@@ -334,7 +334,7 @@ class CorrectionRunner:
                 log = live.scan_log.copy()
             self._extend(plan, live, log, new.scans_integrated, result)
         result.seconds = time.monotonic() - started
-        previous = live.items()[0]  # the replaced map changes no more: read without the lock
+        previous = live.voxel_keys()  # the replaced map changes no more: read without the lock
         with core.map_lock:
             if core.mapper is new:
                 new.announce_replacement(previous)

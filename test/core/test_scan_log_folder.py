@@ -16,6 +16,7 @@ from convbki_core.correction.log_folder import is_log_file
 from convbki_core.correction.replay import keyframe_corrections
 from convbki_core.datasets.drift import read_loop_closure
 from convbki_core.datasets.semantic_kitti import SemanticKittiSequence
+from convbki_core.geometry.grid import voxel_keys
 from convbki_core.io.map_file import read_map
 
 WINDOW = ((-20.0, -20.0, -3.0), (20.0, 20.0, 3.0))  # test_correction's: voxels go through the store
@@ -202,3 +203,5 @@ def test_a_corrections_map_keeps_no_changes_of_voxels_it_mapped_again(drift_driv
     changes = fixed.take_changes()
     indices, _ = fixed.items()
     assert len(changes.indices) == len(indices) > 0
+    # The keys of a map's voxels without their concentrations (what a replaced map hands over).
+    np.testing.assert_array_equal(np.sort(fixed.voxel_keys()), np.sort(voxel_keys(indices)))
